@@ -1,0 +1,68 @@
+"""The ``mrft-tune`` command line: thin typer commands over the library.
+
+Each command group lives in its own module here and registers on :data:`app`.
+Library errors (:class:`mrft_gcs.errors.MrftError`) become a one-line message
+and an exit code in exactly one place: :func:`main`.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+from rich.console import Console
+
+from mrft_gcs.errors import MrftError
+
+__all__ = ["app", "main", "console", "err_console"]
+
+app = typer.Typer(
+    name="mrft-tune",
+    help=(
+        "Tune a multirotor from take-off in seconds: relay tests (MRFT) on altitude, roll,\n"
+        "pitch, then x and y; neural-network identification; PD gains written back over MAVLink.\n\n"
+        "Start with:  mrft-tune demo   (tunes the bundled simulated vehicle, no hardware)."
+    ),
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+console = Console()
+err_console = Console(stderr=True)
+
+
+def _register() -> None:
+    # Imported for their side effect of adding commands to ``app``.
+    from mrft_gcs.cli import commands  # noqa: F401
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the console script; returns the process exit code."""
+    _register()
+    try:
+        app(args=argv, standalone_mode=False)
+    except MrftError as err:
+        err_console.print(f"[bold red]error:[/] {err}", highlight=False, soft_wrap=True)
+        return err.exit_code
+    except KeyboardInterrupt:
+        err_console.print("[bold red]interrupted[/]")
+        return 130
+    except SystemExit as exc:  # typer/click usage errors
+        return int(exc.code or 0)
+    except Exception as exc:
+        # Click's own exceptions (typer vendors click, so match by behaviour, not class).
+        name = type(exc).__name__
+        if name == "Exit":
+            return int(getattr(exc, "exit_code", 0))
+        if name == "Abort":
+            err_console.print("[bold red]aborted[/]")
+            return 130
+        if hasattr(exc, "show") and hasattr(exc, "exit_code"):
+            exc.show()
+            return int(exc.exit_code)
+        raise
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

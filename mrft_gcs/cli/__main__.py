@@ -1,0 +1,5 @@
+import sys
+
+from mrft_gcs.cli import main
+
+sys.exit(main())
