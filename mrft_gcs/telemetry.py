@@ -179,6 +179,10 @@ class TelemetryLog:
     - ``position``: t, x, y, z, vx, vy, vz (NED)
     - ``actuator``: t, roll, pitch, yaw, thrust (commanded, normalised)
     - ``attitude_target``: t, qw, qx, qy, qz, thrust
+
+    ``loops`` holds per-loop signals given explicitly (the documented CSV format):
+    key is a :class:`~mrft_gcs.loops.Loop` value (``roll`` ...), table columns t, u, y
+    (u the relay/controller output in the loop's input units, y the measured variable).
     """
 
     attitude: np.ndarray = field(default_factory=lambda: _empty(7))
@@ -188,11 +192,13 @@ class TelemetryLog:
     status: tuple[StatusText, ...] = ()
     params: dict[str, float] = field(default_factory=dict)
     heartbeats: tuple[Heartbeat, ...] = ()
+    loops: dict[str, np.ndarray] = field(default_factory=dict)
     source: str = ""
 
     @property
     def duration_s(self) -> float:
-        ends = [a[[0, -1], 0] for a in (self.attitude, self.position, self.actuator) if len(a)]
+        tables = (self.attitude, self.position, self.actuator, *self.loops.values())
+        ends = [a[[0, -1], 0] for a in tables if len(a)]
         if not ends:
             return 0.0
         return float(max(e[1] for e in ends) - min(e[0] for e in ends))
@@ -206,6 +212,7 @@ class TelemetryLog:
             "attitude_target": len(self.attitude_target),
             "status": len(self.status),
             "params": len(self.params),
+            **{f"loop:{k}": len(v) for k, v in self.loops.items()},
         }
 
 
