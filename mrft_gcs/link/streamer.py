@@ -1,0 +1,220 @@
+"""A setpoint stream at a steady rate, with the telemetry watchdog (SPEC 5).
+
+:class:`SetpointStreamer` runs a thread that, every ``1/rate_hz`` seconds on
+absolute deadlines of the monotonic clock, asks a callback for the next setpoint
+and sends it. Deadlines do not drift with late ticks: a late tick is followed by
+an early one; a tick more than one period late is skipped and counted rather
+than sent in a burst. Each achieved period is recorded for the jitter figures.
+
+Every tick also checks the link's telemetry age: past ``watchdog_s`` (0.5 s by
+SPEC 5) the stream stops, a landing is commanded and :attr:`abort_reason` says
+why; :meth:`raise_if_aborted` turns it into :class:`~mrft_gcs.errors.SafetyAbort`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from mrft_gcs.errors import SafetyAbort
+from mrft_gcs.telemetry import ActuatorTarget, AttitudeTarget
+
+__all__ = ["SetpointStreamer", "StreamStats", "SetpointSink", "Setpoint", "period_stats"]
+
+Setpoint = ActuatorTarget | AttitudeTarget
+#: The callback: monotonic seconds since the stream started -> setpoint, or None to skip a tick.
+SetpointFn = Callable[[float], Setpoint | None]
+
+_SPIN_S = 0.0004  # sleep until this close to a deadline, then spin: sleep() overshoots ~0.1 ms
+
+
+class SetpointSink(Protocol):
+    """What the streamer needs from a link (:class:`~mrft_gcs.link.VehicleLink` is one)."""
+
+    def send_setpoint(self, target: Setpoint) -> None: ...
+
+    def telemetry_age_s(self) -> float: ...
+
+    def land(self, *, wait_ack: bool = True, timeout_s: float = 1.0) -> None: ...
+
+
+@dataclass(frozen=True)
+class StreamStats:
+    """Achieved stream figures. Periods in milliseconds; jitter is |period - nominal|."""
+
+    rate_hz_target: float
+    rate_hz_achieved: float
+    sent: int
+    skipped: int
+    period_p50_ms: float
+    period_p99_ms: float
+    period_max_ms: float
+    jitter_p50_ms: float
+    jitter_p99_ms: float
+
+    def line(self) -> str:
+        return (f"{self.rate_hz_achieved:.1f} Hz achieved of {self.rate_hz_target:g} Hz; period "
+                f"p50 {self.period_p50_ms:.3f} ms, p99 {self.period_p99_ms:.3f} ms, max "
+                f"{self.period_max_ms:.3f} ms; jitter p50 {self.jitter_p50_ms:.3f} ms, p99 "
+                f"{self.jitter_p99_ms:.3f} ms; {self.skipped} ticks skipped")
+
+
+def period_stats(send_times_s: np.ndarray, rate_hz: float, skipped: int = 0) -> StreamStats:
+    """Figures from the monotonic send times (s, shape (N,))."""
+    t = np.asarray(send_times_s, dtype=float)
+    if len(t) < 2:
+        nan = float("nan")
+        return StreamStats(rate_hz, 0.0, len(t), skipped, nan, nan, nan, nan, nan)
+    periods = np.diff(t) * 1e3
+    jitter = np.abs(periods - 1e3 / rate_hz)
+    return StreamStats(
+        rate_hz_target=rate_hz,
+        rate_hz_achieved=float((len(t) - 1) / (t[-1] - t[0])),
+        sent=len(t),
+        skipped=skipped,
+        period_p50_ms=float(np.percentile(periods, 50)),
+        period_p99_ms=float(np.percentile(periods, 99)),
+        period_max_ms=float(periods.max()),
+        jitter_p50_ms=float(np.percentile(jitter, 50)),
+        jitter_p99_ms=float(np.percentile(jitter, 99)),
+    )
+
+
+class SetpointStreamer:
+    """Stream setpoints from ``make_setpoint`` to ``link`` at ``rate_hz`` in a thread.
+
+    Parameters
+    ----------
+    link : SetpointSink
+        Usually a :class:`~mrft_gcs.link.VehicleLink`.
+    make_setpoint : callable
+        ``f(t_s) -> ActuatorTarget | AttitudeTarget | None``; ``t_s`` is seconds since
+        :meth:`start`. Runs on the streamer thread: keep it short (well under a period).
+    rate_hz : float
+        Default 250 Hz.
+    watchdog_s : float or None
+        Stop and land when no telemetry arrived for this long (0.5 s, SPEC 5). None
+        disables the watchdog (bench tests without a vehicle only).
+    land_on_abort : bool
+        Command a landing when the watchdog fires or the callback raises.
+
+    Examples
+    --------
+    >>> with SetpointStreamer(link, lambda t: ActuatorTarget(t, 0, 0, 0, 0.5)) as s:  # doctest: +SKIP
+    ...     time.sleep(2.0)
+    ...     s.raise_if_aborted()
+    """
+
+    def __init__(self, link: SetpointSink, make_setpoint: SetpointFn, rate_hz: float = 250.0,
+                 watchdog_s: float | None = 0.5, land_on_abort: bool = True,
+                 max_records: int = 1_000_000) -> None:
+        if rate_hz <= 0:
+            raise ValueError("rate_hz must be positive")
+        self.link = link
+        self.make_setpoint = make_setpoint
+        self.rate_hz = float(rate_hz)
+        self.watchdog_s = watchdog_s
+        self.land_on_abort = land_on_abort
+        self._times = np.empty(max_records)
+        self._n = 0
+        self._skipped = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.abort_reason: str | None = None
+        self.landing_commanded = False
+
+    def reset(self) -> None:
+        """Forget recorded periods (the stream must be stopped)."""
+        if self.running:
+            raise RuntimeError("stop the stream before reset()")
+        self._n = 0
+        self._skipped = 0
+        self.abort_reason = None
+        self.landing_commanded = False
+        self._stop.clear()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> SetpointStreamer:
+        if self.running:
+            return self
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="setpoint-streamer", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop streaming (no landing: the caller decides what comes next)."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+
+    def __enter__(self) -> SetpointStreamer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def wait(self, timeout_s: float) -> bool:
+        """Block until the stream stops (True) or ``timeout_s`` passes (False)."""
+        return self._stop.wait(timeout_s)
+
+    def raise_if_aborted(self) -> None:
+        """Raise :class:`SafetyAbort` if the watchdog or the callback stopped the stream."""
+        if self.abort_reason is not None:
+            raise SafetyAbort(self.abort_reason)
+
+    def stats(self) -> StreamStats:
+        return period_stats(self._times[: self._n], self.rate_hz, self._skipped)
+
+    def _abort(self, reason: str) -> None:
+        if self.land_on_abort:
+            try:
+                self.link.land(wait_ack=False)
+                self.landing_commanded = True
+                reason = f"{reason}; landing commanded"
+            except Exception as err:  # the link may be gone: say so, do not mask the reason
+                reason = f"{reason}; landing command could not be sent ({err})"
+        self.abort_reason = reason
+        self._stop.set()
+
+    def _run(self) -> None:
+        period = 1.0 / self.rate_hz
+        t0 = time.monotonic()
+        k = 0
+        while not self._stop.is_set():
+            deadline = t0 + k * period
+            now = time.monotonic()
+            if now - deadline > period:  # more than a whole period late: skip, do not burst
+                missed = int((now - deadline) / period)
+                self._skipped += missed
+                k += missed
+                continue
+            left = deadline - now
+            if left > _SPIN_S:
+                time.sleep(left - _SPIN_S)
+            while time.monotonic() < deadline:
+                pass
+            now = time.monotonic()
+            k += 1
+            if self.watchdog_s is not None and self.link.telemetry_age_s() > self.watchdog_s:
+                self._abort(f"no telemetry for {self.link.telemetry_age_s():.2f} s "
+                            f"(limit {self.watchdog_s:g} s): setpoint stream stopped")
+                return
+            try:
+                target = self.make_setpoint(now - t0)
+                if target is not None:
+                    self.link.send_setpoint(target)
+            except Exception as err:
+                self._abort(f"setpoint stream failed: {err}")
+                return
+            if self._n < len(self._times):
+                self._times[self._n] = now
+                self._n += 1

@@ -1,0 +1,145 @@
+"""Autopilot profiles: loading, validation, and the PD <-> cascade conversion (SPEC 4.2)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mrft_gcs.errors import UsageError
+from mrft_gcs.loops import Loop
+from mrft_gcs.profiles import (
+    G_M_S2,
+    Actuation,
+    PDGains,
+    gains_to_params,
+    load_profile,
+    params_to_gains,
+    parse_profile,
+)
+from mrft_gcs.telemetry import AutopilotFamily
+
+
+@pytest.mark.parametrize("name, family, actuation, offboard", [
+    ("px4", AutopilotFamily.PX4, Actuation.ATTITUDE, (6, 0)),
+    ("sitl", AutopilotFamily.PX4, Actuation.TORQUE, (6, 0)),
+    ("ardupilot", AutopilotFamily.ARDUPILOT, Actuation.ATTITUDE, (20, 0)),
+])
+def test_bundled_profiles_load(name, family, actuation, offboard):
+    p = load_profile(name)
+    assert (p.name, p.family, p.actuation) == (name, family, actuation)
+    assert (p.modes["offboard"].main, p.modes["offboard"].sub) == offboard
+    assert 0 < p.safety.max_tilt_deg < 90 and p.safety.max_test_duration_s > 0
+    assert len(p.parameter_names()) == len(set(p.parameter_names()))
+
+
+def test_mode_numbers_match_appendix_a():
+    px4, ap = load_profile("px4"), load_profile("ardupilot")
+    assert (px4.modes["land"].main, px4.modes["land"].sub) == (4, 6)
+    assert px4.modes["position"].main == 3
+    assert (ap.modes["land"].main, ap.modes["position"].main) == (9, 5)
+
+
+def test_sitl_profile_names_exist_on_the_sitl():
+    onboard = pytest.importorskip("mrft_gcs.sitl.onboard")
+    missing = [n for n in load_profile("sitl").parameter_names() if n not in onboard.PARAM_SPECS]
+    assert not missing
+
+
+def test_px4_conversion_values():
+    p = load_profile("px4")
+    g = {Loop.ROLL: PDGains(Kc=1.2, Kd=0.2), Loop.ALTITUDE: PDGains(Kc=0.3, Kd=0.15),
+         Loop.X: PDGains(Kc=0.2, Kd=0.3)}
+    v = gains_to_params(p, g, hover_thrust=0.5)
+    assert v["MC_ROLL_P"] == pytest.approx(6.0)  # angle P = Kc/Kd
+    assert v["MC_ROLLRATE_P"] == pytest.approx(0.2)  # rate P = Kd
+    assert (v["MC_ROLLRATE_I"], v["MC_ROLLRATE_D"], v["MC_ROLLRATE_K"]) == (0.0, 0.0, 1.0)
+    assert v["MPC_Z_P"] == pytest.approx(2.0)
+    assert v["MPC_Z_VEL_P_ACC"] == pytest.approx(0.15 * G_M_S2 / 0.5)  # Kd g / hover
+    assert v["MPC_XY_P"] == pytest.approx(0.2 / 0.3)
+    assert v["MPC_XY_VEL_P_ACC"] == pytest.approx(G_M_S2 * 0.3)  # g Kd
+    assert "MC_PITCH_P" not in v  # only the loops given
+
+
+def test_ardupilot_altitude_goes_through_the_accel_loop():
+    p = load_profile("ardupilot")
+    v = gains_to_params(p, {Loop.ALTITUDE: PDGains(Kc=0.3, Kd=0.15)}, hover_thrust=0.4)
+    a = 0.1 * 0.5  # throttle per m/s^2 from ACCZ_P = 0.5 (0.001 per cm/s^2)
+    assert v["PSC_ACCZ_P"] == 0.5
+    assert v["PSC_VELZ_P"] == pytest.approx(0.15 * (1 + a * G_M_S2 / 0.4) / a)
+    # the closed accel loop then gives exactly Kd of throttle per m/s of velocity error
+    thrust_per_acc_sp = a / (1 + a * G_M_S2 / 0.4)
+    assert v["PSC_VELZ_P"] * thrust_per_acc_sp == pytest.approx(0.15)
+
+
+def test_side_loops_share_one_set_the_lower_gains_win():
+    p = load_profile("px4")
+    v = gains_to_params(p, {Loop.X: PDGains(0.2, 0.3), Loop.Y: PDGains(0.3, 0.25)}, 0.5)
+    assert v["MPC_XY_VEL_P_ACC"] == pytest.approx(G_M_S2 * 0.25)
+    assert v["MPC_XY_P"] == pytest.approx(0.2 / 0.3)
+
+
+gain = st.floats(min_value=1e-3, max_value=50.0, allow_nan=False)
+
+
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from(["px4", "sitl", "ardupilot"]), kc=gain, kd=gain,
+       hover=st.floats(min_value=0.1, max_value=0.9))
+def test_round_trip_gains_params_gains(name, kc, kd, hover):
+    p = load_profile(name)
+    gains = {loop: PDGains(kc, kd) for loop in Loop}
+    values = gains_to_params(p, gains, hover)
+    values[p.altitude.hover_thrust] = hover
+    back = params_to_gains(p, values)
+    for loop in Loop:
+        assert back[loop].Kc == pytest.approx(kc, rel=1e-9)
+        assert back[loop].Kd == pytest.approx(kd, rel=1e-9)
+
+
+def test_bad_gains_and_hover_are_refused():
+    p = load_profile("px4")
+    with pytest.raises(UsageError, match="roll"):
+        gains_to_params(p, {Loop.ROLL: PDGains(math.nan, 0.1)}, 0.5)
+    with pytest.raises(UsageError, match="hover"):
+        gains_to_params(p, {Loop.ROLL: PDGains(1.0, 0.1)}, 1.5)
+
+
+def _px4_table():
+    import tomllib
+
+    from mrft_gcs.profiles import PROFILE_DIR
+    return tomllib.loads((PROFILE_DIR / "px4.toml").read_text())
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda d: d["autopilot"].update(actuation="rates"), "actuation"),
+    (lambda d: d["autopilot"].pop("family"), "family"),
+    (lambda d: d["roll"].update(angle_p="MC ROLL P"), "not a parameter name"),
+    (lambda d: d["roll"].update(rate_p="A_NAME_FAR_TOO_LONG"), "not a parameter name"),
+    (lambda d: d["modes"].pop("land"), "land"),
+    (lambda d: d["modes"]["offboard"].update(main=300), "0-255"),
+    (lambda d: d["safety"].update(max_tilt_deg=-5), "max_tilt_deg"),
+    (lambda d: d["safety"].update(max_tilt_deg=95), "below 90"),
+    (lambda d: d.pop("altitude"), "altitude"),
+])
+def test_invalid_profiles_fail_on_load(edit, match):
+    data = _px4_table()
+    edit(data)
+    with pytest.raises(UsageError, match=match):
+        parse_profile(data, "bad.toml")
+
+
+def test_unknown_profile_names_the_known_ones(tmp_path):
+    with pytest.raises(UsageError, match="px4"):
+        load_profile("no-such-autopilot")
+    bad = tmp_path / "broken.toml"
+    bad.write_text("[autopilot\n")
+    with pytest.raises(UsageError, match="cannot read profile"):
+        load_profile(bad)
+
+
+def test_safety_overrides_take_precedence():
+    s = load_profile("px4").safety.with_overrides(max_tilt_deg=20.0, max_altitude_m=None)
+    assert s.max_tilt_deg == 20.0 and s.max_altitude_m == load_profile("px4").safety.max_altitude_m
