@@ -51,7 +51,10 @@ class TlogSink:
         with self._lock:
             if self._writer is None:
                 return
-            self._writer.write(bytes(frame), time.time())
+            try:
+                self._writer.write(bytes(frame), time.time())
+            except ValueError:  # not a whole frame (never expected from pymavlink): skip it
+                return
             self.frames += 1
 
     def close(self) -> None:

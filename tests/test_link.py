@@ -1,0 +1,209 @@
+"""The MAVLink link over real UDP sockets: strings, silent vehicles, the SITL, the streamer,
+the watchdog, signing, and the .tlog of both directions."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import pytest
+
+from mrft_gcs.cli import main
+from mrft_gcs.errors import LinkError, SafetyAbort, UsageError
+from mrft_gcs.link import (
+    PX4_MODES,
+    LinkKind,
+    SetpointStreamer,
+    VehicleLink,
+    check_serial_baud,
+    link_needs,
+    load_signing_key,
+    measure_link,
+    parse_connection_string,
+    period_stats,
+    require_relay_capable,
+)
+from mrft_gcs.telemetry import ActuatorTarget, Attitude, AutopilotFamily, TelemetrySource
+
+KEY = bytes(range(32))
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _sitl(port: int, signing_key: bytes | None = None):
+    sitl = pytest.importorskip("mrft_gcs.sitl", reason="SITL not built yet")
+    if not hasattr(sitl, "SitlProcess"):
+        pytest.skip("SitlProcess not built yet")
+    return sitl.SitlProcess(vehicle="qdrone", port=port, speedup=1.0, seed=0,
+                            signing_key=signing_key)
+
+
+# ---------------------------------------------------------------- connection strings
+@pytest.mark.parametrize("text, kind, where", [
+    ("udp:127.0.0.1:14540", LinkKind.UDP_IN, ("127.0.0.1", 14540)),
+    ("udpin:0.0.0.0:14550", LinkKind.UDP_IN, ("0.0.0.0", 14550)),
+    ("udpout:192.168.1.10:14555", LinkKind.UDP_OUT, ("192.168.1.10", 14555)),
+    ("tcp:localhost:5760", LinkKind.TCP, ("localhost", 5760)),
+    ("tcpin:0.0.0.0:5760", LinkKind.TCP_IN, ("0.0.0.0", 5760)),
+])
+def test_network_strings(text, kind, where):
+    spec = parse_connection_string(text)
+    assert spec.kind is kind and (spec.host, spec.port) == where
+    assert spec.pymavlink_device().endswith(f"{where[0]}:{where[1]}")
+
+
+def test_serial_strings_and_baud():
+    assert parse_connection_string("/dev/ttyUSB0").baud_bps == 57600
+    assert parse_connection_string("/dev/ttyACM0,921600").baud_bps == 921600
+    assert parse_connection_string("/dev/ttyACM0,921600", baud=115200).baud_bps == 115200
+    assert parse_connection_string("COM3", baud=57600).device == "COM3"
+
+
+@pytest.mark.parametrize("text", ["udp:127.0.0.1", "udp::14540", "14540", "udp:host:99999",
+                                  "http://127.0.0.1:14540", "", "tcp:127.0.0.1:port"])
+def test_bad_strings_say_the_accepted_forms(text):
+    with pytest.raises(LinkError) as err:
+        parse_connection_string(text)
+    assert "\n" not in str(err.value)
+    if "99999" not in text:
+        assert "udpout:HOST:PORT" in str(err.value)
+
+
+def test_bad_string_via_cli_is_one_line_exit_3(capsys):
+    assert main(["params", "show", "--connect", "udp:127.0.0.1"]) == 3
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "udp:HOST:PORT" in err
+
+
+def test_silent_vehicle_times_out_with_link_error():
+    port = free_udp_port()
+    t = time.monotonic()
+    with pytest.raises(LinkError, match=rf"no heartbeat from udp:127.0.0.1:{port} within 0.5 s"):
+        VehicleLink.connect(f"udp:127.0.0.1:{port}", timeout_s=0.5)
+    assert time.monotonic() - t < 1.5
+
+
+def test_silent_vehicle_via_cli_exit_3(capsys):
+    port = free_udp_port()
+    assert main(["params", "show", "-c", f"udp:127.0.0.1:{port}", "--timeout", "0.3"]) == 3
+    assert "is the vehicle on" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- signing keys, link budget
+def test_signing_key_forms(tmp_path):
+    raw = tmp_path / "raw.key"
+    raw.write_bytes(KEY)
+    hexfile = tmp_path / "hex.key"
+    hexfile.write_text(KEY.hex() + "\n")
+    assert load_signing_key(raw) == load_signing_key(hexfile) == load_signing_key(KEY.hex()) == KEY
+    short = tmp_path / "short.key"
+    short.write_bytes(b"123")
+    with pytest.raises(UsageError, match="32-byte"):
+        load_signing_key(short)
+    with pytest.raises(UsageError, match="neither a file nor 64 hex"):
+        load_signing_key("no-such-file")
+
+
+def test_a_57600_radio_cannot_carry_250_hz():
+    with pytest.raises(LinkError, match=r"57600-baud .* at least 460800 baud"):
+        check_serial_baud(57600)
+    check_serial_baud(921600)
+    assert link_needs(50, 50).min_baud <= 115200
+
+
+def test_period_stats_from_send_times():
+    t = 0.004 * __import__("numpy").arange(251)
+    s = period_stats(t, 250.0)
+    assert s.rate_hz_achieved == pytest.approx(250.0)
+    assert s.jitter_p99_ms == pytest.approx(0.0, abs=1e-9)
+
+
+# ---------------------------------------------------------------- against the SITL
+def _tlog_frames(path):
+    """(sysid, msgid) of every frame in a .tlog (8-byte stamp, then the frame)."""
+    data = path.read_bytes()
+    out, i = [], 0
+    while i < len(data):
+        i += 8
+        if data[i] == 0xFD:
+            n = 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
+            out.append((data[i + 5], int.from_bytes(data[i + 7:i + 10], "little")))
+        else:
+            n = 8 + data[i + 1]
+            out.append((data[i + 3], data[i + 5]))
+        i += n
+    return out
+
+
+def test_link_with_sitl_telemetry_quality_tlog(tmp_path):
+    port = free_udp_port()
+    tlog = tmp_path / "session.tlog"
+    with _sitl(port), VehicleLink.connect(f"udp:127.0.0.1:{port}", tlog_path=tlog) as link:
+        assert isinstance(link, TelemetrySource)
+        assert link.family is AutopilotFamily.PX4
+        q = measure_link(link, rate_hz=250.0, window_s=1.0)
+        require_relay_capable(q)  # loopback carries 250 Hz
+        assert q.attitude_hz >= 200 and q.position_hz >= 200, q.line()
+        assert q.rtt_p50_ms < 50 and q.rtt_lost == 0
+        seen = [link.next_sample(1.0) for _ in range(50)]
+        assert any(isinstance(s, Attitude) for s in seen)
+        assert link.counters.nonfinite_dropped == 0
+    frames = _tlog_frames(tlog)
+    sent = [m for sys_id, m in frames if sys_id == 255]
+    got = [m for sys_id, m in frames if sys_id != 255]
+    assert 76 in sent and 20 in sent  # COMMAND_LONG, PARAM_REQUEST_READ out
+    assert got.count(30) >= 200 and 77 in got  # ATTITUDE, COMMAND_ACK in
+
+
+def test_streamer_rate_and_watchdog_when_telemetry_stops():
+    port = free_udp_port()
+    sitl = _sitl(port)
+    with sitl, VehicleLink.connect(f"udp:127.0.0.1:{port}") as link:
+        link.request_message_interval("ATTITUDE", 250)
+        streamer = SetpointStreamer(link, lambda t: ActuatorTarget(t, 0.0, 0.0, 0.0, 0.0))
+        streamer.start()
+        time.sleep(1.5)
+        assert streamer.abort_reason is None
+        stats = streamer.stats()
+        assert stats.rate_hz_achieved == pytest.approx(250.0, rel=0.03), stats.line()
+        assert abs(stats.period_p50_ms - 4.0) < 0.5, stats.line()
+        sitl.__exit__(None, None, None)  # the vehicle goes silent mid-stream
+        t_stop = time.monotonic()
+        assert streamer.wait(3.0)
+        assert time.monotonic() - t_stop < 1.5
+        assert streamer.landing_commanded
+        assert link.counters.sent["COMMAND_LONG"] >= 2  # NAV_LAND and the land mode
+        with pytest.raises(SafetyAbort, match="no telemetry .* landing commanded"):
+            streamer.raise_if_aborted()
+
+
+def test_modes_and_arming_on_sitl():
+    port = free_udp_port()
+    with _sitl(port), VehicleLink.connect(f"udp:127.0.0.1:{port}") as link:
+        link.set_mode(PX4_MODES["position"])
+        link.arm()
+        assert link.next_sample(1.0) is not None
+        link.land()
+        link.set_mode(PX4_MODES["land"])
+
+
+def test_signing_gcs_signs_and_the_keyed_sitl_accepts(tmp_path):
+    keyfile = tmp_path / "link.key"
+    keyfile.write_bytes(KEY)
+    port = free_udp_port()
+    with _sitl(port, signing_key=KEY):
+        with VehicleLink.connect(f"udp:127.0.0.1:{port}", signing_key=keyfile) as link:
+            assert link.signed
+            link.request_message_interval("ATTITUDE", 100)  # acknowledged: signature accepted
+        with VehicleLink.connect(f"udp:127.0.0.1:{port}") as unsigned:
+            with pytest.raises(LinkError, match="did not acknowledge"):
+                unsigned.command(511, (30, 1e4), timeout_s=0.3, retries=1)
+
+
+def test_links_speak_mavlink2():  # signing needs it
+    from mrft_gcs.link.connection import mavlink_module
+    assert mavlink_module().mavlink.WIRE_PROTOCOL_VERSION == "2.0"
