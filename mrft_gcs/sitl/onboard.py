@@ -1,0 +1,462 @@
+"""The simulated vehicle's onboard flight software: PX4-style modes, parameters and cascades.
+
+The structures are exactly those the tuner's gains are written for (SPEC 4.2), so a PD
+``u = Kc e - Kd w`` written as ``MC_ROLL_P = Kc/Kd``, ``MC_ROLLRATE_P = Kd``
+(``I = D = 0``, ``K = 1``) flies as that PD:
+
+Attitude (roll shown; pitch and yaw alike)::
+
+    rate_sp    = MC_ROLL_P * angle_error                       (rad/s; |rate_sp| <= 220 deg/s)
+    torque_cmd = MC_ROLLRATE_K * (MC_ROLLRATE_P * (rate_sp - rate) + I_int - MC_ROLLRATE_D * d(rate)/dt)
+                 + MC_ROLLRATE_FF * rate_sp                     (normalised, clipped to [-1, 1])
+    I_int     += MC_ROLLRATE_I * (rate_sp - rate) dt            (|I_int| <= MC_RR_INT_LIM)
+
+The angle error is the body-frame rotation vector of ``q_meas^-1 q_sp`` (equal to the Euler
+angle differences for small angles); ``d(rate)/dt`` is low-passed at 30 Hz (``IMU_DGYRO_CUTOFF``).
+
+Position (north/east; altitude alike with the MPC_Z_* names, up positive)::
+
+    vel_sp = MPC_XY_P * pos_error                               (|vel_sp| <= MPC_XY_VEL_MAX)
+    acc_sp = MPC_XY_VEL_P_ACC * (vel_sp - vel) + I_int - MPC_XY_VEL_D_ACC * d(vel)/dt
+    tilt   = acc_sp / g, rotated by yaw: roll_sp = acc_right / g, pitch_sp = -acc_forward / g
+                                                                (|tilt| <= MPC_TILTMAX_AIR)
+    thrust = MPC_THR_HOVER * (1 + acc_up_sp / g)                (clipped to [0, 1])
+
+Modes (PX4 custom_mode: main mode in bits 16-23, sub mode in bits 24-31): MANUAL, STABILIZED
+and ACRO are accepted only on the ground (there is no RC); ALTCTL holds altitude with a level
+attitude; POSCTL holds the position and altitude where it was entered; OFFBOARD follows
+SET_ACTUATOR_CONTROL_TARGET (torque path, straight to the mixer) or SET_ATTITUDE_TARGET
+(through the attitude cascade above); AUTO.LAND holds x/y and descends at MPC_LAND_SPEED, then
+disarms 2 s after touchdown. Offboard loss (no valid setpoint for COM_OF_LOSS_T, default 0.5 s)
+switches to AUTO.LAND with a STATUSTEXT.
+
+Default gains are PX4 v1.13's shipped defaults, as on a fresh build: generic, untuned for this
+airframe but flyable on the bundled profiles (POSCTL and LAND work out of the box).
+``MPC_THR_HOVER`` starts at the airframe's true hover throttle (rounded to 0.01), as if PX4's
+hover-thrust estimator had converged; ``COM_OF_LOSS_T`` defaults to 0.5 s (PX4: 1 s).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+from mrft_gcs.sitl.airframe import GRAVITY_M_S2
+
+__all__ = [
+    "FlightMode",
+    "CommandResult",
+    "ParamSpec",
+    "PARAM_SPECS",
+    "ParamStore",
+    "Autopilot",
+    "StatusEvent",
+]
+
+
+class FlightMode(enum.Enum):
+    """PX4 flight modes as ``(main_mode, sub_mode)``."""
+
+    MANUAL = (1, 0)
+    ALTCTL = (2, 0)
+    POSCTL = (3, 0)
+    AUTO_LAND = (4, 6)
+    ACRO = (5, 0)
+    OFFBOARD = (6, 0)
+    STABILIZED = (7, 0)
+
+    @property
+    def custom_mode(self) -> int:
+        """The HEARTBEAT ``custom_mode`` word (main in bits 16-23, sub in bits 24-31)."""
+        main, sub = self.value
+        return (main << 16) | (sub << 24)
+
+    @classmethod
+    def from_px4(cls, main: int, sub: int = 0) -> FlightMode | None:
+        """The mode for a DO_SET_MODE request, or None if not supported."""
+        for mode in cls:
+            m, s = mode.value
+            if m == main and (s == sub or (m == 4 and sub == 6)):
+                return mode
+        return None
+
+
+class CommandResult(enum.IntEnum):
+    """Outcome of a command, numerically equal to MAV_RESULT."""
+
+    ACCEPTED = 0
+    TEMPORARILY_REJECTED = 1
+    DENIED = 2
+    UNSUPPORTED = 3
+    FAILED = 4
+
+
+@dataclass(frozen=True)
+class StatusEvent:
+    """A message for the ground station (becomes STATUSTEXT). Severity as MAV_SEVERITY."""
+
+    severity: int
+    text: str
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """A float parameter: default, allowed range, unit."""
+
+    default: float
+    low: float
+    high: float
+    unit: str = ""
+
+
+_DEG = math.pi / 180.0
+
+#: Parameters served over MAVLink (all MAV_PARAM_TYPE_REAL32), PX4 v1.13 defaults.
+PARAM_SPECS: dict[str, ParamSpec] = {
+    "MC_ROLL_P": ParamSpec(6.5, 0.0, 50.0, "1/s"),
+    "MC_PITCH_P": ParamSpec(6.5, 0.0, 50.0, "1/s"),
+    "MC_YAW_P": ParamSpec(2.8, 0.0, 50.0, "1/s"),
+    "MC_ROLLRATE_P": ParamSpec(0.15, 0.0, 5.0, "1/(rad/s)"),
+    "MC_ROLLRATE_I": ParamSpec(0.2, 0.0, 10.0, "1/rad"),
+    "MC_ROLLRATE_D": ParamSpec(0.003, 0.0, 1.0, "s/rad"),
+    "MC_ROLLRATE_K": ParamSpec(1.0, 0.0, 5.0, ""),
+    "MC_ROLLRATE_FF": ParamSpec(0.0, 0.0, 5.0, ""),
+    "MC_PITCHRATE_P": ParamSpec(0.15, 0.0, 5.0, "1/(rad/s)"),
+    "MC_PITCHRATE_I": ParamSpec(0.2, 0.0, 10.0, "1/rad"),
+    "MC_PITCHRATE_D": ParamSpec(0.003, 0.0, 1.0, "s/rad"),
+    "MC_PITCHRATE_K": ParamSpec(1.0, 0.0, 5.0, ""),
+    "MC_PITCHRATE_FF": ParamSpec(0.0, 0.0, 5.0, ""),
+    "MC_YAWRATE_P": ParamSpec(0.2, 0.0, 5.0, "1/(rad/s)"),
+    "MC_YAWRATE_I": ParamSpec(0.1, 0.0, 10.0, "1/rad"),
+    "MC_YAWRATE_D": ParamSpec(0.0, 0.0, 1.0, "s/rad"),
+    "MC_YAWRATE_K": ParamSpec(1.0, 0.0, 5.0, ""),
+    "MC_YAWRATE_FF": ParamSpec(0.0, 0.0, 5.0, ""),
+    "MC_RR_INT_LIM": ParamSpec(0.3, 0.0, 1.0, ""),
+    "MC_ROLLRATE_MAX": ParamSpec(220.0, 0.0, 1800.0, "deg/s"),
+    "MC_PITCHRATE_MAX": ParamSpec(220.0, 0.0, 1800.0, "deg/s"),
+    "MC_YAWRATE_MAX": ParamSpec(200.0, 0.0, 1800.0, "deg/s"),
+    "MPC_XY_P": ParamSpec(0.95, 0.0, 10.0, "1/s"),
+    "MPC_XY_VEL_P_ACC": ParamSpec(1.8, 0.0, 30.0, "1/s"),
+    "MPC_XY_VEL_I_ACC": ParamSpec(0.4, 0.0, 60.0, "1/s^2"),
+    "MPC_XY_VEL_D_ACC": ParamSpec(0.2, 0.0, 10.0, ""),
+    "MPC_XY_VEL_MAX": ParamSpec(12.0, 0.0, 20.0, "m/s"),
+    "MPC_Z_P": ParamSpec(1.0, 0.0, 10.0, "1/s"),
+    "MPC_Z_VEL_P_ACC": ParamSpec(4.0, 0.0, 60.0, "1/s"),
+    "MPC_Z_VEL_I_ACC": ParamSpec(2.0, 0.0, 60.0, "1/s^2"),
+    "MPC_Z_VEL_D_ACC": ParamSpec(0.0, 0.0, 10.0, ""),
+    "MPC_Z_VEL_MAX_UP": ParamSpec(3.0, 0.5, 8.0, "m/s"),
+    "MPC_Z_VEL_MAX_DN": ParamSpec(1.0, 0.5, 4.0, "m/s"),
+    "MPC_THR_HOVER": ParamSpec(0.5, 0.1, 0.8, ""),
+    "MPC_TILTMAX_AIR": ParamSpec(45.0, 20.0, 89.0, "deg"),
+    "MPC_LAND_SPEED": ParamSpec(0.7, 0.2, 3.0, "m/s"),
+    "COM_OF_LOSS_T": ParamSpec(0.5, 0.0, 60.0, "s"),
+    "COM_DISARM_LAND": ParamSpec(2.0, -1.0, 20.0, "s"),
+}
+
+
+class ParamStore:
+    """The vehicle's float parameters, in a stable order (the MAVLink param_index)."""
+
+    def __init__(self, hover_thrust: float | None = None) -> None:
+        self.names: tuple[str, ...] = tuple(PARAM_SPECS)
+        self.values: dict[str, float] = {n: s.default for n, s in PARAM_SPECS.items()}
+        if hover_thrust is not None:
+            # as if PX4's hover-thrust estimator (MPC_USE_HTE) had converged
+            self.values["MPC_THR_HOVER"] = round(_clip(hover_thrust, 0.1, 0.8), 2)
+
+    def __getitem__(self, name: str) -> float:
+        return self.values[name]
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.values
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+    def set(self, name: str, value: float) -> bool:
+        """Set ``name``; False (and no change) for unknown names, NaN/inf or out of range."""
+        spec = PARAM_SPECS.get(name)
+        if spec is None or not math.isfinite(value) or not spec.low <= value <= spec.high:
+            return False
+        self.values[name] = float(value)
+        return True
+
+
+def _clip(v: float, lo: float, hi: float) -> float:
+    return lo if v < lo else hi if v > hi else v
+
+
+class _RateAxis:
+    """One axis of the PX4 rate controller (D on the measured rate, filtered)."""
+
+    def __init__(self, prefix: str, dt: float) -> None:
+        self.p, self.i, self.d = f"{prefix}_P", f"{prefix}_I", f"{prefix}_D"
+        self.k, self.ff = f"{prefix}_K", f"{prefix}_FF"
+        self.dt = dt
+        self.alpha = 1.0 - math.exp(-2 * math.pi * 30.0 * dt)
+        self.reset()
+
+    def reset(self) -> None:
+        self.integral = 0.0
+        self.prev_rate: float | None = None
+        self.rate_dot = 0.0
+
+    def update(self, prm: ParamStore, rate_sp: float, rate: float, integrate: bool) -> float:
+        if self.prev_rate is not None:
+            self.rate_dot += self.alpha * ((rate - self.prev_rate) / self.dt - self.rate_dot)
+        self.prev_rate = rate
+        err = rate_sp - rate
+        if integrate:
+            lim = prm["MC_RR_INT_LIM"]
+            self.integral = _clip(self.integral + prm[self.i] * err * self.dt, -lim, lim)
+        out = prm[self.k] * (prm[self.p] * err + self.integral - prm[self.d] * self.rate_dot)
+        return out + prm[self.ff] * rate_sp
+
+
+class _VelAxis:
+    """One axis of the PX4 velocity controller, output an acceleration setpoint in m/s^2."""
+
+    def __init__(self, prefix: str, dt: float) -> None:
+        self.p, self.i, self.d = f"{prefix}_P_ACC", f"{prefix}_I_ACC", f"{prefix}_D_ACC"
+        self.dt = dt
+        self.alpha = 1.0 - math.exp(-2 * math.pi * 5.0 * dt)  # MPC_VELD_LP = 5 Hz
+        self.reset()
+
+    def reset(self) -> None:
+        self.integral = 0.0
+        self.prev_vel: float | None = None
+        self.vel_dot = 0.0
+
+    def update(self, prm: ParamStore, vel_sp: float, vel: float, integrate: bool) -> float:
+        if self.prev_vel is not None:
+            self.vel_dot += self.alpha * ((vel - self.prev_vel) / self.dt - self.vel_dot)
+        self.prev_vel = vel
+        err = vel_sp - vel
+        if integrate:
+            self.integral = _clip(self.integral + prm[self.i] * err * self.dt,
+                                  -GRAVITY_M_S2, GRAVITY_M_S2)
+        return prm[self.p] * err + self.integral - prm[self.d] * self.vel_dot
+
+
+def _quat_mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float, float]:
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+
+
+def _quat_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
+
+
+class Autopilot:
+    """Modes, arming, setpoints, failsafes and the control cascades.
+
+    Call :meth:`update` once per physics step with the latest measurement; it returns the
+    normalised ``(roll, pitch, yaw, thrust)`` command for the mixer.
+    """
+
+    def __init__(self, dt_s: float, hover_thrust: float | None = None) -> None:
+        self.dt = dt_s
+        self.params = ParamStore(hover_thrust)
+        self._rate = [_RateAxis("MC_ROLLRATE", dt_s), _RateAxis("MC_PITCHRATE", dt_s),
+                      _RateAxis("MC_YAWRATE", dt_s)]
+        self._vel = [_VelAxis("MPC_XY_VEL", dt_s), _VelAxis("MPC_XY_VEL", dt_s),
+                     _VelAxis("MPC_Z_VEL", dt_s)]
+        self.reset()
+
+    def reset(self) -> None:
+        self.armed = False
+        self.mode = FlightMode.MANUAL
+        self.events: list[StatusEvent] = []
+        self.t = 0.0
+        self.landed = True
+        self._landed_since = 0.0
+        self._sp_time = -math.inf
+        self._sp_kind: str | None = None  # "actuator" | "attitude"
+        self._sp_actuator = (0.0, 0.0, 0.0, 0.0)
+        self._sp_att = ((1.0, 0.0, 0.0, 0.0), 0.0)
+        self._hold_pos = (0.0, 0.0, 0.0)  # north, east, up
+        self._hold_yaw = 0.0
+        self._last_meas: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+        for ax in (*self._rate, *self._vel):
+            ax.reset()
+
+    # ----------------------------------------------------------- commands
+    def _event(self, severity: int, text: str) -> None:
+        self.events.append(StatusEvent(severity, text))
+
+    def drain_events(self) -> list[StatusEvent]:
+        out, self.events = self.events, []
+        return out
+
+    def arm(self, arm: bool, force: bool = False) -> CommandResult:
+        if arm == self.armed:
+            return CommandResult.ACCEPTED
+        if arm:
+            if self.mode is FlightMode.OFFBOARD and not self._offboard_fresh():
+                self._event(4, "Arming denied: no offboard setpoints")
+                return CommandResult.DENIED
+            self.armed = True
+            for ax in (*self._rate, *self._vel):
+                ax.reset()
+            self._capture_hold()
+            self._event(6, "Armed")
+            return CommandResult.ACCEPTED
+        if not self.landed and not force:
+            self._event(4, "Disarming denied: not landed")
+            return CommandResult.DENIED
+        self.armed = False
+        self._event(6, "Disarmed")
+        return CommandResult.ACCEPTED
+
+    def set_mode(self, mode: FlightMode) -> CommandResult:
+        if mode is self.mode:
+            return CommandResult.ACCEPTED
+        if mode in (FlightMode.MANUAL, FlightMode.STABILIZED, FlightMode.ACRO) and not (
+                self.landed or not self.armed):
+            self._event(4, f"Switching to {mode.name} denied: no RC input in the simulator")
+            return CommandResult.DENIED
+        if mode is FlightMode.OFFBOARD and not self._offboard_fresh():
+            self._event(4, "Switching to OFFBOARD denied: stream setpoints first")
+            return CommandResult.DENIED
+        self._enter(mode)
+        return CommandResult.ACCEPTED
+
+    def _enter(self, mode: FlightMode) -> None:
+        self.mode = mode
+        self._capture_hold()
+        for ax in self._vel:
+            ax.reset()
+        name = {FlightMode.AUTO_LAND: "LAND"}.get(mode, mode.name)
+        self._event(6, f"Mode changed to {name}")
+
+    def land(self) -> CommandResult:
+        if self.mode is not FlightMode.AUTO_LAND:
+            self._enter(FlightMode.AUTO_LAND)
+        return CommandResult.ACCEPTED
+
+    def set_actuator_controls(self, roll: float, pitch: float, yaw: float,
+                              thrust: float) -> bool:
+        """Torque-path setpoint; False (ignored) if not finite or out of range."""
+        vals = (roll, pitch, yaw, thrust)
+        if not all(math.isfinite(v) for v in vals) or not (
+                all(-1.0 <= v <= 1.0 for v in vals[:3]) and 0.0 <= thrust <= 1.0):
+            return False
+        self._sp_actuator = (float(roll), float(pitch), float(yaw), float(thrust))
+        self._sp_kind, self._sp_time = "actuator", self.t
+        return True
+
+    def set_attitude_target(self, q: tuple[float, float, float, float], thrust: float) -> bool:
+        """Attitude-path setpoint; False (ignored) if not finite, |q| != 1 or thrust off [0, 1]."""
+        if not all(math.isfinite(v) for v in (*q, thrust)) or not 0.0 <= thrust <= 1.0:
+            return False
+        norm = math.sqrt(sum(v * v for v in q))
+        if abs(norm - 1.0) > 1e-2:
+            return False
+        self._sp_att = (tuple(v / norm for v in q), float(thrust))  # type: ignore[assignment]
+        self._sp_kind, self._sp_time = "attitude", self.t
+        return True
+
+    # ------------------------------------------------------------- update
+    def _offboard_fresh(self) -> bool:
+        return self.t - self._sp_time <= max(self.params["COM_OF_LOSS_T"], 0.0) + 1e-9
+
+    def _capture_hold(self) -> None:
+        if self._last_meas is None:
+            return
+        att, posv = self._last_meas
+        self._hold_pos = (posv[0], posv[1], -posv[2])
+        self._hold_yaw = att[2]
+
+    def update(self, t: float, att: tuple[float, ...], posv: tuple[float, ...],
+               on_ground: bool) -> tuple[float, float, float, float]:
+        """One control step. ``att``/``posv`` as :attr:`Multirotor.meas_att`/``meas_posv``."""
+        self.t = t
+        self._last_meas = (att, posv)
+        self._update_landed(on_ground)
+        if not self.armed:
+            return (0.0, 0.0, 0.0, 0.0)
+        if self.mode is FlightMode.OFFBOARD and not self._offboard_fresh():
+            self._event(2, "Failsafe enabled: no offboard setpoints, landing")
+            self._enter(FlightMode.AUTO_LAND)
+        mode = self.mode
+        if mode is FlightMode.OFFBOARD and self._sp_kind == "actuator":
+            return self._sp_actuator
+        if mode is FlightMode.OFFBOARD:
+            q_sp, thrust = self._sp_att
+            return (*self._attitude(q_sp, att), thrust)
+        if mode in (FlightMode.POSCTL, FlightMode.ALTCTL, FlightMode.AUTO_LAND):
+            return self._position(mode, att, posv)
+        # MANUAL / STABILIZED / ACRO on the ground: nothing to fly
+        return (0.0, 0.0, 0.0, 0.0)
+
+    def _update_landed(self, on_ground: bool) -> None:
+        # Land detector: the physics' ground contact (PX4 infers it from thrust and motion).
+        if on_ground and not self.landed:
+            self.landed, self._landed_since = True, self.t
+            if self.armed:
+                self._event(6, "Landing detected")
+        elif not on_ground:
+            self.landed = False
+        delay = self.params["COM_DISARM_LAND"]
+        if (self.armed and self.landed and self.mode is FlightMode.AUTO_LAND and delay >= 0
+                and self.t - self._landed_since >= delay):
+            self.armed = False
+            self._event(6, "Disarmed by auto disarm on land")
+
+    def _attitude(self, q_sp: tuple[float, ...], att: tuple[float, ...]) -> tuple[float, ...]:
+        prm = self.params
+        q = _quat_euler(att[0], att[1], att[2])
+        qe = _quat_mul((q[0], -q[1], -q[2], -q[3]), q_sp)
+        s = 2.0 if qe[0] >= 0 else -2.0
+        err = (s * qe[1], s * qe[2], s * qe[3])
+        gains = (prm["MC_ROLL_P"], prm["MC_PITCH_P"], prm["MC_YAW_P"])
+        limits = (prm["MC_ROLLRATE_MAX"], prm["MC_PITCHRATE_MAX"], prm["MC_YAWRATE_MAX"])
+        integrate = not self.landed
+        out = []
+        for i in range(3):
+            lim = limits[i] * _DEG
+            rate_sp = _clip(gains[i] * err[i], -lim, lim)
+            u = self._rate[i].update(prm, rate_sp, att[3 + i], integrate)
+            out.append(_clip(u, -1.0, 1.0))
+        return tuple(out)
+
+    def _position(self, mode: FlightMode, att: tuple[float, ...],
+                  posv: tuple[float, ...]) -> tuple[float, float, float, float]:
+        prm, g = self.params, GRAVITY_M_S2
+        north, east, up = posv[0], posv[1], -posv[2]
+        vn, ve, vup = posv[3], posv[4], -posv[5]
+        hn, he, hup = self._hold_pos
+        if mode is FlightMode.AUTO_LAND:
+            vup_sp = -prm["MPC_LAND_SPEED"]
+        else:
+            vup_sp = _clip(prm["MPC_Z_P"] * (hup - up), -prm["MPC_Z_VEL_MAX_DN"],
+                           prm["MPC_Z_VEL_MAX_UP"])
+        if self.landed and (mode is FlightMode.AUTO_LAND or hup - up < 0.3):
+            for ax in (*self._rate, *self._vel):
+                ax.reset()
+            return (0.0, 0.0, 0.0, 0.0)  # idle on the ground
+        integrate = not self.landed
+        acc_up = self._vel[2].update(prm, vup_sp, vup, integrate)
+        thrust = _clip(prm["MPC_THR_HOVER"] * (1.0 + acc_up / g), 0.0, 1.0)
+        if mode is FlightMode.ALTCTL:
+            roll_sp = pitch_sp = 0.0
+        else:
+            vmax = prm["MPC_XY_VEL_MAX"]
+            vn_sp = _clip(prm["MPC_XY_P"] * (hn - north), -vmax, vmax)
+            ve_sp = _clip(prm["MPC_XY_P"] * (he - east), -vmax, vmax)
+            an = self._vel[0].update(prm, vn_sp, vn, integrate)
+            ae = self._vel[1].update(prm, ve_sp, ve, integrate)
+            cy, sy = math.cos(att[2]), math.sin(att[2])
+            a_fwd, a_right = cy * an + sy * ae, -sy * an + cy * ae
+            tilt = prm["MPC_TILTMAX_AIR"] * _DEG
+            roll_sp = _clip(a_right / g, -tilt, tilt)
+            pitch_sp = _clip(-a_fwd / g, -tilt, tilt)
+        q_sp = _quat_euler(roll_sp, pitch_sp, self._hold_yaw)
+        return (*self._attitude(q_sp, att), thrust)

@@ -1,0 +1,261 @@
+"""Start and stop the SITL: configuration, a server builder, and a subprocess wrapper.
+
+:class:`SitlProcess` runs ``python -m mrft_gcs.sitl ...`` as a real subprocess (what tests and
+the demo use); :func:`make_server` builds the same server in-process (what ``mrft-tune sitl``
+runs in the foreground).
+
+Example
+-------
+>>> from mrft_gcs.sitl import SitlProcess
+>>> with SitlProcess(vehicle="qdrone", port=14550) as sitl:   # doctest: +SKIP
+...     link = mavutil.mavlink_connection(sitl.connection_string)
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+
+from mrft_gcs.errors import LinkError, UsageError
+from mrft_gcs.sitl.airframe import load_airframe
+
+__all__ = [
+    "DEFAULT_PORT",
+    "SitlConfig",
+    "SitlProcess",
+    "make_server",
+    "parse_effects",
+    "read_signing_key",
+    "free_udp_port",
+]
+
+DEFAULT_PORT = 14540
+READY_PREFIX = "SITL ready:"
+
+
+def free_udp_port(host: str = "127.0.0.1") -> int:
+    """A UDP port that is free right now (bind port 0 and ask which one the OS gave)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def parse_effects(items: Iterable[str]) -> dict[str, float]:
+    """``["sensor_lpf=30", ...]`` -> ``{"sensor_lpf": 30.0}`` (raises :class:`UsageError`)."""
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise UsageError(f"bad --effect '{item}': write NAME=VALUE, e.g. sensor_lpf=30")
+        try:
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise UsageError(f"bad --effect '{item}': '{value}' is not a number") from None
+    return out
+
+
+def read_signing_key(path: str | Path) -> bytes:
+    """A MAVLink 2 signing key from a file: 32 raw bytes, or 64 hex digits."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise UsageError(f"cannot read signing key file '{path}': {exc.strerror}") from None
+    if len(data) == 32:
+        return data
+    text = data.strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            pass
+    raise UsageError(f"signing key file '{path}' must hold 32 raw bytes or 64 hex digits")
+
+
+@dataclass(frozen=True)
+class SitlConfig:
+    """Everything that defines one SITL run (command line beats profile beats default)."""
+
+    vehicle: str = "qdrone"
+    port: int = DEFAULT_PORT
+    speedup: float = 1.0
+    effects: Mapping[str, float] = field(default_factory=dict)
+    seed: int = 0
+    signing_key_file: str | None = None
+    wind_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    host: str = "127.0.0.1"
+
+    @property
+    def connection_string(self) -> str:
+        """What the ground station should connect to (pymavlink syntax)."""
+        return f"udp:{self.host}:{self.port}"
+
+
+def make_server(cfg: SitlConfig):  # -> SitlServer (imported lazily: pymavlink is heavy)
+    """Build the vehicle and its MAVLink server for ``cfg``; raises :class:`UsageError`."""
+    from mrft_gcs.sitl.server import SitlServer
+    from mrft_gcs.sitl.vehicle import SimVehicle
+
+    if not 0 < cfg.port < 65536:
+        raise UsageError(f"port {cfg.port} is out of range 1-65535")
+    if not cfg.speedup > 0 or cfg.speedup > 100:
+        raise UsageError(f"speedup {cfg.speedup} must be in (0, 100]")
+    if len(cfg.wind_m_s) != 3:
+        raise UsageError("wind needs 3 components (north, east, down) in m/s")
+    airframe = load_airframe(cfg.vehicle).with_effects(dict(cfg.effects))
+    key = read_signing_key(cfg.signing_key_file) if cfg.signing_key_file else None
+    vehicle = SimVehicle(airframe, seed=cfg.seed, wind_m_s=cfg.wind_m_s)
+    return SitlServer(vehicle, port=cfg.port, host=cfg.host, speedup=cfg.speedup,
+                      signing_key=key)
+
+
+class SitlProcess:
+    """The SITL as a subprocess, started on ``__enter__`` and stopped on ``__exit__``.
+
+    Parameters
+    ----------
+    vehicle : str
+        Bundled profile name or path to a TOML profile.
+    port : int or None
+        UDP port the ground station listens on; ``None`` picks a free one.
+    speedup : float
+        Simulated seconds per wall second (not bit-reproducible; see README).
+    effects : mapping
+        Unmodelled effects, e.g. ``{"sensor_lpf": 30.0}``.
+    seed : int
+        Sensor-noise seed.
+    signing_key : bytes or None
+        32-byte MAVLink 2 signing key; unsigned commands and setpoints are then ignored.
+    wind_m_s : (3,) float
+        Constant wind, NED.
+    startup_timeout_s : float
+        How long to wait for the subprocess to report ready.
+
+    Raises
+    ------
+    UsageError
+        Bad vehicle name, effect or key (checked before the process starts).
+    LinkError
+        The subprocess did not come up.
+    """
+
+    def __init__(self, vehicle: str = "qdrone", port: int | None = DEFAULT_PORT,
+                 speedup: float = 1.0, effects: Mapping[str, float] | None = None,
+                 seed: int = 0, signing_key: bytes | None = None,
+                 wind_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 startup_timeout_s: float = 20.0) -> None:
+        load_airframe(vehicle).with_effects(dict(effects or {}))  # fail early, in this process
+        if signing_key is not None and len(signing_key) != 32:
+            raise UsageError("signing_key must be exactly 32 bytes")
+        self.vehicle = str(vehicle)
+        self.port = free_udp_port() if port is None else int(port)
+        self.speedup = float(speedup)
+        self.effects = dict(effects or {})
+        self.seed = int(seed)
+        self.signing_key = signing_key
+        self.wind_m_s = tuple(float(w) for w in wind_m_s)
+        self.startup_timeout_s = startup_timeout_s
+        self._proc: subprocess.Popen[str] | None = None
+        self._tmpdir: tempfile.TemporaryDirectory[str] | None = None
+        self._stderr_path: Path | None = None
+
+    @property
+    def connection_string(self) -> str:
+        """pymavlink connection string for the ground station (``udp:127.0.0.1:PORT``)."""
+        return f"udp:127.0.0.1:{self.port}"
+
+    @property
+    def mavsdk_address(self) -> str:
+        """The same for MAVSDK (``udpin://127.0.0.1:PORT``)."""
+        return f"udpin://127.0.0.1:{self.port}"
+
+    @property
+    def running(self) -> bool:
+        return self._proc is not None and self._proc.poll() is None
+
+    def command(self) -> list[str]:
+        """The argument vector of the subprocess."""
+        cmd = [sys.executable, "-m", "mrft_gcs.sitl", "--vehicle", self.vehicle,
+               "--port", str(self.port), "--speedup", repr(self.speedup),
+               "--seed", str(self.seed), "--wind", ",".join(repr(w) for w in self.wind_m_s)]
+        for name, value in self.effects.items():
+            cmd += ["--effect", f"{name}={value!r}"]
+        return cmd
+
+    def start(self) -> SitlProcess:
+        """Start the subprocess and wait until it serves."""
+        if self.running:
+            return self
+        self._tmpdir = tempfile.TemporaryDirectory(prefix="mrft-sitl-")
+        cmd = self.command()
+        if self.signing_key is not None:
+            key_path = Path(self._tmpdir.name) / "signing.key"
+            key_path.write_bytes(self.signing_key)
+            key_path.chmod(0o600)
+            cmd += ["--signing-key", str(key_path)]
+        self._stderr_path = Path(self._tmpdir.name) / "stderr.txt"
+        with self._stderr_path.open("w") as err:
+            self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True,
+                                          env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        deadline = time.monotonic() + self.startup_timeout_s
+        assert self._proc.stdout is not None
+        import selectors
+
+        with selectors.DefaultSelector() as sel:
+            sel.register(self._proc.stdout, selectors.EVENT_READ)
+            while time.monotonic() < deadline:
+                if sel.select(timeout=0.1):
+                    line = self._proc.stdout.readline()
+                    if line.startswith(READY_PREFIX):
+                        return self
+                    if not line and self._proc.poll() is not None:
+                        break
+                elif self._proc.poll() is not None:
+                    break
+        tail = self._stderr_tail()
+        self.stop()
+        raise LinkError(f"the SITL subprocess did not start ({' '.join(cmd[2:5])}): "
+                        f"{tail or 'no output'}")
+
+    def _stderr_tail(self) -> str:
+        try:
+            text = self._stderr_path.read_text() if self._stderr_path else ""
+        except OSError:
+            return ""
+        lines = [ln for ln in text.strip().splitlines() if ln.strip()]
+        return lines[-1] if lines else ""
+
+    def stop(self, timeout_s: float = 5.0) -> int | None:
+        """SIGTERM, then kill after ``timeout_s``; returns the exit code."""
+        proc, self._proc = self._proc, None
+        code = None
+        if proc is not None:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+                try:
+                    proc.wait(timeout_s)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait(timeout_s)
+            code = proc.returncode
+            if proc.stdout is not None:
+                proc.stdout.close()
+        if self._tmpdir is not None:
+            self._tmpdir.cleanup()
+            self._tmpdir = None
+        return code
+
+    def __enter__(self) -> SitlProcess:
+        return self.start()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.stop()
