@@ -414,8 +414,13 @@ class Autopilot:
         prm = self.params
         q = _quat_euler(att[0], att[1], att[2])
         qe = _quat_mul((q[0], -q[1], -q[2], -q[3]), q_sp)
-        s = 2.0 if qe[0] >= 0 else -2.0
-        err = (s * qe[1], s * qe[2], s * qe[3])
+        # rotation vector of the error (exactly the angle error for a single-axis error)
+        vn = math.sqrt(qe[1] * qe[1] + qe[2] * qe[2] + qe[3] * qe[3])
+        if vn < 1e-12:
+            err = (0.0, 0.0, 0.0)
+        else:
+            ang = 2.0 * math.atan2(vn, abs(qe[0])) * (1.0 if qe[0] >= 0 else -1.0)
+            err = (ang * qe[1] / vn, ang * qe[2] / vn, ang * qe[3] / vn)
         gains = (prm["MC_ROLL_P"], prm["MC_PITCH_P"], prm["MC_YAW_P"])
         limits = (prm["MC_ROLLRATE_MAX"], prm["MC_PITCHRATE_MAX"], prm["MC_YAWRATE_MAX"])
         integrate = not self.landed
