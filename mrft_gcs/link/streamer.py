@@ -13,6 +13,7 @@ why; :meth:`raise_if_aborted` turns it into :class:`~mrft_gcs.errors.SafetyAbort
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -31,6 +32,7 @@ Setpoint = ActuatorTarget | AttitudeTarget
 SetpointFn = Callable[[float], Setpoint | None]
 
 _SPIN_S = 0.0004  # sleep until this close to a deadline, then spin: sleep() overshoots ~0.1 ms
+_SWITCH_INTERVAL_S = 0.0005
 
 
 class SetpointSink(Protocol):
@@ -145,6 +147,10 @@ class SetpointStreamer:
     def start(self) -> SetpointStreamer:
         if self.running:
             return self
+        # A thread waiting for the GIL waits up to the switch interval (5 ms by default)
+        # while the reader thread parses telemetry: far too long for a 4 ms period.
+        if sys.getswitchinterval() > _SWITCH_INTERVAL_S:
+            sys.setswitchinterval(_SWITCH_INTERVAL_S)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="setpoint-streamer", daemon=True)
         self._thread.start()
