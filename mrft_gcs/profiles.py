@@ -282,8 +282,8 @@ def gains_to_params(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
     Examples
     --------
     >>> p = load_profile("px4")
-    >>> gains_to_params(p, {Loop.ROLL: PDGains(Kc=1.2, Kd=0.2)}, 0.5)["MC_ROLL_P"]
-    6.0
+    >>> gains_to_params(p, {Loop.ROLL: PDGains(Kc=1.0, Kd=0.25)}, 0.5)["MC_ROLL_P"]
+    4.0
     """
     if not (0 < hover_thrust < 1):
         raise UsageError(f"hover thrust must be in (0, 1), got {hover_thrust}")

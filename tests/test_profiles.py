@@ -143,3 +143,15 @@ def test_unknown_profile_names_the_known_ones(tmp_path):
 def test_safety_overrides_take_precedence():
     s = load_profile("px4").safety.with_overrides(max_tilt_deg=20.0, max_altitude_m=None)
     assert s.max_tilt_deg == 20.0 and s.max_altitude_m == load_profile("px4").safety.max_altitude_m
+
+
+def test_docstring_examples_run():
+    import doctest
+
+    import mrft_gcs.link.connection
+    import mrft_gcs.link.modes
+    import mrft_gcs.link.quality
+    import mrft_gcs.profiles
+    for mod in (mrft_gcs.profiles, mrft_gcs.link.modes, mrft_gcs.link.connection,
+                mrft_gcs.link.quality):
+        assert doctest.testmod(mod).failed == 0, mod.__name__
