@@ -301,9 +301,12 @@ class VehicleLink:
         while not self._stop.is_set():
             now = time.monotonic()
             if now >= next_beat:
-                self._send(lambda mav: mav.heartbeat_send(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0,
-                                                          MAV_STATE_ACTIVE), "HEARTBEAT")
                 next_beat = now + 1.0
+                try:
+                    self._send(lambda mav: mav.heartbeat_send(
+                        MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE), "HEARTBEAT")
+                except LinkError:
+                    pass  # port gone for a moment: the reader must outlive it (watchdog decides)
             try:
                 msg = self._conn.recv_match(blocking=True, timeout=0.02)
             except (OSError, ValueError):
