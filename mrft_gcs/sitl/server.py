@@ -106,6 +106,10 @@ class SitlServer:
         self._stop = threading.Event()
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((host, 0))
+        try:  # room for bursts (a flood must not crowd out the next command)
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        except OSError:
+            pass
         self.sock.setblocking(False)
         self.mav = M.MAVLink(_UdpWriter(self.sock, self.addr, self.stats), srcSystem=1,
                              srcComponent=1)
