@@ -26,7 +26,7 @@ Modes (PX4 custom_mode: main mode in bits 16-23, sub mode in bits 24-31): MANUAL
 and ACRO are accepted only on the ground (there is no RC); ALTCTL holds altitude with a level
 attitude; POSCTL holds the position and altitude where it was entered; OFFBOARD follows
 SET_ACTUATOR_CONTROL_TARGET (torque path, straight to the mixer) or SET_ATTITUDE_TARGET
-(through the attitude cascade above); AUTO.LAND holds x/y and descends at MPC_LAND_SPEED, then
+(through the attitude cascade above); AUTO.LOITER (MAVSDK's "hold") behaves as POSCTL; AUTO.LAND holds x/y and descends at MPC_LAND_SPEED, then
 disarms 2 s after touchdown. Offboard loss (no valid setpoint for COM_OF_LOSS_T, default 0.5 s)
 switches to AUTO.LAND with a STATUSTEXT.
 
@@ -61,6 +61,7 @@ class FlightMode(enum.Enum):
     MANUAL = (1, 0)
     ALTCTL = (2, 0)
     POSCTL = (3, 0)
+    AUTO_LOITER = (4, 3)
     AUTO_LAND = (4, 6)
     ACRO = (5, 0)
     OFFBOARD = (6, 0)
@@ -77,7 +78,7 @@ class FlightMode(enum.Enum):
         """The mode for a DO_SET_MODE request, or None if not supported."""
         for mode in cls:
             m, s = mode.value
-            if m == main and (s == sub or (m == 4 and sub == 6)):
+            if m == main and s == sub:
                 return mode
         return None
 
@@ -391,7 +392,8 @@ class Autopilot:
         if mode is FlightMode.OFFBOARD:
             q_sp, thrust = self._sp_att
             return (*self._attitude(q_sp, att), thrust)
-        if mode in (FlightMode.POSCTL, FlightMode.ALTCTL, FlightMode.AUTO_LAND):
+        if mode in (FlightMode.POSCTL, FlightMode.ALTCTL, FlightMode.AUTO_LAND,
+                    FlightMode.AUTO_LOITER):
             return self._position(mode, att, posv)
         # MANUAL / STABILIZED / ACRO on the ground: nothing to fly
         return (0.0, 0.0, 0.0, 0.0)
