@@ -1,0 +1,52 @@
+"""``mrft-tune sitl``: serve the bundled simulated vehicle over MAVLink/UDP."""
+
+from __future__ import annotations
+
+import signal
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from mrft_gcs.cli import app, console
+from mrft_gcs.sitl.process import DEFAULT_PORT, SitlConfig, make_server, parse_effects
+
+
+@app.command()
+def sitl(
+    vehicle: Annotated[str, typer.Option(
+        help="Bundled profile (qdrone, racer250, f550) or a path to a vehicle TOML.")] = "qdrone",
+    port: Annotated[int, typer.Option(
+        help="UDP port the ground station listens on; the SITL sends there.")] = DEFAULT_PORT,
+    effect: Annotated[list[str] | None, typer.Option(
+        help="Unmodelled effect NAME=VALUE, repeatable (e.g. sensor_lpf=30).")] = None,
+    speedup: Annotated[float, typer.Option(
+        help="Simulated seconds per wall second (1 = real time).")] = 1.0,
+    seed: Annotated[int, typer.Option(help="Sensor-noise seed.")] = 0,
+    signing_key: Annotated[Path | None, typer.Option(
+        help="MAVLink 2 signing key file (32 bytes or 64 hex digits): unsigned commands "
+             "and setpoints are then ignored.")] = None,
+) -> None:
+    """Serve a simulated multirotor over MAVLink (UDP) until Ctrl-C.
+
+    Example:  mrft-tune sitl --vehicle qdrone --port 14540 --effect sensor_lpf=30
+    """
+    cfg = SitlConfig(vehicle=vehicle, port=port, speedup=speedup,
+                     effects=parse_effects(effect or []), seed=seed,
+                     signing_key_file=str(signing_key) if signing_key else None)
+    server = make_server(cfg)
+    previous = signal.signal(signal.SIGTERM, lambda *_: server.stop())
+    af = server.vehicle.airframe
+    console.print(f"SITL [bold]{af.name}[/] ({af.description}) serving MAVLink 2 over UDP")
+    active = af.effects.active()
+    if active:
+        console.print("effects: " + ", ".join(f"{k}={v:g}" for k, v in active.items()))
+    console.print(f"connect with:  [bold]{cfg.connection_string}[/]   "
+                  f"(MAVSDK: udpin://{cfg.host}:{cfg.port})   Ctrl-C to stop", highlight=False)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        server.close()
