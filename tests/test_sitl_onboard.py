@@ -162,7 +162,8 @@ def test_profile_typo_is_usage_error(tmp_path):
 def test_profile_loads_effects_from_file(tmp_path):
     from mrft_gcs.sitl.airframe import vehicles_dir
 
-    body = (vehicles_dir() / "f550.toml").read_text().replace("[effects]", "[effects]\nsensor_lpf = 30.0")
+    body = (vehicles_dir() / "f550.toml").read_text()
+    body = body.replace("[effects]", "[effects]\nsensor_lpf = 30.0")
     p = tmp_path / "f550_lpf.toml"
     p.write_text(body)
     af = load_airframe(p)

@@ -179,7 +179,8 @@ def test_each_effect_changes_the_response(effect, value):
 
 def test_com_offset_is_an_input_bias():
     m = _roll_after(load_airframe("qdrone").quiet().with_effects({"com_offset": 0.01}))
-    assert m.meas_att[0] > 0.01 and m.meas_att[1] < -0.01  # CoM right/forward: rolls right, pitches down
+    # CoM right of and ahead of the thrust centre: rolls right, pitches nose down
+    assert m.meas_att[0] > 0.01 and m.meas_att[1] < -0.01
 
 
 def test_wind_pushes_the_vehicle():

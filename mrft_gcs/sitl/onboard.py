@@ -7,8 +7,9 @@ The structures are exactly those the tuner's gains are written for (SPEC 4.2), s
 Attitude (roll shown; pitch and yaw alike)::
 
     rate_sp    = MC_ROLL_P * angle_error                       (rad/s; |rate_sp| <= 220 deg/s)
-    torque_cmd = MC_ROLLRATE_K * (MC_ROLLRATE_P * (rate_sp - rate) + I_int - MC_ROLLRATE_D * d(rate)/dt)
-                 + MC_ROLLRATE_FF * rate_sp                     (normalised, clipped to [-1, 1])
+    torque_cmd = MC_ROLLRATE_K * (MC_ROLLRATE_P * (rate_sp - rate) + I_int
+                                  - MC_ROLLRATE_D * d(rate)/dt) + MC_ROLLRATE_FF * rate_sp
+                                    (normalised, clipped to [-1, 1])
     I_int     += MC_ROLLRATE_I * (rate_sp - rate) dt            (|I_int| <= MC_RR_INT_LIM)
 
 The angle error is the body-frame rotation vector of ``q_meas^-1 q_sp`` (equal to the Euler
@@ -26,7 +27,8 @@ Modes (PX4 custom_mode: main mode in bits 16-23, sub mode in bits 24-31): MANUAL
 and ACRO are accepted only on the ground (there is no RC); ALTCTL holds altitude with a level
 attitude; POSCTL holds the position and altitude where it was entered; OFFBOARD follows
 SET_ACTUATOR_CONTROL_TARGET (torque path, straight to the mixer) or SET_ATTITUDE_TARGET
-(through the attitude cascade above); AUTO.LOITER (MAVSDK's "hold") behaves as POSCTL; AUTO.LAND holds x/y and descends at MPC_LAND_SPEED, then
+(through the attitude cascade above); AUTO.LOITER (MAVSDK's "hold") behaves as POSCTL;
+AUTO.LAND holds x/y and descends at MPC_LAND_SPEED, then
 disarms 2 s after touchdown. Offboard loss (no valid setpoint for COM_OF_LOSS_T, default 0.5 s)
 switches to AUTO.LAND with a STATUSTEXT.
 

@@ -30,6 +30,7 @@ import socket
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
@@ -229,9 +230,9 @@ class SitlServer:
         self.mav.param_value_send(name.encode(), prm[name], M.MAV_PARAM_TYPE_REAL32,
                                   len(prm.names), prm.index(name))
 
-    def _ack(self, command: int, result: CommandResult, msg: object) -> None:
-        self.mav.command_ack_send(command, int(result), 0, 0, msg.get_srcSystem(),  # type: ignore[attr-defined]
-                                  msg.get_srcComponent())  # type: ignore[attr-defined]
+    def _ack(self, command: int, result: CommandResult, msg: Any) -> None:
+        self.mav.command_ack_send(command, int(result), 0, 0, msg.get_srcSystem(),
+                                  msg.get_srcComponent())
 
     # ------------------------------------------------------------ receiving
     def _receive(self) -> None:
@@ -265,32 +266,32 @@ class SitlServer:
             except Exception:  # a message we cannot interpret must not stop the vehicle
                 self.stats.rejected += 1
 
-    def _for_us(self, msg: object) -> bool:
+    def _for_us(self, msg: Any) -> bool:
         ts = getattr(msg, "target_system", 0)
         tc = getattr(msg, "target_component", 0)
         return ts in (0, 1) and tc in (0, 1)
 
-    def _dispatch(self, msg: object) -> None:
-        kind = msg.get_type()  # type: ignore[attr-defined]
+    def _dispatch(self, msg: Any) -> None:
+        kind = msg.get_type()
         ap = self.vehicle.autopilot
         if kind in ("COMMAND_LONG", "COMMAND_INT"):
             if self._for_us(msg):
                 self._command(msg)
         elif kind == "SET_ACTUATOR_CONTROL_TARGET":
-            c = msg.controls  # type: ignore[attr-defined]
-            ok = (msg.group_mlx == 0 and self._for_us(msg)  # type: ignore[attr-defined]
+            c = msg.controls
+            ok = (msg.group_mlx == 0 and self._for_us(msg)
                   and ap.set_actuator_controls(c[0], c[1], c[2], c[3]))
             if not ok:
                 self.stats.rejected += 1
         elif kind == "SET_ATTITUDE_TARGET":
-            ignore_att = msg.type_mask & M.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE  # type: ignore[attr-defined]
+            ignore_att = msg.type_mask & M.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE
             ok = (self._for_us(msg) and not ignore_att
-                  and ap.set_attitude_target(tuple(msg.q), msg.thrust))  # type: ignore[attr-defined]
+                  and ap.set_attitude_target(tuple(msg.q), msg.thrust))
             if not ok:
                 self.stats.rejected += 1
         elif kind == "SET_MODE":
-            if msg.target_system in (0, 1):  # type: ignore[attr-defined]
-                cm = int(msg.custom_mode)  # type: ignore[attr-defined]
+            if msg.target_system in (0, 1):
+                cm = int(msg.custom_mode)
                 mode = FlightMode.from_px4((cm >> 16) & 0xFF, (cm >> 24) & 0xFF)
                 if mode is not None:
                     ap.set_mode(mode)
@@ -300,28 +301,28 @@ class SitlServer:
                     self._param_value(name)
         elif kind == "PARAM_REQUEST_READ":
             if self._for_us(msg):
-                idx = int(msg.param_index)  # type: ignore[attr-defined]
+                idx = int(msg.param_index)
                 names = ap.params.names
                 if idx >= 0:
                     if idx < len(names):
                         self._param_value(names[idx])
                 else:
-                    name = _param_name(msg.param_id)  # type: ignore[attr-defined]
+                    name = _param_name(msg.param_id)
                     if name in ap.params:
                         self._param_value(name)
         elif kind == "PARAM_SET":
             if self._for_us(msg):
-                name = _param_name(msg.param_id)  # type: ignore[attr-defined]
+                name = _param_name(msg.param_id)
                 if name in ap.params:
-                    value = float(msg.param_value)  # type: ignore[attr-defined]
+                    value = float(msg.param_value)
                     if not ap.params.set(name, value):
                         ap._event(4, f"param {name}: rejected value {value}")
                     self._param_value(name)  # new value, or the unchanged one if rejected
                 else:
                     ap._event(4, f"unknown parameter {name[:30]}")
 
-    def _command(self, msg: object) -> None:
-        cmd = int(msg.command)  # type: ignore[attr-defined]
+    def _command(self, msg: Any) -> None:
+        cmd = int(msg.command)
         p = [float(getattr(msg, f"param{i}")) for i in range(1, 5)]
         self.stats.commands[cmd] = self.stats.commands.get(cmd, 0) + 1
         ap = self.vehicle.autopilot
