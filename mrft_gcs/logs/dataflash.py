@@ -172,7 +172,8 @@ class _Table:
         return all(n in self.rec.dtype.names for n in names)
 
     def col(self, name: str) -> np.ndarray:
-        v = self.rec[name].astype(float)
+        with np.errstate(invalid="ignore", over="ignore"):  # garbage bytes may be NaN patterns
+            v = self.rec[name].astype(float)
         return v * self.kind.scale[name] if name in self.kind.scale else v
 
     def time(self) -> np.ndarray | None:

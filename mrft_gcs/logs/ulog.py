@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mrft_gcs.logs._common import input_error, interp_columns, read_head
+from mrft_gcs.logs._common import input_error, interp_columns, read_bytes, read_head
 from mrft_gcs.logs.replay import DecodedLog
 from mrft_gcs.telemetry import ParamValue, Sample, StatusText
 
@@ -45,6 +45,29 @@ _TOPICS = [
     "actuator_controls_0", "vehicle_torque_setpoint", "vehicle_thrust_setpoint",
     "vehicle_attitude_setpoint",
 ]
+
+
+class _WorkLimit(Exception):
+    """The parser read far more than the file holds: it is looping on damage."""
+
+
+class _BoundedFile(io.BytesIO):
+    """The file's bytes, refusing to be read more than a few times over.
+
+    pyulog seeks back after a corrupt message; near a damaged end of file that
+    can repeat forever. Counting what is read bounds the work on any input.
+    """
+
+    def __init__(self, data: bytes, passes: int = 8) -> None:
+        super().__init__(data)
+        self._left = passes * len(data) + (1 << 20)
+
+    def read(self, size: int | None = -1) -> bytes:
+        out = super().read(size)
+        self._left -= len(out) + 1
+        if self._left < 0:
+            raise _WorkLimit
+        return out
 
 
 def sniff_ulog(head: bytes) -> bool:
@@ -100,10 +123,14 @@ def decode_ulog(path: str | Path) -> DecodedLog:
         from pyulog import ULog
     except ImportError as exc:  # pragma: no cover - pyulog is a core dependency
         raise input_error(path, f"cannot read ULog ({exc})", "pip install pyulog") from None
+    data = read_bytes(path)
     try:
         # pyulog reports corruption on stdout; a library must stay silent.
         with contextlib.redirect_stdout(io.StringIO()):
-            ulog = ULog(str(path), _TOPICS, disable_str_exceptions=True)
+            ulog = ULog(_BoundedFile(data), _TOPICS, disable_str_exceptions=True)
+    except _WorkLimit:
+        raise input_error(path, "damaged ULog file (the parser went round in circles)",
+                          "the log may be truncated or corrupted; try another copy") from None
     except Exception as exc:  # noqa: BLE001 - any parser failure is a damaged file
         raise input_error(path, f"damaged ULog file ({type(exc).__name__}: "
                                 f"{str(exc)[:80] or 'no detail'})",
