@@ -53,7 +53,7 @@ def test_replay_equals_read(path):
 def test_replay_is_time_ordered_and_typed(path):
     with open_log(path) as source:
         t = [s.t_s for s in source]
-    assert len(t) > 0 and all(b >= a for a, b in zip(t, t[1:]))
+    assert len(t) > 0 and all(b >= a for a, b in zip(t, t[1:], strict=False))
 
 
 def test_replay_yields_typed_samples_and_rewinds():
@@ -69,7 +69,8 @@ def test_replay_yields_typed_samples_and_rewinds():
     assert all(isinstance(s, LoopSample) for s in csv) and len(csv) == 200
 
 
-@pytest.mark.parametrize("name, fmt", [("sample.tlog", LogFormat.TLOG), ("sample.bin", LogFormat.DATAFLASH),
+@pytest.mark.parametrize("name, fmt", [("sample.tlog", LogFormat.TLOG),
+                                       ("sample.bin", LogFormat.DATAFLASH),
                                        ("sample.csv", LogFormat.CSV)])
 def test_content_beats_extension(tmp_path, name, fmt):
     p = tmp_path / "renamed.ulg"
@@ -84,7 +85,8 @@ def test_unknown_format(tmp_path):
     with pytest.raises(InputFileError) as e:
         read_log(p)
     assert str(e.value) == (f"{p}: unknown log format (neither its first bytes nor its extension "
-                            "say .tlog, .ulg, .bin or .csv); dry-run reads .tlog, .ulg, .bin and .csv")
+                            "say .tlog, .ulg, .bin or .csv); "
+                            "dry-run reads .tlog, .ulg, .bin and .csv")
 
 
 @pytest.mark.parametrize("suffix", [".tlog", ".ulg", ".bin", ".csv", ".xyz"])

@@ -65,7 +65,8 @@ def test_bad_magic(tmp_path):
     p.write_bytes(b"not a ulog file at all")
     with pytest.raises(InputFileError) as e:
         read_log(p)
-    assert str(e.value) == f"{p}: not a ULog file (bad magic); dry-run reads .tlog, .ulg, .bin and .csv"
+    assert str(e.value) == (f"{p}: not a ULog file (bad magic); "
+                            "dry-run reads .tlog, .ulg, .bin and .csv")
 
 
 @needs_shared

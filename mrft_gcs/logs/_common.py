@@ -30,7 +30,8 @@ def read_bytes(path: str | Path, limit: int = -1) -> bytes:
     except FileNotFoundError:
         raise input_error(path, "no such file", "check the path") from None
     except IsADirectoryError:
-        raise input_error(path, "is a directory, not a log file", "give the log file itself") from None
+        raise input_error(path, "is a directory, not a log file",
+                          "give the log file itself") from None
     except OSError as exc:
         raise input_error(path, f"cannot be read ({exc.strerror or exc})",
                           "check the path and its permissions") from None

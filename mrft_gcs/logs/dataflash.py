@@ -122,7 +122,7 @@ def _parse_fmt(payload: bytes) -> tuple[int, _Type] | None:
         return None
     if dtype.itemsize + 3 != length:
         return None
-    scale = {n: m for n, c in zip(names, fmt) if (m := _CHARS[c][1]) is not None}
+    scale = {n: m for n, c in zip(names, fmt, strict=True) if (m := _CHARS[c][1]) is not None}
     return mtype, _Type(name, length, dtype, scale)
 
 
@@ -267,7 +267,8 @@ def _rates(tables: dict[str, _Table], t: np.ndarray, rpy: np.ndarray) -> np.ndar
             imu = imu.instance0()
             ti = imu.time()
             if ti is not None and len(ti):
-                return interp_columns(t, ti, np.column_stack([imu.col(c) for c in ("GyrX", "GyrY", "GyrZ")]))
+                gyro = np.column_stack([imu.col(c) for c in ("GyrX", "GyrY", "GyrZ")])
+                return interp_columns(t, ti, gyro)
     if len(t) < 2 or np.any(np.diff(t) <= 0):
         return np.full((len(t), 3), np.nan)
     return np.column_stack([np.gradient(np.unwrap(rpy[:, i]), t) for i in range(3)])
@@ -310,12 +311,14 @@ def _events(tables: dict[str, _Table]) -> list[Sample]:
     events: list[tuple[int, Sample]] = []
     parm = tables.get("PARM")
     if parm is not None and parm.has("Name", "Value"):
-        for p, t, name, value in zip(parm.pos.tolist(), times(parm).tolist(),
-                                     parm.rec["Name"].tolist(), parm.col("Value").tolist()):
+        rows = zip(parm.pos.tolist(), times(parm).tolist(), parm.rec["Name"].tolist(),
+                   parm.col("Value").tolist(), strict=True)
+        for p, t, name, value in rows:
             events.append((p, ParamValue(t, _text(name), value)))
     msg = tables.get("MSG")
     if msg is not None and msg.has("Message"):
-        for p, t, text in zip(msg.pos.tolist(), times(msg).tolist(), msg.rec["Message"].tolist()):
+        rows = zip(msg.pos.tolist(), times(msg).tolist(), msg.rec["Message"].tolist(), strict=True)
+        for p, t, text in rows:
             events.append((p, StatusText(t, _MSG_SEVERITY_INFO, _text(text))))
     events.sort(key=lambda e: e[0])
     return [e for _, e in events]

@@ -210,7 +210,8 @@ class LogReplay:
         self.close()
 
 
-def collect_log(source: TelemetrySource | Iterable[Sample | LoopSample], name: str = "") -> TelemetryLog:
+def collect_log(source: TelemetrySource | Iterable[Sample | LoopSample],
+                name: str = "") -> TelemetryLog:
     """Drain a source (or iterable) into a :class:`TelemetryLog`, loop rows included.
 
     Like :func:`mrft_gcs.telemetry.collect`, which ignores :class:`LoopSample`;

@@ -198,7 +198,8 @@ def _decode_frames(arr: np.ndarray, offs: np.ndarray, msgid: int) -> _Frames:
             h = 10 if is2 else 6
             start = offs[sel] + 8
             block = arr[start[:, None] + np.arange(1, h + ln)]
-            crc_rx = arr[start + h + ln].astype(np.uint32) | (arr[start + h + ln + 1].astype(np.uint32) << 8)
+            lo, hi = arr[start + h + ln], arr[start + h + ln + 1]
+            crc_rx = lo.astype(np.uint32) | (hi.astype(np.uint32) << 8)
             ok = _crc(block, wire.crc_extra) == crc_rx
             if not is2 and ln != full:
                 ok[:] = False  # v1 frames carry the whole payload
@@ -344,15 +345,18 @@ def _assemble(by_id: dict[int, _Frames], source: str) -> DecodedLog:
     events: list[tuple[int, Sample]] = []
     hb = from_vehicle(by_id[HEARTBEAT])
     hb = _select(hb, hb.rec["autopilot"] != _MAV_AUTOPILOT_INVALID)
-    for p, t, rec in zip(hb.pos.tolist(), clock.wall(hb.t_unix).tolist(), hb.rec.tolist()):
+    for p, t, rec in zip(hb.pos.tolist(), clock.wall(hb.t_unix).tolist(), hb.rec.tolist(),
+                          strict=True):
         custom_mode, vtype, autopilot, base_mode, system_status, _ = rec
         events.append((p, Heartbeat(t, autopilot, vtype, base_mode, custom_mode, system_status)))
     st = from_vehicle(by_id[STATUSTEXT], component=False)
-    for p, t, rec in zip(st.pos.tolist(), clock.wall(st.t_unix).tolist(), st.rec.tolist()):
+    for p, t, rec in zip(st.pos.tolist(), clock.wall(st.t_unix).tolist(), st.rec.tolist(),
+                          strict=True):
         events.append((p, StatusText(t, int(rec[0]), _text(rec[1]))))
     pv = from_vehicle(by_id[PARAM_VALUE])
     bytewise = bool(len(hb.pos)) and int(hb.rec["autopilot"][0]) == _MAV_AUTOPILOT_PX4
-    for p, t, rec in zip(pv.pos.tolist(), clock.wall(pv.t_unix).tolist(), pv.rec.tolist()):
+    for p, t, rec in zip(pv.pos.tolist(), clock.wall(pv.t_unix).tolist(), pv.rec.tolist(),
+                          strict=True):
         value, count, index, name, ptype = rec
         events.append((p, ParamValue(t, _text(name), _param_value(value, ptype, bytewise),
                                      index, count)))

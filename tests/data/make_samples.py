@@ -81,8 +81,10 @@ def dataflash(path: Path) -> None:
     out = bytearray(_fmt(0x80, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns"))
     out += _fmt(0x81, "PARM", "QNf", "TimeUS,Name,Value")
     out += _fmt(0x82, "MSG", "QZ", "TimeUS,Message")
-    out += _fmt(0x83, "ATT", "QccccCCCC", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw")
-    out += _fmt(0x84, "RATE", "Qffffffffffff", "TimeUS,RDes,R,ROut,PDes,P,POut,YDes,Y,YOut,ADes,A,AOut")
+    out += _fmt(0x83, "ATT", "QccccCCCC",
+                "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw")
+    out += _fmt(0x84, "RATE", "Qffffffffffff",
+                "TimeUS,RDes,R,ROut,PDes,P,POut,YDes,Y,YOut,ADes,A,AOut")
     out += _fmt(0x85, "XKF1", "QBffffffffff", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD")
     out += _fmt(0x86, "CTUN", "Qff", "TimeUS,ThI,ThO")
     rec = lambda t, fmt, *v: b"\xa3\x95" + bytes([t]) + struct.pack("<" + fmt, *v)  # noqa: E731
