@@ -169,7 +169,8 @@ class _Table:
     kind: _Type
 
     def has(self, *names: str) -> bool:
-        return all(n in self.rec.dtype.names for n in names)
+        present = self.rec.dtype.names or ()
+        return all(n in present for n in names)
 
     def col(self, name: str) -> np.ndarray:
         with np.errstate(invalid="ignore", over="ignore"):  # garbage bytes may be NaN patterns
@@ -311,15 +312,15 @@ def _events(tables: dict[str, _Table]) -> list[Sample]:
     events: list[tuple[int, Sample]] = []
     parm = tables.get("PARM")
     if parm is not None and parm.has("Name", "Value"):
-        rows = zip(parm.pos.tolist(), times(parm).tolist(), parm.rec["Name"].tolist(),
-                   parm.col("Value").tolist(), strict=True)
-        for p, t, name, value in rows:
+        params = zip(parm.pos.tolist(), times(parm).tolist(), parm.rec["Name"].tolist(),
+                     parm.col("Value").tolist(), strict=True)
+        for p, t, name, value in params:
             events.append((p, ParamValue(t, _text(name), value)))
     msg = tables.get("MSG")
     if msg is not None and msg.has("Message"):
-        rows = zip(msg.pos.tolist(), times(msg).tolist(), msg.rec["Message"].tolist(), strict=True)
-        for p, t, text in rows:
-            events.append((p, StatusText(t, _MSG_SEVERITY_INFO, _text(text))))
+        texts = zip(msg.pos.tolist(), times(msg).tolist(), msg.rec["Message"].tolist(), strict=True)
+        for p, t_s, text in texts:
+            events.append((p, StatusText(t_s, _MSG_SEVERITY_INFO, _text(text))))
     events.sort(key=lambda e: e[0])
     return [e for _, e in events]
 

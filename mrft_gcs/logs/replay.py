@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -96,12 +97,11 @@ class DecodedLog:
 
         events = [e for e in self.events if is_finite_sample(e)]
         events.sort(key=lambda e: e.t_s)
-        return replace(
-            self,
-            **{name: clean(getattr(self, name), n) for name, n in TABLE_COLUMNS.items()},
-            events=tuple(events),
-            loops={k: clean(v, 3) for k, v in self.loops.items()},
-        )
+        changes: dict[str, Any] = {
+            name: clean(getattr(self, name), n) for name, n in TABLE_COLUMNS.items()}
+        changes["events"] = tuple(events)
+        changes["loops"] = {k: clean(v, 3) for k, v in self.loops.items()}
+        return replace(self, **changes)
 
 
 def to_telemetry_log(decoded: DecodedLog) -> TelemetryLog:

@@ -163,7 +163,7 @@ def _scan(buf: bytes) -> tuple[list[int], int, int]:
 
 def _crc(block: np.ndarray, extra: int) -> np.ndarray:
     """CRC-16/MCRF4XX (MAVLink's X.25) of each row of ``block``, then of ``extra``."""
-    crc = np.full(block.shape[0], 0xFFFF, dtype=np.uint32)
+    crc: np.ndarray = np.full(block.shape[0], 0xFFFF, dtype=np.uint32)
     columns = [block[:, j].astype(np.uint32) for j in range(block.shape[1])]
     columns.append(np.full(block.shape[0], extra, dtype=np.uint32))
     for b in columns:

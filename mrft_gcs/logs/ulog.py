@@ -157,10 +157,8 @@ def _assemble(ulog: object, source: str) -> DecodedLog:
         rates = _cols(att, "rollspeed", "pitchspeed", "yawspeed")
         avel = _topic(ulog, "vehicle_angular_velocity")
         if rates is None:
-            src = _cols(avel, "xyz[0]", "xyz[1]", "xyz[2]") if avel is not None else None
-            if src is None:
-                rates = np.full((len(t), 3), np.nan)
-            else:
+            rates = np.full((len(t), 3), np.nan)
+            if avel is not None and (src := _cols(avel, "xyz[0]", "xyz[1]", "xyz[2]")) is not None:
                 rates = interp_columns(t, avel["timestamp"].astype(float) * 1e-6, src)
         attitude = np.column_stack([t, quaternion_to_euler(q), rates])
 
@@ -177,10 +175,11 @@ def _assemble(ulog: object, source: str) -> DecodedLog:
         actuator = np.column_stack([ac["timestamp"].astype(float) * 1e-6, u])
     elif torque is not None and (tq := _cols(torque, "xyz[0]", "xyz[1]", "xyz[2]")) is not None:
         t = torque["timestamp"].astype(float) * 1e-6
+        mag = np.full(len(t), np.nan)
         th = _cols(thrust, "xyz[0]", "xyz[1]", "xyz[2]") if thrust is not None else None
-        mag = (np.full(len(t), np.nan) if th is None else
-               interp_columns(t, thrust["timestamp"].astype(float) * 1e-6,  # type: ignore[index]
-                       np.linalg.norm(th, axis=1)[:, None])[:, 0])
+        if thrust is not None and th is not None:
+            t_th = thrust["timestamp"].astype(float) * 1e-6
+            mag = interp_columns(t, t_th, np.linalg.norm(th, axis=1)[:, None])[:, 0]
         actuator = np.column_stack([t, tq, mag])
 
     attitude_target = np.empty((0, 6))
