@@ -1,0 +1,215 @@
+"""Types and entry points of runtime identification (see the package docstring)."""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mrft_gcs.errors import IdentificationError
+from mrft_gcs.loops import LoopKind
+from mrft_gcs.plant import PD, InnerModel, SideModel
+
+__all__ = [
+    "CycleDetector",
+    "CycleStatus",
+    "Identification",
+    "RelaySettings",
+    "identify",
+    "relay_settings",
+]
+
+
+@dataclass(frozen=True)
+class RelaySettings:
+    """MRFT settings for one loop: ``beta`` and the default amplitude ``h`` (input units)."""
+
+    beta: float
+    h: float
+
+
+@dataclass(frozen=True)
+class CycleStatus:
+    """What the cycle detector has seen so far.
+
+    Attributes
+    ----------
+    cycles : int
+        Complete relay cycles seen (rising switch to rising switch).
+    steady : bool
+        The last ``n_periods`` periods and amplitudes agree within tolerance.
+    period_s, amplitude : float
+        Of the last complete cycle (NaN before the first one).
+    spread : float
+        Relative spread of the last periods (steadiness measure).
+    """
+
+    cycles: int
+    steady: bool
+    period_s: float
+    amplitude: float
+    spread: float
+
+
+class CycleDetector:
+    """Watches a relay loop sample by sample and says when its oscillation is steady.
+
+    Parameters
+    ----------
+    n_periods : int
+        Periods that must agree (default 3).
+    period_tol, amplitude_tol : float
+        Relative spread allowed among them (default 3 % and 8 %).
+    max_s : float
+        Seconds of history kept.
+
+    Cycles are delimited by the relay output's rising switches; the relay's two
+    levels are learnt from the data, so bias and amplitude need not be given.
+    """
+
+    def __init__(self, n_periods: int = 3, period_tol: float = 0.03, amplitude_tol: float = 0.08,
+                 max_s: float = 30.0) -> None:
+        self.n_periods, self.period_tol, self.amplitude_tol = n_periods, period_tol, amplitude_tol
+        self.max_s = max_s
+        self.reset()
+
+    def reset(self) -> None:
+        self.t: deque[float] = deque()
+        self.u: deque[float] = deque()
+        self.y: deque[float] = deque()
+        self.rises: deque[int] = deque()  # absolute sample numbers of rising switches
+        self.k0 = 0  # absolute sample number of self.t[0]
+        self.k = 0
+        self.lo = np.inf
+        self.hi = -np.inf
+        self.prev_high: bool | None = None
+        self.amps: deque[float] = deque(maxlen=self.n_periods)
+
+    def update(self, t_s: float, u: float, y: float) -> CycleStatus:
+        """Add one sample; returns the current status."""
+        if not (np.isfinite(t_s) and np.isfinite(u) and np.isfinite(y)):
+            return self.status()
+        self.t.append(t_s)
+        self.u.append(u)
+        self.y.append(y)
+        self.lo, self.hi = min(self.lo, u), max(self.hi, u)
+        if self.hi > self.lo:
+            high = u > 0.5 * (self.lo + self.hi)
+            if self.prev_high is False and high:
+                self.rises.append(self.k)
+                if len(self.rises) >= 2:
+                    a, b = self.rises[-2] - self.k0, self.rises[-1] - self.k0
+                    seg = np.fromiter((self.y[i] for i in range(max(a, 0), b)), float)
+                    if seg.size:
+                        self.amps.append(0.5 * float(seg.max() - seg.min()))
+            self.prev_high = high
+        self.k += 1
+        while self.t and self.t[-1] - self.t[0] > self.max_s:
+            self.t.popleft()
+            self.u.popleft()
+            self.y.popleft()
+            self.k0 += 1
+        while self.rises and self.rises[0] < self.k0:
+            self.rises.popleft()
+        return self.status()
+
+    def _periods(self) -> np.ndarray:
+        if len(self.rises) < 2:
+            return np.empty(0)
+        t = np.asarray(self.t)
+        idx = np.asarray(self.rises) - self.k0
+        return np.diff(t[idx])
+
+    def status(self) -> CycleStatus:
+        periods = self._periods()[-self.n_periods:]
+        n = len(periods)
+        if n == 0:
+            return CycleStatus(0, False, np.nan, np.nan, np.inf)
+        spread = float(np.ptp(periods) / periods.mean()) if n > 1 else np.inf
+        amps = np.asarray(self.amps)
+        aspread = float(np.ptp(amps) / amps.mean()) if len(amps) > 1 and amps.mean() > 0 else np.inf
+        steady = (n >= self.n_periods and spread <= self.period_tol
+                  and len(amps) >= self.n_periods and aspread <= self.amplitude_tol)
+        return CycleStatus(len(self._periods()), steady, float(periods[-1]),
+                           float(amps[-1]) if len(amps) else np.nan, spread)
+
+    def last_cycles(self, n: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(t, u, y)`` of the last ``n`` complete cycles (empty arrays if fewer exist)."""
+        if len(self.rises) < n + 1:
+            return np.empty(0), np.empty(0), np.empty(0)
+        a, b = self.rises[-n - 1] - self.k0, self.rises[-1] - self.k0
+        t, u, y = (np.asarray(list(d)[a:b + 1]) for d in (self.t, self.u, self.y))
+        return t, u, y
+
+
+@dataclass(frozen=True)
+class Identification:
+    """Result of identifying one loop from its steady relay cycle.
+
+    Attributes
+    ----------
+    kind : LoopKind
+        Model family (attitude, altitude, side).
+    model : InnerModel or SideModel
+        Identified model in SI units of the loop.
+    class_index : int
+        Index of the representative process chosen by the classifier.
+    confidence : float
+        Classifier probability mass behind the chosen gains, in [0, 1].
+    beta, h : float
+        Relay settings of the test.
+    period_s, amplitude : float
+        Of the measured steady cycle.
+    gains : PD
+        PD gains in SI units (``u = Kc e - Kd dy/dt``).
+    extras : dict
+        Diagnostics (scale factor, gain estimate, top classes...).
+    """
+
+    kind: LoopKind
+    model: InnerModel | SideModel
+    class_index: int
+    confidence: float
+    beta: float
+    h: float
+    period_s: float
+    amplitude: float
+    gains: PD
+    extras: dict = field(default_factory=dict)
+
+
+def relay_settings(kind: LoopKind, inner: Identification | None = None) -> RelaySettings:
+    """MRFT ``beta`` and default ``h`` for a loop kind (side motion needs the attitude result)."""
+    from mrft_gcs.identify.runtime import relay_settings as _impl
+
+    return _impl(kind, inner)
+
+
+def identify(kind: LoopKind, t: np.ndarray, u: np.ndarray, y: np.ndarray, *, beta: float,
+             h: float, bias: float = 0.0, inner: Identification | None = None) -> Identification:
+    """Identify a loop from samples of its steady relay oscillation.
+
+    Parameters
+    ----------
+    kind : LoopKind
+        Which domain and classifier to use.
+    t, u, y : arrays (m,)
+        Time (s), relay output (with bias) and measured variable, covering at
+        least one full cycle (more is better: the last complete one is used).
+        Any sample rate; it is resampled.
+    beta, h, bias : float
+        The relay that ran.
+    inner : Identification, optional
+        The attitude identification, required for side motion.
+
+    Raises
+    ------
+    IdentificationError
+        No complete cycle in the data, or no bundled model for the loop.
+    """
+    if kind is LoopKind.SIDE and inner is None:
+        raise IdentificationError("side-motion identification needs the attitude loop identified first")
+    from mrft_gcs.identify.runtime import identify as _impl
+
+    return _impl(kind, t, u, y, beta=beta, h=h, bias=bias, inner=inner)
