@@ -1,0 +1,483 @@
+"""``tune(connection, profile=...) -> TuneResult``: one live tune, from the ground to hovering.
+
+The steps (SPEC 1, 2, 5): connect (the session's .tlog is written as traffic
+passes); measure the link and refuse one that cannot carry a relay test; read
+every parameter the tune will write (a missing one fails before take-off) and
+the hover thrust; get the relay settings of the bundled classifiers; stream
+setpoints at 250 Hz *before* switching to OFFBOARD; arm; run
+:class:`~mrft_gcs.flight.sequence.TuningSequence` (take-off, MRFT on altitude,
+roll and pitch at once, then x and y), identifying each loop as soon as its
+oscillation is steady and switching it to its PD at once; hover; write the gains
+as autopilot parameters (backup first, every value read back); switch to the
+autopilot's position mode so it flies on them; check a short hover.
+
+Safety: every setpoint tick checks the limits (:mod:`mrft_gcs.flight.safety`);
+telemetry silent for 0.5 s stops the stream and lands (the streamer's watchdog);
+Ctrl-C lands. All raise :class:`~mrft_gcs.errors.SafetyAbort` (exit code 5).
+A failed tune's exception carries what was done so far as ``err.partial_result``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort
+from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
+from mrft_gcs.flight.sequence import (
+    CycleSnapshot,
+    LoopState,
+    Phase,
+    SequenceConfig,
+    TuningSequence,
+)
+from mrft_gcs.identify import Identification, RelaySettings, identify, relay_settings
+from mrft_gcs.link import (
+    SetpointStreamer,
+    StreamStats,
+    VehicleLink,
+    measure_link,
+    require_relay_capable,
+)
+from mrft_gcs.link.quality import LinkQuality
+from mrft_gcs.loops import Loop, LoopKind
+from mrft_gcs.params import ParamChange, ParamClient
+from mrft_gcs.plant import PD
+from mrft_gcs.profiles import (
+    Actuation,
+    AutopilotProfile,
+    PDGains,
+    SafetyLimits,
+    gains_to_params,
+    load_profile,
+)
+from mrft_gcs.telemetry import ActuatorTarget, Attitude, AttitudeTarget, LocalPosition
+
+__all__ = ["tune", "TuneResult", "LoopResult", "Identifier", "YAW_NOTE", "SCHEMA"]
+
+SCHEMA = "mrft-gcs/tune-report/1"
+YAW_NOTE = ("yaw is not tuned: it is held by a conservative GCS-side PD during the tests "
+            "(Kc 0.2 /rad, Kd 0.08 s/rad on normalised yaw torque) and keeps the autopilot's "
+            "own yaw gains afterwards")
+_SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
+
+#: ``f(loop, snapshot, inner_identification) -> Identification``
+Identifier = Callable[[Loop, CycleSnapshot, Identification | None], Identification]
+
+
+def bundled_identifier(loop: Loop, snap: CycleSnapshot,
+                       inner: Identification | None = None) -> Identification:
+    """Identification with the bundled classifiers (:func:`mrft_gcs.identify.identify`)."""
+    return identify(loop.kind, snap.t_s, snap.u, snap.y, beta=snap.beta, h=snap.h,
+                    bias=snap.bias, inner=inner)
+
+
+@dataclass(frozen=True)
+class LoopResult:
+    """One loop of a tune. ``state`` is a :class:`LoopState` value; times on the vehicle clock."""
+
+    loop: Loop
+    state: str
+    beta: float
+    h: float
+    bias: float
+    period_s: float
+    amplitude: float
+    identification: Identification | None
+    gains: PD | None
+    t_tuned_s: float
+    note: str
+    cycles: tuple[np.ndarray, np.ndarray, np.ndarray] | None  # t_s, u, y of the identified cycles
+
+
+@dataclass(frozen=True)
+class TuneResult:
+    """Everything a tune did (the report is rendered from it, :mod:`mrft_gcs.flight.report`)."""
+
+    connection: str
+    autopilot: str
+    profile: str
+    actuation: str
+    started: str
+    duration_s: float
+    loops: dict[Loop, LoopResult]
+    parameters: tuple[ParamChange, ...]
+    backup: str | None
+    status: str
+    error: str | None = None
+    link: LinkQuality | None = None
+    stream: StreamStats | None = None
+    tlog: str | None = None
+    max_tilt_deg: float = float("nan")
+    limits: SafetyLimits | None = None
+    hover_error_m: float = float("nan")
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+class _Telemetry:
+    """Latest ATTITUDE and LOCAL_POSITION_NED, drained from the link on the stream thread."""
+
+    def __init__(self, link: VehicleLink) -> None:
+        self.link = link
+        self.att: Attitude | None = None
+        self.pos: LocalPosition | None = None
+
+    def poll(self) -> FlightState | None:
+        """Drain the link's queue (stream thread only) and return the latest state."""
+        while (smp := self.link.next_sample(0.0)) is not None:
+            if isinstance(smp, Attitude):
+                self.att = smp
+            elif isinstance(smp, LocalPosition):
+                self.pos = smp
+        return self.latest()
+
+    def latest(self) -> FlightState | None:
+        """The latest state without draining (safe from any thread)."""
+        a, p = self.att, self.pos
+        if a is None or p is None:
+            return None
+        return FlightState(a.t_s, a.roll_rad, a.pitch_rad, a.yaw_rad, a.rollspeed_rad_s,
+                           a.pitchspeed_rad_s, a.yawspeed_rad_s, p.t_s, p.x_m, p.y_m, -p.z_m,
+                           p.vx_m_s, p.vy_m_s, -p.vz_m_s)
+
+
+def _idle(actuation: Actuation) -> ActuatorTarget | AttitudeTarget:
+    if actuation is Actuation.TORQUE:
+        return ActuatorTarget(0.0, 0.0, 0.0, 0.0, 0.0)
+    return AttitudeTarget(0.0, (1.0, 0.0, 0.0, 0.0), 0.0)
+
+
+def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
+         actuation: Actuation | str | None = None, limits: SafetyLimits | None = None,
+         z_ref_m: float = 1.0, dry_link: bool = False, baud: int | None = None,
+         signing_key: str | os.PathLike[str] | bytes | None = None,
+         tlog_path: str | os.PathLike[str] | None = None,
+         backup_dir: str | os.PathLike[str] = ".", rate_hz: float = 250.0,
+         heartbeat_timeout_s: float = 5.0, max_relay_s: float = 30.0, hover_check_s: float = 2.0,
+         on_progress: Callable[[dict], None] | None = None,
+         identifier: Identifier | None = None,
+         relay: dict[LoopKind, RelaySettings] | None = None) -> TuneResult:
+    """Tune the vehicle at ``connection`` from take-off; returns what was done.
+
+    Parameters
+    ----------
+    connection : str
+        pymavlink connection string (``udp:127.0.0.1:14540``, ``tcp:...``, ``/dev/ttyUSB0``).
+    profile : str or AutopilotProfile
+        ``px4``, ``ardupilot``, ``sitl`` or a TOML path.
+    actuation : Actuation or str, optional
+        ``torque`` or ``attitude``; default from the profile.
+    limits : SafetyLimits, optional
+        Default from the profile (command-line overrides already applied).
+    z_ref_m : float
+        Test altitude above the take-off point (m).
+    dry_link : bool
+        Connect and check the link and parameters, but do not arm (status ``dry-link``).
+    tlog_path : path, optional
+        Session log; default ``mrft-YYYYmmdd-HHMMSS.tlog`` in ``backup_dir``.
+    backup_dir : path
+        Where the parameter backup (and default .tlog) go.
+    on_progress : callable, optional
+        Called about ten times a second with :meth:`TuningSequence.snapshot` (plus
+        ``"stream"``: sent setpoints so far).
+    identifier : callable, optional
+        Replaces the bundled classifiers (``f(loop, snapshot, inner) -> Identification``):
+        for tests and custom pipelines.
+    relay : dict, optional
+        Relay settings per loop kind instead of the classifiers' (side settings
+        are still asked with the attitude identification when missing here).
+
+    Raises
+    ------
+    LinkError, ParameterError, IdentificationError, SafetyAbort, UsageError
+        With ``partial_result`` (a :class:`TuneResult`) when the flight had started.
+    """
+    prof = load_profile(profile) if isinstance(profile, str | os.PathLike) else profile
+    act = Actuation(actuation) if actuation is not None else prof.actuation
+    lim = limits or prof.safety
+    ident_fn = identifier or bundled_identifier
+    started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+    backup_dir = Path(backup_dir)
+    if tlog_path is None:
+        tlog_path = backup_dir / f"mrft-{_dt.datetime.now():%Y%m%d-%H%M%S}.tlog"
+        n = 1
+        while Path(tlog_path).exists():
+            tlog_path = backup_dir / f"mrft-{_dt.datetime.now():%Y%m%d-%H%M%S}-{n}.tlog"
+            n += 1
+    link = VehicleLink.connect(connection, baud=baud, timeout_s=heartbeat_timeout_s,
+                               tlog_path=tlog_path, signing_key=signing_key)
+    run = _Run(link, prof, act, lim, z_ref_m, connection, started, backup_dir, rate_hz,
+               max_relay_s, hover_check_s, on_progress, ident_fn, relay or {})
+    try:
+        return run.execute(dry_link)
+    except MrftError as err:
+        err.partial_result = run.result(_status(err), str(err))  # type: ignore[attr-defined]
+        raise
+    finally:
+        link.close()
+
+
+def _status(err: MrftError) -> str:
+    return f"error:{err.exit_code}:{type(err).__name__}"
+
+
+class _Run:
+    """One tune's working state (kept out of :func:`tune` so it reads in one sitting)."""
+
+    def __init__(self, link, prof, act, lim, z_ref_m, connection, started, backup_dir, rate_hz,
+                 max_relay_s, hover_check_s, on_progress, ident_fn, relay) -> None:
+        self.link: VehicleLink = link
+        link.modes = dict(prof.modes)
+        self.prof: AutopilotProfile = prof
+        self.act: Actuation = act
+        self.lim: SafetyLimits = lim
+        self.z_ref_m = z_ref_m
+        self.connection = connection
+        self.started = started
+        self.backup_dir = backup_dir
+        self.rate_hz = rate_hz
+        self.max_relay_s = max_relay_s
+        self.hover_check_s = hover_check_s
+        self.on_progress = on_progress
+        self.ident_fn = ident_fn
+        self.relay: dict[LoopKind, RelaySettings] = relay
+        self.seq: TuningSequence | None = None
+        self.streamer: SetpointStreamer | None = None
+        self.monitor: SafetyMonitor | None = None
+        self.quality: LinkQuality | None = None
+        self.changes: tuple[ParamChange, ...] = ()
+        self.backup: str | None = None
+        self.limit_hit: LimitExceeded | None = None
+        self.hover_error_m = math.nan
+        self.notes: list[str] = []
+
+    # ------------------------------------------------------------------ result
+    def result(self, status: str, error: str | None = None) -> TuneResult:
+        loops: dict[Loop, LoopResult] = {}
+        seq = self.seq
+        for lp in Loop:
+            t = seq.loops[lp] if seq is not None else None
+            if t is None:
+                loops[lp] = LoopResult(lp, LoopState.WAITING.value, math.nan, math.nan, 0.0,
+                                       math.nan, math.nan, None, None, math.nan, "", None)
+                continue
+            snap = t.snapshot
+            ident = t.identification
+            loops[lp] = LoopResult(
+                lp, t.state.value, t.beta, t.h, t.bias,
+                snap.status.period_s if snap else t.status.period_s,
+                snap.status.amplitude if snap else t.status.amplitude,
+                ident, ident.gains if ident else None, t.t_tuned_s - seq.t_start_s, t.note,
+                (snap.t_s, snap.u, snap.y) if snap else None)
+        stream = self.streamer.stats() if self.streamer is not None else None
+        return TuneResult(
+            connection=self.connection, autopilot=self.link.family.value, profile=self.prof.name,
+            actuation=self.act.value, started=self.started,
+            duration_s=seq.duration_s if seq is not None else math.nan, loops=loops,
+            parameters=self.changes, backup=self.backup, status=status, error=error,
+            link=self.quality, stream=stream,
+            tlog=str(self.link.tlog_path) if self.link.tlog_path else None,
+            max_tilt_deg=self.monitor.max_tilt_seen_deg if self.monitor else math.nan,
+            limits=self.lim, hover_error_m=self.hover_error_m,
+            notes=tuple([YAW_NOTE] + self.notes))
+
+    # ------------------------------------------------------------------ steps
+    def execute(self, dry_link: bool) -> TuneResult:
+        link = self.link
+        self.quality = measure_link(link, rate_hz=self.rate_hz)
+        require_relay_capable(self.quality, setpoint_hz=self.rate_hz, actuation=self.act.value,
+                              signed=link.signed)
+        client = ParamClient(link)
+        current = client.read_many(self.prof.parameter_names())
+        self.hover = current[self.prof.altitude.hover_thrust].value
+        att = self.relay.get(LoopKind.ATTITUDE) or relay_settings(LoopKind.ATTITUDE)
+        alt = self.relay.get(LoopKind.ALTITUDE) or relay_settings(LoopKind.ALTITUDE)
+        cfg = SequenceConfig(actuation=self.act, z_ref_m=self.z_ref_m,
+                             hover_thrust_guess=self.hover if 0 < self.hover < 1 else None,
+                             max_tilt_cmd_rad=0.6 * math.radians(self.lim.max_tilt_deg))
+        self.seq = TuningSequence(cfg, att, alt)
+        if dry_link:
+            return self.result("dry-link")
+        try:
+            self._fly(client)
+        except KeyboardInterrupt:
+            self._emergency_land()
+            raise SafetyAbort("interrupted (Ctrl-C): test stopped, landing commanded") from None
+        except BaseException:
+            self._emergency_land()
+            raise
+        return self.result("ok")
+
+    def _emergency_land(self) -> None:
+        if self.streamer is not None:
+            self.streamer.stop()
+        if self.seq is not None and self.seq.phase not in (Phase.DONE, Phase.PREFLIGHT):
+            self.seq.finish(Phase.ABORTED)
+        try:
+            self.link.land(wait_ack=False)
+        except MrftError:
+            pass
+
+    def _setpoint(self, telemetry: _Telemetry) -> Callable[[float], object]:
+        seq, idle = self.seq, _idle(self.act)
+        assert seq is not None
+
+        def make(_t: float):
+            s = telemetry.poll()
+            if s is None or seq.phase is Phase.PREFLIGHT:
+                return idle
+            if self.monitor is not None:
+                try:
+                    self.monitor.check(s)
+                except LimitExceeded as err:
+                    self.limit_hit = err
+                    raise
+            return seq.step(s)
+
+        return make
+
+    def _fly(self, client: ParamClient) -> None:
+        link, seq = self.link, self.seq
+        assert seq is not None
+        telemetry = _Telemetry(link)
+        link.drain()
+        self.streamer = SetpointStreamer(link, self._setpoint(telemetry), rate_hz=self.rate_hz)
+        self.streamer.start()
+        time.sleep(0.3)  # PX4 needs the stream before OFFBOARD
+        self._check_stream()
+        link.set_mode(self.prof.modes["offboard"])
+        link.arm()
+        deadline = time.monotonic() + 1.0
+        while (s := telemetry.latest()) is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if s is None:
+            raise LinkError("no ATTITUDE and LOCAL_POSITION_NED after arming: check the "
+                            "vehicle's position estimate")
+        self.monitor = SafetyMonitor(self.lim, (s.x_m, s.y_m, s.z_up_m),
+                                     max(s.t_att_s, s.t_pos_s))
+        seq.start(s)  # the take-off command: duration_s counts from here
+        self._run_tests()
+        self._hold(0.5)
+        self._write_back(client)
+        self._hand_over()
+
+    def _check_stream(self) -> None:
+        assert self.streamer is not None
+        if self.limit_hit is not None:
+            raise self.limit_hit
+        if self.streamer.abort_reason is not None:
+            raise SafetyAbort(self.streamer.abort_reason)
+
+    def _progress(self) -> None:
+        if self.on_progress is not None and self.seq is not None:
+            snap = self.seq.snapshot()
+            snap["stream_sent"] = self.streamer.stats().sent if self.streamer else 0
+            self.on_progress(snap)
+
+    def _run_tests(self) -> None:
+        seq = self.seq
+        assert seq is not None
+        next_progress = 0.0
+        while seq.phase is not Phase.HOVER:
+            time.sleep(0.01)
+            self._check_stream()
+            for snap in seq.ready():
+                self._identify(snap)
+            if seq.side_waiting:
+                self._start_side()
+            for lp in Loop:
+                age = seq.relay_age_s(lp)
+                if age > self.max_relay_s:
+                    raise IdentificationError(
+                        f"{lp.value}: no steady relay oscillation after {age:.0f} s: check for "
+                        f"vibration, wind or a loose airframe, or raise the relay amplitude")
+            if time.monotonic() >= next_progress:
+                next_progress = time.monotonic() + 0.1
+                self._progress()
+        self._progress()
+
+    def _identify(self, snap: CycleSnapshot) -> None:
+        seq = self.seq
+        assert seq is not None
+        inner = None
+        if snap.loop in _SIDE_INNER:
+            inner = seq.loops[_SIDE_INNER[snap.loop]].identification
+        try:
+            ident = self.ident_fn(snap.loop, snap, inner)
+        except IdentificationError as err:
+            self.notes.append(f"{snap.loop.value}: identification retried ({err})")
+            seq.retry(snap.loop)
+            return
+        seq.apply(snap.loop, ident)
+
+    def _start_side(self) -> None:
+        seq = self.seq
+        assert seq is not None
+        settings: dict[Loop, RelaySettings] = {}
+        for lp, inner_lp in _SIDE_INNER.items():
+            inner = seq.loops[inner_lp].identification
+            if inner is None:
+                seq.leave_alone(lp, f"{lp.value} needs the identified {inner_lp.value} loop for "
+                                f"the side-motion classifier; on the {self.act.value} path "
+                                f"the autopilot keeps its attitude loop, so {lp.value} was "
+                                f"left alone")
+                continue
+            settings[lp] = self.relay.get(LoopKind.SIDE) or relay_settings(LoopKind.SIDE, inner)
+        seq.start_side(settings)
+
+    def _hold(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            time.sleep(0.02)
+            self._check_stream()
+
+    def _write_back(self, client: ParamClient) -> None:
+        seq = self.seq
+        assert seq is not None
+        gains = {lp: PDGains(t.identification.gains.Kc, t.identification.gains.Kd)
+                 for lp, t in seq.loops.items()
+                 if t.state is LoopState.TUNED and t.identification is not None}
+        values = gains_to_params(self.prof, gains, self.hover)
+        if not values:
+            return
+        result = client.write(values, self.backup_dir, label="backup")
+        self.changes, self.backup = result.changes, str(result.backup_path)
+        self._check_stream()
+
+    def _hand_over(self) -> None:
+        """Switch to the autopilot's position mode, stop streaming, check it hovers."""
+        seq, link = self.seq, self.link
+        assert seq is not None and self.streamer is not None and self.monitor is not None
+        link.set_mode(self.prof.modes["position"])
+        self.streamer.stop()
+        seq.finish(Phase.DONE)
+        telemetry = _Telemetry(link)
+        end = time.monotonic() + self.hover_check_s
+        worst = 0.0
+        while time.monotonic() < end:
+            s = telemetry.poll()
+            if link.telemetry_age_s() > 0.5:
+                link.land(wait_ack=False)
+                raise SafetyAbort("telemetry lost after the hand-over to position mode; "
+                                  "landing commanded")
+            if s is not None:
+                reason = self.monitor.violation(s, duration=False)
+                if reason is not None:
+                    link.land(wait_ack=False)
+                    mode = self.prof.modes["position"].name
+                    raise SafetyAbort(f"on the written gains in {mode}: {reason}; landing "
+                                      f"commanded (restore the backup {self.backup})")
+                o = self.monitor.origin
+                worst = max(worst, math.dist((s.x_m, s.y_m, s.z_up_m),
+                                             (o[0], o[1], o[2] + self.z_ref_m)))
+            time.sleep(0.02)
+        self.hover_error_m = worst
+

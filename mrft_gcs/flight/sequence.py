@@ -1,0 +1,409 @@
+"""The tuning sequence as a state machine (paper section "Takeoff and Full System Identification").
+
+Phases (:class:`Phase`): ``PREFLIGHT`` -> ``TAKEOFF`` (PI on altitude, eq. 21) ->
+``INNER_MRFT`` (MRFT on altitude, roll and pitch at once; the bounding relay of
+eq. 22 on x/y gives the attitude set points) -> ``SIDE_MRFT`` (once roll and pitch
+are identified: MRFT on x and y through the GCS attitude PDs) -> ``HOVER`` (every
+loop on its identified PD) -> ``DONE``; ``LANDING``/``ABORTED`` on a safety stop.
+
+:class:`TuningSequence` owns no I/O and no identification: its :meth:`~TuningSequence.step`
+turns the latest :class:`~mrft_gcs.flight.controllers.FlightState` into a setpoint
+(called on the setpoint-stream thread at 250 Hz), :meth:`~TuningSequence.ready`
+hands the steady cycles to whoever identifies them (the tuning API, on its own
+thread) and :meth:`~TuningSequence.apply` switches a loop to its PD at once.
+
+Axes: x (north) is driven by ``-pitch``, y (east) by ``+roll`` (yaw 0, NED); the
+x and y relays and PDs output that tilt command in rad, exactly the ``u`` that the
+side-motion identification expects.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mrft_gcs.flight.controllers import FlightState, PDLoop, YawHold
+from mrft_gcs.flight.takeoff import TABLE_V, TakeoffController, TakeoffSettings
+from mrft_gcs.identify import CycleDetector, CycleStatus, Identification, RelaySettings
+from mrft_gcs.loops import INNER_LOOPS, SIDE_LOOPS, Loop
+from mrft_gcs.profiles import Actuation
+from mrft_gcs.relay import MRFT, BoundingRelay
+from mrft_gcs.telemetry import ActuatorTarget, AttitudeTarget
+
+__all__ = [
+    "Phase",
+    "LoopState",
+    "LoopTest",
+    "CycleSnapshot",
+    "SequenceConfig",
+    "TuningSequence",
+    "quat_from_euler",
+]
+
+_NAN = float("nan")
+
+
+class Phase(enum.Enum):
+    """Where the tuning sequence stands."""
+
+    PREFLIGHT = "preflight"
+    TAKEOFF = "take-off"
+    INNER_MRFT = "inner MRFT"
+    SIDE_MRFT = "side MRFT"
+    HOVER = "hover"
+    LANDING = "landing"
+    DONE = "done"
+    ABORTED = "aborted"
+
+
+class LoopState(enum.Enum):
+    """One loop's progress."""
+
+    WAITING = "waiting"
+    RELAY = "oscillating"
+    IDENTIFYING = "identifying"
+    TUNED = "tuned"
+    LEFT_ALONE = "left alone"
+
+
+@dataclass(frozen=True)
+class CycleSnapshot:
+    """The steady relay cycles handed to identification (arrays of shape (m,))."""
+
+    loop: Loop
+    t_s: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    beta: float
+    h: float
+    bias: float
+    status: CycleStatus
+
+
+@dataclass
+class LoopTest:
+    """Mutable per-loop state of the sequence (read by displays under the sequence lock)."""
+
+    loop: Loop
+    state: LoopState = LoopState.WAITING
+    beta: float = _NAN
+    h: float = _NAN
+    bias: float = 0.0
+    relay: MRFT | None = None
+    detector: CycleDetector = field(default_factory=CycleDetector)
+    status: CycleStatus = field(default_factory=lambda: CycleStatus(0, False, _NAN, _NAN, math.inf))
+    pd: PDLoop | None = None
+    identification: Identification | None = None
+    snapshot: CycleSnapshot | None = None
+    t_relay_start_s: float = _NAN
+    t_tuned_s: float = _NAN
+    note: str = ""
+    u: float = 0.0
+
+
+@dataclass(frozen=True)
+class SequenceConfig:
+    """How the sequence flies; units in the names.
+
+    ``relay`` gives beta and h of the inner loops (attitude for roll and pitch,
+    altitude), normally from :func:`mrft_gcs.identify.relay_settings`.
+    ``hover_thrust_guess`` preloads the take-off integrator with 90 % of it.
+    """
+
+    actuation: Actuation = Actuation.TORQUE
+    z_ref_m: float = 1.0
+    takeoff: TakeoffSettings = TABLE_V
+    hover_thrust_guess: float | None = None
+    max_tilt_cmd_rad: float = 0.35
+    airborne_m: float = 0.03
+    identify_cycles: int = 3
+    steady_periods: tuple[int, int, int] = (3, 2, 2)  # attitude, altitude, side
+    relay_band_att_rad: float = 0.003
+    relay_band_pos_m: float = 0.01
+
+
+def quat_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """ZYX Euler angles (rad) to a unit quaternion ``(w, x, y, z)``."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
+
+
+class TuningSequence:
+    """State machine of one tune: call :meth:`start`, then :meth:`step` at every tick.
+
+    Parameters
+    ----------
+    config : SequenceConfig
+    attitude_relay, altitude_relay : RelaySettings
+        MRFT beta and h for roll/pitch (normalised torque) and altitude (normalised thrust).
+    """
+
+    def __init__(self, config: SequenceConfig, attitude_relay: RelaySettings,
+                 altitude_relay: RelaySettings) -> None:
+        self.config = config
+        self.attitude_relay = attitude_relay
+        self.altitude_relay = altitude_relay
+        self._lock = threading.RLock()
+        self.reset()
+
+    # ------------------------------------------------------------------ lifecycle
+    def reset(self) -> None:
+        cfg = self.config
+        self.phase = Phase.PREFLIGHT
+        n_att, n_alt, n_side = cfg.steady_periods
+        n = {Loop.ROLL: n_att, Loop.PITCH: n_att, Loop.ALTITUDE: n_alt, Loop.X: n_side,
+             Loop.Y: n_side}
+        self.loops: dict[Loop, LoopTest] = {
+            lp: LoopTest(lp, detector=CycleDetector(n_periods=n[lp])) for lp in Loop}
+        self.yaw = YawHold()
+        self.bounding = BoundingRelay(cfg.takeoff.eps1_m, cfg.takeoff.eps2_m,
+                                      cfg.takeoff.h_o1_rad, cfg.takeoff.h_o2_rad, n=2)
+        u_init = 0.0 if cfg.hover_thrust_guess is None else 0.9 * cfg.hover_thrust_guess
+        self.takeoff = TakeoffController(cfg.z_ref_m, cfg.takeoff, beta=self.altitude_relay.beta,
+                                         u_init=u_init, h_alt=self.altitude_relay.h)
+        self.origin = (0.0, 0.0, 0.0)
+        self.yaw_ref = 0.0
+        self.t_start_s = _NAN
+        self.t_last_tuned_s = _NAN
+        self.state: FlightState | None = None
+        self.tilt_cmd = (0.0, 0.0)  # (roll_ref, pitch_ref), rad
+        self._t_att_prev = self._t_pos_prev = -math.inf
+        alt = self.loops[Loop.ALTITUDE]
+        alt.beta, alt.h = self.altitude_relay.beta, self.altitude_relay.h
+        for lp in (Loop.ROLL, Loop.PITCH):
+            t = self.loops[lp]
+            t.beta, t.h = self.attitude_relay.beta, self.attitude_relay.h
+            if cfg.actuation is Actuation.ATTITUDE:
+                t.state = LoopState.LEFT_ALONE
+                t.note = ("attitude path: the autopilot keeps its own attitude loop "
+                          "(SET_ATTITUDE_TARGET), so roll and pitch are not tested")
+
+    def start(self, s: FlightState) -> None:
+        """Take-off command: remember the take-off point and heading, enter TAKEOFF."""
+        with self._lock:
+            self.origin = (s.x_m, s.y_m, s.z_up_m)
+            self.yaw_ref = s.yaw_rad
+            self.t_start_s = max(s.t_att_s, s.t_pos_s)
+            self.state = s
+            self.phase = Phase.TAKEOFF
+            alt = self.loops[Loop.ALTITUDE]
+            alt.state, alt.t_relay_start_s = LoopState.RELAY, self.t_start_s
+
+    def leave_alone(self, loop: Loop, why: str) -> None:
+        """Give up on a loop (it keeps what it had) and say why in the report."""
+        with self._lock:
+            t = self.loops[loop]
+            t.state, t.note, t.relay = LoopState.LEFT_ALONE, why, None
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def inner_done(self) -> bool:
+        return all(self.loops[lp].state in (LoopState.TUNED, LoopState.LEFT_ALONE)
+                   for lp in (Loop.ROLL, Loop.PITCH))
+
+    @property
+    def all_done(self) -> bool:
+        return all(t.state in (LoopState.TUNED, LoopState.LEFT_ALONE) for t in self.loops.values())
+
+    @property
+    def side_waiting(self) -> bool:
+        """Roll and pitch are done and x/y have not started: side relay settings are due."""
+        return self.inner_done and any(self.loops[lp].state is LoopState.WAITING
+                                       for lp in SIDE_LOOPS)
+
+    @property
+    def duration_s(self) -> float:
+        """Vehicle seconds from the take-off command to the last gains applied (NaN before)."""
+        return self.t_last_tuned_s - self.t_start_s
+
+    def elapsed_s(self) -> float:
+        s = self.state
+        if s is None or not math.isfinite(self.t_start_s):
+            return 0.0
+        return max(s.t_att_s, s.t_pos_s) - self.t_start_s
+
+    def relay_age_s(self, loop: Loop) -> float:
+        """Seconds the loop's relay has run (NaN if not running)."""
+        t = self.loops[loop]
+        if t.state not in (LoopState.RELAY, LoopState.IDENTIFYING) or self.state is None:
+            return _NAN
+        return max(self.state.t_att_s, self.state.t_pos_s) - t.t_relay_start_s
+
+    # ------------------------------------------------------------------ main-thread hooks
+    def ready(self) -> list[CycleSnapshot]:
+        """Loops whose oscillation became steady since the last call (now IDENTIFYING)."""
+        out = []
+        with self._lock:
+            for t in self.loops.values():
+                if t.state is LoopState.RELAY and t.status.steady:
+                    ts, u, y = t.detector.last_cycles(self.config.identify_cycles)
+                    if ts.size < 8:
+                        continue
+                    t.state = LoopState.IDENTIFYING
+                    t.snapshot = CycleSnapshot(t.loop, ts, u, y, t.beta, t.h, t.bias, t.status)
+                    out.append(t.snapshot)
+        return out
+
+    def retry(self, loop: Loop) -> None:
+        """Identification failed on this cycle: keep the relay going and wait for the next."""
+        with self._lock:
+            t = self.loops[loop]
+            if t.state is LoopState.IDENTIFYING:
+                t.state = LoopState.RELAY
+                t.detector.reset()
+                t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
+
+    def apply(self, loop: Loop, ident: Identification) -> None:
+        """Switch ``loop`` from its relay to the identified PD, from the next tick on."""
+        with self._lock:
+            t = self.loops[loop]
+            snap = t.snapshot
+            trim = float(np.mean(snap.u)) if snap is not None and snap.u.size else t.bias
+            if loop in SIDE_LOOPS:
+                trim = 0.0  # no constant tilt is needed to hold position
+            lim = self.config.max_tilt_cmd_rad
+            lo, hi = {Loop.ALTITUDE: (0.0, 1.0), Loop.X: (-lim, lim),
+                      Loop.Y: (-lim, lim)}.get(loop, (-1.0, 1.0))
+            t.pd = PDLoop(ident.gains.Kc, ident.gains.Kd, trim, lo, hi)
+            t.identification = ident
+            t.relay = None
+            t.state = LoopState.TUNED
+            now = self.state
+            t.t_tuned_s = max(now.t_att_s, now.t_pos_s) if now is not None else _NAN
+            self.t_last_tuned_s = t.t_tuned_s
+            self._advance()
+
+    def start_side(self, settings: dict[Loop, RelaySettings]) -> None:
+        """Start the x/y relays (beta from the side-motion domain of each attitude class)."""
+        with self._lock:
+            now = self.state
+            for lp, rs in settings.items():
+                t = self.loops[lp]
+                if t.state is not LoopState.WAITING:
+                    continue
+                t.beta, t.h = rs.beta, rs.h
+                t.relay = MRFT(rs.beta, rs.h, band=self.config.relay_band_pos_m)
+                t.state = LoopState.RELAY
+                t.t_relay_start_s = max(now.t_att_s, now.t_pos_s) if now else _NAN
+            self._advance()
+
+    def finish(self, phase: Phase = Phase.DONE) -> None:
+        with self._lock:
+            self.phase = phase
+
+    def _advance(self) -> None:
+        if self.phase in (Phase.DONE, Phase.ABORTED, Phase.LANDING, Phase.PREFLIGHT):
+            return
+        if self.all_done:
+            self.phase = Phase.HOVER
+        elif any(self.loops[lp].state in (LoopState.RELAY, LoopState.IDENTIFYING)
+                 for lp in SIDE_LOOPS):
+            self.phase = Phase.SIDE_MRFT
+
+    # ------------------------------------------------------------------ the tick
+    def step(self, s: FlightState) -> ActuatorTarget | AttitudeTarget:
+        """Setpoint for the latest state (torque path: ActuatorTarget; attitude: AttitudeTarget)."""
+        with self._lock:
+            self.state = s
+            cfg = self.config
+            z = s.z_up_m - self.origin[2]
+            new_att = s.t_att_s > self._t_att_prev
+            new_pos = s.t_pos_s > self._t_pos_prev
+            self._t_att_prev, self._t_pos_prev = s.t_att_s, s.t_pos_s
+            thrust = self._altitude(s, z, new_pos)
+            if self.phase is Phase.TAKEOFF and self.takeoff.switched:
+                self.phase = Phase.INNER_MRFT
+            ux, uy = self._side(s, new_pos)
+            lim = cfg.max_tilt_cmd_rad
+            roll_ref = min(lim, max(-lim, uy))
+            pitch_ref = min(lim, max(-lim, -ux))
+            self.tilt_cmd = (roll_ref, pitch_ref)
+            if cfg.actuation is Actuation.ATTITUDE:
+                q = quat_from_euler(roll_ref, pitch_ref, self.yaw_ref)
+                return AttitudeTarget(s.t_att_s, q, thrust)
+            airborne = z > cfg.airborne_m or self.takeoff.switched
+            roll = self._attitude(Loop.ROLL, roll_ref, s.roll_rad, s.p_rad_s, s.t_att_s,
+                                  new_att, airborne)
+            pitch = self._attitude(Loop.PITCH, pitch_ref, s.pitch_rad, s.q_rad_s, s.t_att_s,
+                                   new_att, airborne)
+            yaw = self.yaw.step(self.yaw_ref, s.yaw_rad, s.r_rad_s) if airborne else 0.0
+            return ActuatorTarget(s.t_att_s, roll, pitch, yaw, thrust)
+
+    def _feed(self, t: LoopTest, t_s: float, u: float, y: float, new: bool) -> None:
+        # one detector sample per telemetry sample (ticks between samples repeat the state)
+        if new and t.state in (LoopState.RELAY, LoopState.IDENTIFYING):
+            t.status = t.detector.update(t_s, u, y)
+
+    def _altitude(self, s: FlightState, z: float, new: bool) -> float:
+        t = self.loops[Loop.ALTITUDE]
+        if self.phase is Phase.PREFLIGHT:
+            return 0.0
+        if t.pd is not None:
+            u = t.pd.step(self.config.z_ref_m, z, s.vz_up_m_s)
+        else:
+            u = self.takeoff.step(s.t_pos_s, z)
+            if self.takeoff.switched:
+                t.bias = self.takeoff.u_z0
+                self._feed(t, s.t_pos_s, u, z, new)
+        t.u = u
+        return u
+
+    def _side(self, s: FlightState, new: bool) -> tuple[float, float]:
+        ex = self.origin[0] - s.x_m
+        ey = self.origin[1] - s.y_m
+        tx, ty = self.loops[Loop.X], self.loops[Loop.Y]
+        if tx.state is LoopState.WAITING and ty.state is LoopState.WAITING:
+            bb = self.bounding.step(np.array([ex, ey]))
+            tx.u, ty.u = float(bb[0]), float(bb[1])
+            return tx.u, ty.u
+        out = []
+        for t, e, pos, vel in ((tx, ex, s.x_m, s.vx_m_s), (ty, ey, s.y_m, s.vy_m_s)):
+            if t.pd is not None:
+                u = t.pd.step(self.origin[0 if t is tx else 1], pos, vel)
+            elif t.relay is not None:
+                u = float(t.relay.step(e)[0])
+                self._feed(t, s.t_pos_s, u, pos, new)
+            else:
+                u = 0.0
+            t.u = u
+            out.append(u)
+        return out[0], out[1]
+
+    def _attitude(self, loop: Loop, ref: float, y: float, rate: float, t_s: float, new: bool,
+                  airborne: bool) -> float:
+        t = self.loops[loop]
+        if t.pd is not None:
+            u = t.pd.step(ref, y, rate)
+        elif not airborne:
+            u = 0.0
+        else:
+            if t.state is LoopState.WAITING:
+                t.relay = MRFT(t.beta, t.h, band=self.config.relay_band_att_rad)
+                t.state, t.t_relay_start_s = LoopState.RELAY, t_s
+            assert t.relay is not None
+            u = float(t.relay.step(ref - y)[0])
+            self._feed(t, t_s, u, y, new)
+        t.u = u
+        return u
+
+    # ------------------------------------------------------------------ display
+    def snapshot(self) -> dict[str, object]:
+        """A consistent copy for displays: phase, elapsed, each loop's state/period/amplitude."""
+        with self._lock:
+            return {
+                "phase": self.phase,
+                "elapsed_s": self.elapsed_s(),
+                "loops": {lp: (t.state, t.status.cycles, t.status.period_s, t.status.amplitude,
+                               t.status.steady) for lp, t in self.loops.items()},
+            }
+
+
+INNER = INNER_LOOPS  # re-exported names used by the API
+SIDE = SIDE_LOOPS

@@ -1,0 +1,120 @@
+"""Take-off controller (paper eq. 21, Table V): PI on altitude, then MRFT around hover.
+
+The vehicle starts on the ground with no knowledge of its hover thrust. A PI on
+the altitude error lifts it; once the measured altitude passes ``delta_p``
+(the position form of the switching condition ``C``) the controller switches,
+for good, to the MRFT with the last PI output ``u_z0`` as the relay's bias:
+``u = u_z0 +- h_alt``. With ``u_z0`` close to hover the oscillation is nearly
+symmetric, which is what the altitude classifier was trained on.
+
+Table V values are the defaults. They were optimised by the paper for a take-off
+that always succeeds across the whole parameter domain, which can be slow (the
+integrator winds up from zero); ``u_init`` preloads the integrator with a
+fraction of a known hover thrust (the autopilot's own estimate, e.g.
+``MPC_THR_HOVER``), the "prior knowledge" shortcut the paper suggests.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mrft_gcs.relay import MRFT
+
+__all__ = ["TakeoffSettings", "TakeoffController", "TABLE_V"]
+
+
+@dataclass(frozen=True)
+class TakeoffSettings:
+    """Take-off and relay amplitudes; units in the names (thrust is normalised, [0, 1]).
+
+    Defaults are the paper's Table V (``h_alt`` 10.746 % ESC, ``h_att`` 5 % ESC,
+    bounding relay ``h_o1 = h_o2 = 0.05`` rad, ``eps1, eps2 = 1, 2`` m).
+    """
+
+    kc_tf: float = 9.4969e-2  # thrust per m
+    ki_tf: float = 9.8754e-3  # thrust per (m s)
+    delta_p_m: float = 0.11984
+    h_alt: float = 0.10746
+    h_att: float = 0.05
+    h_o1_rad: float = 0.05
+    h_o2_rad: float = 0.05
+    eps1_m: float = 1.0
+    eps2_m: float = 2.0
+
+
+#: The paper's Table V.
+TABLE_V = TakeoffSettings()
+
+
+class TakeoffController:
+    """Eq. 21 as a streaming controller: ``reset()``, ``step(t_s, z_up_m) -> thrust``.
+
+    Parameters
+    ----------
+    z_ref_m : float
+        Altitude set point above the take-off point (m, up).
+    settings : TakeoffSettings
+        Gains, switching altitude and relay amplitude (Table V by default).
+    beta : float
+        MRFT parameter of the altitude relay (the altitude domain's distinguishing phase).
+    u_init : float
+        Initial integrator value (normalised thrust); 0 is the paper's cold start.
+    band_m : float
+        Noise band of the relay (m).
+
+    Examples
+    --------
+    >>> c = TakeoffController(z_ref_m=1.0, u_init=0.4)
+    >>> round(c.step(0.0, 0.0), 4)   # PI: 0.4 + kc * 1 m
+    0.495
+    >>> c.switched
+    False
+    >>> _ = c.step(0.1, 0.2)          # passed delta_p: MRFT from now on
+    >>> c.switched, round(c.u_z0, 4)
+    (True, 0.495)
+    """
+
+    def __init__(self, z_ref_m: float = 1.0, settings: TakeoffSettings = TABLE_V,
+                 beta: float = 0.0, u_init: float = 0.0, band_m: float = 0.0,
+                 h_alt: float | None = None) -> None:
+        if not (math.isfinite(z_ref_m) and z_ref_m > settings.delta_p_m):
+            raise ValueError("z_ref_m must lie above the switching altitude delta_p")
+        self.z_ref_m = z_ref_m
+        self.settings = settings
+        self.h = settings.h_alt if h_alt is None else h_alt
+        self.beta = beta
+        self.u_init = u_init
+        self.band_m = band_m
+        self.reset()
+
+    def reset(self) -> None:
+        self.integral = self.u_init
+        self.t_prev: float | None = None
+        self.switched = False
+        self.u_z0 = math.nan
+        self.t_switch = math.nan
+        self.relay: MRFT | None = None
+        self.u = 0.0
+
+    def step(self, t_s: float, z_up_m: float) -> float:
+        """Thrust command (normalised, clipped to [0, 1]) for the altitude sample at ``t_s``."""
+        e = self.z_ref_m - z_up_m
+        if not self.switched:
+            dt = 0.0 if self.t_prev is None else max(t_s - self.t_prev, 0.0)
+            self.t_prev = t_s
+            self.integral += self.settings.ki_tf * e * dt
+            u = self.settings.kc_tf * e + self.integral
+            if z_up_m >= self.settings.delta_p_m:
+                self.switched = True
+                self.u_z0 = float(np.clip(self.u, 0.0, 1.0))  # the last PI output
+                self.t_switch = t_s
+                self.relay = MRFT(self.beta, self.h, bias=self.u_z0, band=self.band_m)
+            else:
+                self.u = float(np.clip(u, 0.0, 1.0))
+                return self.u
+        assert self.relay is not None
+        self.u = float(np.clip(self.relay.step(e)[0], 0.0, 1.0))
+        return self.u

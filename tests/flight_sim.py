@@ -1,0 +1,95 @@
+"""Test helpers: fly a TuningSequence on the in-process SimVehicle, and a truth identifier.
+
+``truth_identifier`` is a test double, not a classifier: it ignores the cycle and returns
+the airframe's true linear model with its optimal PD, so the sequence, the hand-over to
+PDs, the side tests and the write-back can be tested before the bundled classifiers exist.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.scoring import true_response
+from mrft_gcs.flight.sequence import Phase, TuningSequence
+from mrft_gcs.identify import Identification, RelaySettings
+from mrft_gcs.loops import Loop, LoopKind
+from mrft_gcs.pd_design import optimal_pd
+from mrft_gcs.plant import InnerModel, SideModel
+from mrft_gcs.sitl import SimVehicle, load_airframe
+from mrft_gcs.sitl.onboard import FlightMode
+
+#: Relay settings used by tests until the bundled classifiers give theirs.
+ATT_RELAY = RelaySettings(beta=-0.2, h=0.05)
+ALT_RELAY = RelaySettings(beta=-0.2, h=0.10746)
+SIDE_RELAY = RelaySettings(beta=-0.2, h=0.1)
+
+
+def truth_identifier(vehicle: str):
+    """``f(loop, snapshot, inner_ident) -> Identification`` from the true models."""
+    models = load_airframe(vehicle).linear_models()
+
+    def ident(loop: Loop, snap, inner: Identification | None = None) -> Identification:
+        m = models[loop.value]
+        if loop in (Loop.X, Loop.Y):
+            G, w = true_response(models, loop, inner.gains if inner else None)
+            model = SideModel(m["K"], m["T2"], m["tau"])
+            kind = LoopKind.SIDE
+        else:
+            G, w = true_response(models, loop)
+            model = InnerModel(m["K"], m["T_prop"], m["T1"], m["tau"])
+            kind = LoopKind.ATTITUDE if loop in (Loop.ROLL, Loop.PITCH) else LoopKind.ALTITUDE
+        pd = optimal_pd(G, w).pd
+        return Identification(kind, model, 0, 1.0, snap.beta, snap.h, snap.status.period_s,
+                              snap.status.amplitude, pd, {"truth": True})
+
+    return ident
+
+
+def state_of(v: SimVehicle) -> FlightState:
+    a, p = v.physics.meas_att, v.physics.meas_posv
+    t = v.time_s
+    return FlightState(t, a[0], a[1], a[2], a[3], a[4], a[5], t, p[0], p[1], -p[2], p[3], p[4],
+                       -p[5])
+
+
+def fly(seq: TuningSequence, vehicle: str = "qdrone", seed: int = 0, max_s: float = 40.0,
+        identifier=None, hover_s: float = 2.0, effects=None):
+    """Run the sequence at 250 Hz on the in-process vehicle; returns (vehicle, max tilt deg)."""
+    af = load_airframe(vehicle)
+    if effects:
+        af = af.with_effects(effects)
+    v = SimVehicle(af, seed=seed)
+    ident = identifier or truth_identifier(vehicle)
+    ap = v.autopilot
+    ap.set_actuator_controls(0, 0, 0, 0)
+    assert ap.set_mode(FlightMode.OFFBOARD).name == "ACCEPTED"
+    ap.arm(True)
+    v.run(0.05)
+    seq.start(state_of(v))
+    max_tilt = 0.0
+    t_done = math.inf
+    while v.time_s < max_s:
+        s = state_of(v)
+        sp = seq.step(s)
+        max_tilt = max(max_tilt, math.degrees(s.tilt_rad))
+        ap.set_actuator_controls(sp.roll, sp.pitch, sp.yaw, sp.thrust)
+        for snap in seq.ready():
+            inner = None
+            if snap.loop in (Loop.X, Loop.Y):
+                inner = seq.loops[Loop.PITCH if snap.loop is Loop.X else Loop.ROLL].identification
+            seq.apply(snap.loop, ident(snap.loop, snap, inner))
+        if seq.side_waiting:
+            seq.start_side({Loop.X: SIDE_RELAY, Loop.Y: SIDE_RELAY})
+        if seq.phase is Phase.HOVER and not math.isfinite(t_done):
+            t_done = v.time_s
+        if v.time_s > t_done + hover_s:
+            break
+        for _ in range(4):
+            v.step()
+    return v, max_tilt
+
+
+__all__ = ["truth_identifier", "fly", "state_of", "ATT_RELAY", "ALT_RELAY", "SIDE_RELAY", "np"]
