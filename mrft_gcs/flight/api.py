@@ -298,14 +298,18 @@ class _Run:
         client = ParamClient(link)
         current = client.read_many(self.prof.parameter_names())
         self.hover = current[self.prof.altitude.hover_thrust].value
+        if dry_link:
+            try:
+                relay_settings(LoopKind.ATTITUDE)
+            except IdentificationError as err:
+                self.notes.append(f"a tune would stop here: {err}")
+            return self.result("dry-link")
         att = self.relay.get(LoopKind.ATTITUDE) or relay_settings(LoopKind.ATTITUDE)
         alt = self.relay.get(LoopKind.ALTITUDE) or relay_settings(LoopKind.ALTITUDE)
         cfg = SequenceConfig(actuation=self.act, z_ref_m=self.z_ref_m,
                              hover_thrust_guess=self.hover if 0 < self.hover < 1 else None,
                              max_tilt_cmd_rad=0.6 * math.radians(self.lim.max_tilt_deg))
         self.seq = TuningSequence(cfg, att, alt)
-        if dry_link:
-            return self.result("dry-link")
         try:
             self._fly(client)
         except KeyboardInterrupt:

@@ -18,7 +18,7 @@ from mrft_gcs.loops import Loop
 from mrft_gcs.pd_design import deterioration, frequency_grid, margins, optimal_pd
 from mrft_gcs.plant import PD, closed_inner_response, inner_response, side_response
 
-__all__ = ["LoopScore", "true_response", "score_gains"]
+__all__ = ["LoopScore", "StepFigures", "true_response", "score_gains", "step_figures"]
 
 _SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 
@@ -71,3 +71,37 @@ def score_gains(models: Mapping[str, Mapping[str, float]],
         m = margins((pd.Kc + pd.Kd * 1j * w) * G, w)
         out[loop] = LoopScore(loop, pd, best.pd, J, float(m.pm_deg), bool(m.stable))
     return out
+
+
+@dataclass(frozen=True)
+class StepFigures:
+    """Step-response figures: times in s, overshoot in % of the step, error in m."""
+
+    rise_time_s: float
+    overshoot_pct: float
+    settling_time_s: float
+    steady_error_m: float
+
+
+def step_figures(t_s: np.ndarray, y: np.ndarray, y0: float, y1: float,
+                 band: float = 0.05, tail_s: float = 1.0) -> StepFigures:
+    """Rise time (10-90 %), overshoot, settling time (within ``band`` of the step for good)
+    and steady error (mean over the last ``tail_s``) of a step from ``y0`` to ``y1``.
+
+    >>> t = np.linspace(0, 5, 501)
+    >>> f = step_figures(t, 1 - np.exp(-t / 0.5), 0.0, 1.0)
+    >>> round(f.rise_time_s, 2), round(f.overshoot_pct, 1)
+    (1.1, 0.0)
+    """
+    t = np.asarray(t_s, float) - float(t_s[0])
+    r = (np.asarray(y, float) - y0) / (y1 - y0)
+    i10 = int(np.argmax(r >= 0.1)) if np.any(r >= 0.1) else None
+    i90 = int(np.argmax(r >= 0.9)) if np.any(r >= 0.9) else None
+    rise = float(t[i90] - t[i10]) if i10 is not None and i90 is not None else float("nan")
+    over = float(max(0.0, r.max() - 1.0) * 100.0)
+    outside = np.nonzero(np.abs(r - 1.0) > band)[0]
+    settle = float(t[outside[-1] + 1]) if outside.size and outside[-1] + 1 < t.size else \
+        (0.0 if not outside.size else float("nan"))
+    tail = t >= t[-1] - tail_s
+    steady = float(np.mean(np.asarray(y, float)[tail]) - y1)
+    return StepFigures(rise, over, settle, steady)

@@ -1,0 +1,99 @@
+"""The tuning report (SPEC 4.3), rendered from a :class:`~mrft_gcs.flight.api.TuneResult`.
+
+Schema ``mrft-gcs/tune-report/1`` (documented in README, section "Report schema").
+Numbers that do not exist (a loop left alone, a tune that stopped early) are
+``null``, never NaN, so every JSON reader takes the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+from mrft_gcs.flight.api import SCHEMA, LoopResult, TuneResult
+
+__all__ = ["report_dict", "write_report", "SCHEMA"]
+
+
+def _num(x: Any) -> Any:
+    if x is None:
+        return None
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _residual(lr: LoopResult) -> dict[str, Any]:
+    res = (lr.identification.extras.get("residual") if lr.identification else None) or {}
+    if not isinstance(res, dict):
+        res = {k: getattr(res, k, None) for k in ("rms_before", "rms_after", "effect",
+                                                  "effect_params")}
+    params = res.get("effect_params") or {}
+    return {"rms_before": _num(res.get("rms_before")), "rms_after": _num(res.get("rms_after")),
+            "effect": res.get("effect"),
+            "effect_params": {str(k): _num(v) for k, v in dict(params).items()}}
+
+
+def _loop(lr: LoopResult) -> dict[str, Any]:
+    ident = lr.identification
+    model = {k: _num(v) for k, v in ident.model.as_dict().items()} if ident else None
+    return {
+        "state": lr.state,
+        "model": model,
+        "class": int(ident.class_index) if ident else None,
+        "confidence": _num(ident.confidence) if ident else None,
+        "beta": _num(lr.beta),
+        "h": _num(lr.h),
+        "bias": _num(lr.bias),
+        "period_s": _num(lr.period_s),
+        "amplitude": _num(lr.amplitude),
+        "gains": {"Kc": _num(lr.gains.Kc), "Kd": _num(lr.gains.Kd)} if lr.gains else None,
+        "tuned_after_s": _num(lr.t_tuned_s),
+        "residual": _residual(lr),
+        "note": lr.note or None,
+    }
+
+
+def report_dict(result: TuneResult) -> dict[str, Any]:
+    """The report as plain JSON types (keys in SPEC 4.3 order, extras after)."""
+    st = result.stream
+    lq = result.link
+    lim = result.limits
+    return {
+        "schema": SCHEMA,
+        "vehicle": {"connection": result.connection, "autopilot": result.autopilot,
+                    "profile": result.profile, "actuation": result.actuation},
+        "started": result.started,
+        "duration_s": _num(result.duration_s),
+        "loops": {lp.value: _loop(lr) for lp, lr in result.loops.items()},
+        "parameters": [{"name": c.name, "old": _num(c.old), "new": _num(c.new)}
+                       for c in result.parameters],
+        "backup": result.backup,
+        "status": result.status,
+        "error": result.error,
+        "tlog": result.tlog,
+        "max_tilt_deg": _num(result.max_tilt_deg),
+        "hover_error_m": _num(result.hover_error_m),
+        "limits": None if lim is None else {k: _num(v) for k, v in vars(lim).items()},
+        "stream": None if st is None else {
+            "rate_hz_target": _num(st.rate_hz_target), "rate_hz": _num(st.rate_hz_achieved),
+            "sent": st.sent, "skipped": st.skipped, "period_p50_ms": _num(st.period_p50_ms),
+            "period_p99_ms": _num(st.period_p99_ms), "jitter_p99_ms": _num(st.jitter_p99_ms)},
+        "link": None if lq is None else {
+            "attitude_hz": _num(lq.attitude_hz), "position_hz": _num(lq.position_hz),
+            "rtt_p50_ms": _num(lq.rtt_p50_ms), "rtt_max_ms": _num(lq.rtt_max_ms)},
+        "notes": list(result.notes),
+    }
+
+
+def write_report(result: TuneResult, path: str | os.PathLike[str]) -> Path:
+    """Write the report JSON to ``path`` (folders created); returns the path."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(report_dict(result), indent=2) + "\n", encoding="utf-8")
+    return p
