@@ -1,4 +1,4 @@
-"""``mrft-tune demo``: start the bundled SITL, tune it over loopback UDP, fly a step on the gains."""
+"""``mrft-tune demo``: start the bundled SITL, tune it over UDP, fly a step on the gains."""
 
 from __future__ import annotations
 

@@ -29,7 +29,7 @@ def plot_cycles(result: TuneResult, path: str | os.PathLike[str]) -> Path:
     except ImportError as err:
         raise MissingDependency("--plot needs matplotlib: pip install matplotlib") from err
     fig, axes = plt.subplots(len(Loop), 1, figsize=(8, 2.2 * len(Loop)), constrained_layout=True)
-    for ax, lp in zip(axes, Loop):
+    for ax, lp in zip(axes, Loop, strict=True):
         lr = result.loops.get(lp)
         u_unit, y_unit = _UNITS[lp]
         if lr is None or lr.cycles is None:

@@ -1,0 +1,52 @@
+"""Take-off controller (eq. 21, Table V) and the GCS-side loops."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mrft_gcs.flight.controllers import PDLoop, YawHold, wrap_pi
+from mrft_gcs.flight.takeoff import TABLE_V, TakeoffController
+
+
+def test_table_v_defaults():
+    assert TABLE_V.kc_tf == pytest.approx(9.4969e-2)
+    assert TABLE_V.ki_tf == pytest.approx(9.8754e-3)
+    assert TABLE_V.delta_p_m == pytest.approx(0.11984)
+    assert TABLE_V.h_alt == pytest.approx(0.10746)
+    assert (TABLE_V.h_att, TABLE_V.h_o1_rad, TABLE_V.h_o2_rad) == (0.05, 0.05, 0.05)
+    assert (TABLE_V.eps1_m, TABLE_V.eps2_m) == (1.0, 2.0)
+
+
+def test_pi_then_mrft_biased_by_last_pi_output():
+    c = TakeoffController(z_ref_m=1.0, u_init=0.3)
+    u = [c.step(0.004 * k, 0.0) for k in range(250)]  # one second on the ground
+    # PI: kc * e + integral, integral grows by ki * e * dt
+    assert u[-1] == pytest.approx(0.3 + TABLE_V.kc_tf + TABLE_V.ki_tf * 0.996, rel=1e-6)
+    assert not c.switched
+    last_pi = c.u
+    out = c.step(1.0, 0.2)  # above delta_p: switch for good to u_z0 +- h
+    assert c.switched and c.u_z0 == pytest.approx(last_pi)
+    assert out == pytest.approx(last_pi + TABLE_V.h_alt)
+    # still relay even if it sinks below delta_p again; output only ever takes two levels
+    outs = {round(c.step(1.0 + 0.004 * k, z), 9) for k, z in
+            enumerate(1.0 + 0.3 * np.sin(np.linspace(0, 20, 400)))}
+    assert outs == {round(last_pi + TABLE_V.h_alt, 9), round(last_pi - TABLE_V.h_alt, 9)}
+    c.reset()
+    assert not c.switched and math.isnan(c.u_z0)
+
+
+def test_reference_must_be_above_switch_altitude():
+    with pytest.raises(ValueError):
+        TakeoffController(z_ref_m=0.1)
+
+
+def test_pd_and_yaw_hold():
+    pd = PDLoop(2.0, 0.5, trim=0.4, lo=0.0, hi=2.0)
+    assert pd.step(1.0, 0.5, 0.2) == pytest.approx(0.4 + 1.0 - 0.1)
+    assert pd.step(10.0, 0.0, 0.0) == 2.0
+    yaw = YawHold()
+    assert yaw.step(0.0, 0.1, 0.0) == pytest.approx(-0.02)
+    assert abs(yaw.step(math.pi - 0.01, -math.pi + 0.01, 0.0)) < 0.01  # wraps
+    assert abs(yaw.step(0.0, 3.0, 0.0)) <= 0.3
+    assert wrap_pi(3 * math.pi) == pytest.approx(-math.pi)
