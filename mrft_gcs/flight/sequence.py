@@ -122,6 +122,9 @@ class SequenceConfig:
     airborne_m: float = 0.03
     identify_cycles: int = 3
     steady_periods: tuple[int, int, int] = (3, 2, 2)  # attitude, altitude, side
+    #: the GCS-side attitude PDs run through the link (a few ms more delay than the model
+    #: they were designed for); they are softened by this factor. Written gains are not.
+    gcs_attitude_pd_scale: float = 0.6
     relay_band_att_rad: float = 0.003
     relay_band_pos_m: float = 0.01
 
@@ -271,7 +274,8 @@ class TuningSequence:
             lim = self.config.max_tilt_cmd_rad
             lo, hi = {Loop.ALTITUDE: (0.0, 1.0), Loop.X: (-lim, lim),
                       Loop.Y: (-lim, lim)}.get(loop, (-1.0, 1.0))
-            t.pd = PDLoop(ident.gains.Kc, ident.gains.Kd, trim, lo, hi)
+            k = self.config.gcs_attitude_pd_scale if loop in (Loop.ROLL, Loop.PITCH) else 1.0
+            t.pd = PDLoop(k * ident.gains.Kc, k * ident.gains.Kd, trim, lo, hi)
             t.identification = ident
             t.relay = None
             t.state = LoopState.TUNED
