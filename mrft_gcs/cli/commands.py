@@ -1,3 +1,3 @@
 """Registers every command group on the app (one module per group)."""
 
-from mrft_gcs.cli import demo, design, fleet, params, sitl, tune, verify  # noqa: F401
+from mrft_gcs.cli import demo, design, dryrun, fleet, params, sitl, tune, verify  # noqa: F401

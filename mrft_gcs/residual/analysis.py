@@ -1,0 +1,365 @@
+"""Residual analysis: simulate the model under the relay that ran, compare, explain the gap.
+
+:func:`analyse_residual` takes a linear model (identified, or given), the relay
+that ran (``beta``, ``h``, ``bias``) and the measured ``(t, u, y)``. It
+
+1. averages the last steady measured cycles into one waveform
+   (:func:`~mrft_gcs.residual.cycles.cycle_wave`);
+2. simulates the model under the same relay at the same sample time
+   (:func:`~mrft_gcs.residual.simulate.simulate_effects`) and compares the
+   steady cycles, aligned at the relay's rising switch: waveform RMS of the
+   difference over one measured period, normalised by the measured amplitude
+   (``rms``), period, amplitude, duty-cycle and harmonic-distortion errors;
+3. when the RMS is significant (above a floor calibrated on clean runs and above
+   three times the measurement noise left after averaging), fits every candidate
+   effect of :mod:`~mrft_gcs.residual.effects` by a bounded 1-D search (a grid,
+   then two finer grids around the best point, all candidates of all effects
+   simulated together in one batch per round), and names the effect that
+   explains the residual best, provided it removes at least ``min_reduction`` of
+   it (the penalty that keeps noise and small model errors from naming an effect);
+4. re-designs the PD with the effect where it changes the small-signal dynamics
+   (extra delay, sensor filter, rate limit via its describing function, drag
+   linearised at the test's rate, thrust-curve gain at hover) and reports the
+   gain change.
+
+:class:`ResidualReport.as_dict` gives the ``residual`` field of the tuning
+report (SPEC 4.3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from mrft_gcs.errors import IdentificationError
+from mrft_gcs.loops import LoopKind
+from mrft_gcs.pd_design import frequency_grid, optimal_pd
+from mrft_gcs.plant import PD, InnerModel, SideModel, inner_response
+from mrft_gcs.residual.cycles import CycleWave, cycle_wave, noise_std, rising_switches, uniform
+from mrft_gcs.residual.effects import (
+    Effect,
+    Knobs,
+    QuadraticDrag,
+    RelayContext,
+    candidate_effects,
+)
+from mrft_gcs.residual.simulate import simulate_effects
+
+__all__ = ["RelayTest", "EffectFit", "CycleErrors", "ResidualReport", "analyse_residual",
+           "RMS_FLOOR", "MIN_REDUCTION"]
+
+#: Normalised RMS below which a residual is never significant (model and sampling
+#: mismatch of clean SITL runs stays below it; see benchmarks/residual_confusion.py).
+RMS_FLOOR = 0.06
+#: Fraction of the residual an effect must remove to be named.
+MIN_REDUCTION = 0.4
+
+
+@dataclass(frozen=True)
+class RelayTest:
+    """The relay that ran: ``u = bias +- h`` with MRFT parameter ``beta`` (input units)."""
+
+    beta: float
+    h: float
+    bias: float = 0.0
+
+
+@dataclass(frozen=True)
+class EffectFit:
+    """Best fit of one candidate effect: its parameter value and the RMS left."""
+
+    name: str
+    param: str
+    units: str
+    value: float
+    rms: float
+
+
+@dataclass(frozen=True)
+class CycleErrors:
+    """Simulated minus measured steady cycle.
+
+    Attributes
+    ----------
+    rms : float
+        RMS of the waveform difference over one measured period / measured amplitude.
+    period : float
+        Relative period error ``(P_sim - P_meas) / P_meas``.
+    amplitude : float
+        Relative amplitude error.
+    duty : float
+        Duty-cycle difference (fraction of the cycle at the high relay level).
+    thd : float
+        Harmonic distortion difference (harmonics 2..5 over the fundamental).
+    """
+
+    rms: float
+    period: float
+    amplitude: float
+    duty: float
+    thd: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {"rms": self.rms, "period": self.period, "amplitude": self.amplitude,
+                "duty": self.duty, "thd": self.thd}
+
+
+@dataclass(frozen=True)
+class ResidualReport:
+    """What residual analysis found for one loop.
+
+    Attributes
+    ----------
+    rms_before, rms_after : float
+        Normalised waveform RMS without and with the named effect (equal when none).
+    effect : str or None
+        Name of the effect added to the model, ``None`` when none is needed or none helps.
+    effect_params : dict
+        ``{param: value}`` of the named effect (empty when none).
+    before, after : CycleErrors
+        Cycle errors of the model, and of the model with the effect.
+    significant : bool
+        ``rms_before`` above ``threshold``.
+    threshold : float
+        Significance threshold used (normalised RMS).
+    noise : float
+        Measurement noise left in the averaged cycle (normalised RMS).
+    measured : CycleWave
+        The measured average cycle.
+    fits : tuple of EffectFit
+        Best fit of every candidate effect, best first.
+    alternatives : tuple of str
+        Effects that explain the data about as well as the named one.
+    gains_model, gains_with_effect : PD or None
+        Optimal PD of the model, and re-designed with the effect (set when an effect is named).
+    design_note : str
+        What the re-design did with the effect.
+    """
+
+    rms_before: float
+    rms_after: float
+    effect: str | None
+    effect_params: dict[str, float]
+    before: CycleErrors
+    after: CycleErrors
+    significant: bool
+    threshold: float
+    noise: float
+    measured: CycleWave
+    fits: tuple[EffectFit, ...] = ()
+    alternatives: tuple[str, ...] = ()
+    gains_model: PD | None = None
+    gains_with_effect: PD | None = None
+    design_note: str = ""
+
+    @property
+    def reduction(self) -> float:
+        """Fraction of the residual removed by the effect (0 when none is named)."""
+        return 1.0 - self.rms_after / self.rms_before if self.rms_before > 0 else 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        """The SPEC 4.3 ``residual`` field: rms_before, rms_after, effect, effect_params."""
+        return {"rms_before": _num(self.rms_before), "rms_after": _num(self.rms_after),
+                "effect": self.effect,
+                "effect_params": {k: _num(v) for k, v in self.effect_params.items()}}
+
+    def details(self) -> dict[str, Any]:
+        """Everything, JSON-ready (for ``--report`` extras and debugging)."""
+        out = self.as_dict()
+        out.update(
+            significant=self.significant, threshold=self.threshold, noise=self.noise,
+            before=self.before.as_dict(), after=self.after.as_dict(),
+            fits=[{"effect": f.name, f.param: _num(f.value), "rms": _num(f.rms)}
+                  for f in self.fits],
+            alternatives=list(self.alternatives), design_note=self.design_note,
+            gains_model=_pd(self.gains_model), gains_with_effect=_pd(self.gains_with_effect),
+        )
+        return out
+
+
+def _num(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def _pd(p: PD | None) -> dict[str, float] | None:
+    return None if p is None else {"Kc": p.Kc, "Kd": p.Kd}
+
+
+@dataclass
+class _Batch:
+    """Candidates of one simulation round: which effect, which value."""
+
+    effects: list[Effect | None] = field(default_factory=list)
+    values: list[float] = field(default_factory=list)
+
+    def add(self, effect: Effect | None, values) -> None:
+        for v in np.atleast_1d(values):
+            self.effects.append(effect)
+            self.values.append(float(v))
+
+    def knobs(self, hover: float) -> Knobs:
+        k = Knobs.neutral(len(self.values), hover)
+        for i, (e, v) in enumerate(zip(self.effects, self.values, strict=False)):
+            if e is not None:
+                e.apply(k, np.array([i]), np.array([v]))
+        return k
+
+
+def _compare(meas: CycleWave, u: np.ndarray, y: np.ndarray, dt: float) -> CycleErrors:
+    """Errors of one simulated record against the measured cycle (inf when it does not cycle)."""
+    bad = CycleErrors(np.inf, np.inf, np.inf, np.inf, np.inf)
+    sim = cycle_wave(u, y, dt, max_cycles=2)
+    if sim is None or sim.amplitude <= 0:
+        return bad
+    n = meas.y.size
+    r = rising_switches(u)
+    r = r[r + max(n, sim.y.size) <= y.size]
+    if r.size == 0:
+        return bad
+    s = int(r[-1])
+    seg = y[s:s + n] - y[s:s + sim.y.size].mean()
+    rms = float(np.sqrt(np.mean((seg - meas.y) ** 2)) / meas.amplitude)
+    return CycleErrors(rms=rms, period=sim.period_s / meas.period_s - 1,
+                       amplitude=sim.amplitude / meas.amplitude - 1, duty=sim.duty - meas.duty,
+                       thd=sim.thd - meas.thd)
+
+
+def _run(model: InnerModel, relay: RelayTest, batch: _Batch, meas: CycleWave, hover: float,
+         band: float, cycles: float) -> list[CycleErrors]:
+    P = meas.period_s
+    run = simulate_effects(model, relay.beta, relay.h, batch.knobs(hover), bias=relay.bias,
+                           dt=meas.dt, duration_s=cycles * P, keep_s=min(cycles, 5.0) * P,
+                           band=band)
+    return [_compare(meas, run.u[i], run.y[i], meas.dt) for i in range(len(batch.values))]
+
+
+def _redesign(model: InnerModel, effect: Effect, value: float, ctx: RelayContext
+              ) -> tuple[PD, PD]:
+    extra = [value] if effect.name == "extra_delay" else []
+    w = frequency_grid(model.T_prop, model.T1, model.tau, extra_T=extra)
+    G = inner_response(1.0, model.T_prop, model.T1, model.tau, w)[0]
+    before = optimal_pd(G, w).pd
+    if isinstance(effect, QuadraticDrag):
+        q = 1.0 + effect.linear_damping(value, ctx) * model.T1
+        G_eff = inner_response(1.0 / q, model.T_prop, model.T1 / q, model.tau, w)[0]
+    else:
+        G_eff = G * effect.design_factor(value, ctx, w)
+    after = optimal_pd(G_eff, w, x0=(before.Kc, before.Kd)).pd
+    return before.for_gain(model.K), after.for_gain(model.K)
+
+
+def analyse_residual(model: InnerModel | SideModel, relay: Any, t, u, y, *,
+                     kind: LoopKind = LoopKind.ATTITUDE, effects: tuple[Effect, ...] | None = None,
+                     hover: float = 0.5, band: float = 0.0, grid: int = 10, rounds: int = 2,
+                     sim_cycles: float = 12.0, floor: float = RMS_FLOOR,
+                     min_reduction: float = MIN_REDUCTION, redesign: bool = True
+                     ) -> ResidualReport:
+    """Compare the model's simulated relay cycle with the measured one; name a missing effect.
+
+    Parameters
+    ----------
+    model : InnerModel
+        Linear model of the loop (attitude or altitude), SI units of the loop.
+    relay : RelayTest or any object with ``beta``, ``h`` (and optionally ``bias``)
+        The relay that ran (input units).
+    t, u, y : arrays (m,)
+        Time (s), relay output as applied (with bias) and measured output, covering
+        several steady cycles (any rate; resampled to the median sample time, which is
+        taken as the relay's sample time).
+    kind : LoopKind
+        Loop family: picks the candidate effects (:func:`candidate_effects`).
+    effects : tuple of Effect, optional
+        Candidates to try instead of the loop family's.
+    hover : float
+        Hover thrust fraction (thrust-curve effect on altitude).
+    band : float
+        The relay's noise band (output units), as it ran.
+    grid, rounds : int
+        Points of the first search grid per effect, and refinement rounds.
+    floor, min_reduction : float
+        Significance floor (normalised RMS) and the fraction of the residual an effect
+        must remove to be named.
+    redesign : bool
+        Re-design the PD with the named effect.
+
+    Returns
+    -------
+    ResidualReport
+
+    Raises
+    ------
+    IdentificationError
+        No complete relay cycle in the data, or the model does not oscillate under the relay.
+    """
+    if isinstance(model, SideModel) or kind is LoopKind.SIDE:
+        raise IdentificationError("residual analysis covers the inner loops (roll, pitch, "
+                                  "altitude); side loops (x, y) are not analysed")
+    relay = RelayTest(float(relay.beta), float(relay.h), float(getattr(relay, "bias", 0.0)))
+    dt, uu, yy = uniform(t, u, y)
+    meas = cycle_wave(uu, yy, dt)
+    if meas is None or meas.amplitude <= 0:
+        raise IdentificationError("no complete relay cycle in the data: record a few steady "
+                                  "cycles of the relay test")
+    noise = noise_std(yy) / np.sqrt(meas.cycles) / meas.amplitude
+    threshold = max(floor, 3.0 * noise)
+    ctx = RelayContext(relay.h, relay.bias, meas.period_s, meas.amplitude, dt, hover)
+    cands = candidate_effects(kind) if effects is None else tuple(effects)
+
+    batch = _Batch()
+    batch.add(None, 0.0)
+    for e in cands:
+        batch.add(e, e.grid(ctx, grid))
+    errs = _run(model, relay, batch, meas, hover, band, sim_cycles)
+    before = errs[0]
+    if not np.isfinite(before.rms):
+        raise IdentificationError("the model does not oscillate under this relay: check the "
+                                  "model, beta and h")
+    best: dict[str, tuple[float, CycleErrors]] = {}
+    for e, v, err in zip(batch.effects[1:], batch.values[1:], errs[1:], strict=False):
+        assert e is not None
+        if e.name not in best or err.rms < best[e.name][1].rms:
+            best[e.name] = (v, err)
+    # Refine: a finer grid around each effect's best point, all effects in one batch.
+    for r in range(rounds):
+        batch = _Batch()
+        for e in cands:
+            lo, hi = e.bounds(ctx)
+            v0 = best[e.name][0]
+            step = (_grid_step(e, ctx, grid) / (4 ** r))
+            if e.log_grid:
+                vals = v0 * np.geomspace(1 / step, step, 7)
+            else:
+                vals = v0 + np.linspace(-step, step, 7)
+            batch.add(e, np.clip(vals, lo, hi))
+        errs = _run(model, relay, batch, meas, hover, band, sim_cycles)
+        for e, v, err in zip(batch.effects, batch.values, errs, strict=False):
+            assert e is not None
+            if err.rms < best[e.name][1].rms:
+                best[e.name] = (v, err)
+    by_name = {e.name: e for e in cands}
+    fits = sorted((EffectFit(n, by_name[n].param, by_name[n].units, v, err.rms)
+                   for n, (v, err) in best.items()), key=lambda f: f.rms)
+    significant = before.rms > threshold
+    top = fits[0] if fits else None
+    named = (top is not None and significant and top.rms <= (1 - min_reduction) * before.rms)
+    if not named or top is None:
+        return ResidualReport(before.rms, before.rms, None, {}, before, before, significant,
+                              threshold, noise, meas, tuple(fits))
+    alts = tuple(f.name for f in fits[1:] if f.rms <= 1.15 * top.rms + 0.1 * threshold)
+    effect = by_name[top.name]
+    gm = ge = None
+    note = effect.design_note(top.value, ctx)
+    if redesign:
+        gm, ge = _redesign(model, effect, top.value, ctx)
+    return ResidualReport(before.rms, top.rms, top.name, {top.param: top.value}, before,
+                          best[top.name][1], significant, threshold, noise, meas, tuple(fits),
+                          alts, gm, ge, note)
+
+
+def _grid_step(e: Effect, ctx: RelayContext, grid: int) -> float:
+    lo, hi = e.bounds(ctx)
+    if e.log_grid:
+        return float((hi / lo) ** (1.0 / max(grid - 1, 1)))
+    return float((hi - lo) / max(grid - 1, 1))
