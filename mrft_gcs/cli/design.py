@@ -1,11 +1,187 @@
-"""``mrft-tune design ...``: the offline pipeline behind ``models/``."""
+"""``mrft-tune design ...`` and ``mrft-tune evaluate``: the offline pipeline behind ``models/``."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
 import typer
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
 
-from mrft_gcs.cli import app
+from mrft_gcs.cli import app, console
+from mrft_gcs.errors import UsageError
+from mrft_gcs.loops import LoopKind
 
-design_app = typer.Typer(help="Offline design: optimal PD, discretisation, phases, zeta, classifiers.",
-                         no_args_is_help=True)
+design_app = typer.Typer(
+    help="Offline design: optimal PD, discretisation, distinguishing phase, zeta, classifiers.\n\n"
+    "Steps run in order per loop and write models/<loop>/; e.g.\n\n"
+    "  mrft-tune design discretize --loop attitude\n\n"
+    "  mrft-tune design phase --loop attitude\n\n"
+    "  mrft-tune design zeta --loop attitude\n\n"
+    "  mrft-tune design dataset --loop attitude\n\n"
+    "  mrft-tune design train --loop attitude   (needs pip install -e '.[design]')",
+    no_args_is_help=True,
+)
 app.add_typer(design_app, name="design")
+
+LoopOpt = Annotated[str, typer.Option("--loop", help="attitude | altitude")]
+ModelsOpt = Annotated[Path | None, typer.Option("--models", help="models folder (default: bundled)")]
+
+
+def _kind(loop: str) -> LoopKind:
+    try:
+        return LoopKind(loop)
+    except ValueError:
+        raise UsageError(f"unknown --loop '{loop}': use attitude or altitude") from None
+
+
+def _models(models: Path | None) -> Path:
+    from mrft_gcs.design import MODELS_DIR
+
+    return models or MODELS_DIR
+
+
+def _progress() -> Progress:
+    return Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/"
+                    "{task.total}"), TimeElapsedColumn(), console=console, transient=True)
+
+
+@design_app.command("pd")
+def pd_cmd(
+    K: Annotated[float, typer.Option("--K", help="process gain")] = 1.0,
+    T_prop: Annotated[float, typer.Option("--T-prop", help="propulsion time constant (s)")] = 0.05,
+    T1: Annotated[float, typer.Option("--T1", help="drag time constant (s)")] = 0.5,
+    tau: Annotated[float, typer.Option("--tau", help="delay (s)")] = 0.01,
+    loop: LoopOpt = "attitude",
+    as_json: Annotated[bool, typer.Option("--json", help="print JSON only")] = False,
+) -> None:
+    """Optimal PD (ISE, phase margin >= 20 deg) for one inner-loop process.
+
+    Example:  mrft-tune design pd --loop attitude --K 2 --T-prop 0.05 --T1 0.5 --tau 0.01
+    """
+    from mrft_gcs.pd_design import frequency_grid, optimal_pd
+    from mrft_gcs.plant import inner_response
+
+    kind = _kind(loop)
+    if kind is LoopKind.SIDE:
+        raise UsageError("design pd takes an inner-loop process (attitude or altitude)")
+    if min(T_prop, T1) <= 0 or tau < 0 or K <= 0:
+        raise UsageError("K, T-prop and T1 must be positive and tau non-negative")
+    w = frequency_grid(T_prop, T1, tau, n=1500)
+    d = optimal_pd(inner_response(1.0, T_prop, T1, tau, w)[0], w)
+    out = {"loop": kind.value, "model": {"K": K, "T_prop": T_prop, "T1": T1, "tau": tau},
+           **d.as_dict(), "Kc": d.pd.Kc / K, "Kd": d.pd.Kd / K, "ise": d.ise}
+    if as_json:
+        console.print_json(json.dumps(out))
+        return
+    t = Table(title=f"Optimal PD for K e^(-{tau} s)/(s({T_prop} s+1)({T1} s+1)), K={K}")
+    for k in ("Kc", "Kd", "ise", "pm_deg", "gm_db", "wc_rad_s"):
+        t.add_row(k, f"{out[k]:.6g}")
+    console.print(t)
+
+
+@design_app.command("discretize")
+def discretize_cmd(loop: LoopOpt = "attitude", J_target: Annotated[float, typer.Option(
+        "--J-target", help="adjacent joint cost, %")] = 10.0, grid: Annotated[int, typer.Option(
+        help="candidate shapes per chart axis")] = 16, models: ModelsOpt = None) -> None:
+    """Discretise the domain into representative processes (writes discretisation.json)."""
+    from mrft_gcs.design import step_discretize
+
+    with _progress() as p:
+        task = p.add_task("discretising", total=None)
+        d = step_discretize(_kind(loop), _models(models), J_target, grid_n=grid,
+                            progress=lambda a, b, what: p.update(task, completed=a, total=b,
+                                                                description=what))
+    fin = d.adjacent_J[np.isfinite(d.adjacent_J)]
+    console.print(f"{len(d.shapes)} representative shapes, {len(d.reps)} representative "
+                  f"processes from {d.candidates} candidates in {d.seconds:.0f} s; adjacent joint "
+                  f"cost median {np.median(fin):.1f} % (10-90 %: {np.percentile(fin, 10):.1f}-"
+                  f"{np.percentile(fin, 90):.1f} %)")
+
+
+@design_app.command("phase")
+def phase_cmd(loop: LoopOpt = "attitude", models: ModelsOpt = None) -> None:
+    """Distinguishing phase by Algorithm 1 (writes phase.json)."""
+    from mrft_gcs.design import step_phase
+
+    with console.status("simulating MRFT cycles and searching tuning rules"):
+        out = step_phase(_kind(loop), _models(models))
+    console.print(f"distinguishing beta = {out['beta']} (phase {out['phase_deg']:.1f} deg), worst "
+                  f"deterioration of the best rule {min(out['worst_J']):.2f} %")
+
+
+@design_app.command("zeta")
+def zeta_cmd(loop: LoopOpt = "attitude", models: ModelsOpt = None) -> None:
+    """Exact gain scaling table zeta (writes zeta.json)."""
+    from mrft_gcs.design import step_zeta
+
+    with console.status("simulating unit cycles"):
+        out = step_zeta(_kind(loop), _models(models))
+    z = np.asarray(out["zeta"])
+    console.print(f"zeta {z.min():.4f} .. {z.max():.4f} (describing function: 4/pi = "
+                  f"{4 / np.pi:.4f})")
+
+
+@design_app.command("dataset")
+def dataset_cmd(loop: LoopOpt = "attitude", n_train: int = 6000, n_val: int = 2000, seed: int = 0,
+                models: ModelsOpt = None) -> None:
+    """Simulated training and validation sets (noise, bias up to h/2)."""
+    from mrft_gcs.design import step_dataset
+
+    with _progress() as p:
+        task = p.add_task("simulating", total=n_train + n_val)
+        done = [0]
+
+        def prog(a, b):
+            p.update(task, completed=min(done[0] + a, n_train + n_val))
+            if a == b:
+                done[0] += b
+
+        tr, va = step_dataset(_kind(loop), _models(models), n_train, n_val, seed, progress=prog)
+    console.print(f"{len(tr)} training and {len(va)} validation rows")
+
+
+@design_app.command("train")
+def train_cmd(loop: LoopOpt = "attitude", epochs: int = 60, seed: int = 0,
+              models: ModelsOpt = None) -> None:
+    """Train the classifier, export ONNX and the class table (needs the design extra)."""
+    from mrft_gcs.design import step_train
+
+    with _progress() as p:
+        task = p.add_task("architecture search", total=None)
+        info = step_train(_kind(loop), _models(models), seed, epochs,
+                          progress=lambda a, b: p.update(task, completed=a, total=b))
+    console.print(f"chose {info['config']}: validation accuracy {info['val_accuracy']:.3f}, mean "
+                  f"J of the chosen class {info['val_mean_J']:.1f} %, {info['seconds']:.0f} s")
+
+
+@app.command("evaluate")
+def evaluate_cmd(
+    loop: LoopOpt = "attitude",
+    n: Annotated[int, typer.Option("--n", help="random processes")] = 500,
+    seed: int = 1,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the table as JSON")] = None,
+) -> None:
+    """Table VI: J and phase margin over random processes, for each gain scaling and the baseline.
+
+    Example:  mrft-tune evaluate --loop attitude --n 500
+    """
+    from mrft_gcs.evaluate import evaluate
+
+    with _progress() as p:
+        task = p.add_task("identifying", total=n)
+        ev = evaluate(_kind(loop), n, seed, progress=lambda a, b: p.update(task, completed=a))
+    t = Table(title=f"{ev.kind}: {n} random processes (seed {seed}), classifier accuracy "
+              f"{ev.accuracy:.1%}")
+    for col in ("method", "J avg %", "J max %", "PM avg", "PM min", "unstable"):
+        t.add_column(col)
+    for row in ev.table():
+        t.add_row(row["method"], f"{row['J_avg']:.2f}", f"{row['J_max']:.2f}",
+                  f"{row['PM_avg']:.1f}", f"{row['PM_min']:.1f}", str(row["unstable"]))
+    console.print(t)
+    if json_out:
+        json_out.write_text(json.dumps({"loop": ev.kind, "n": n, "seed": seed,
+                                        "accuracy": ev.accuracy, "table": ev.table()}, indent=2))

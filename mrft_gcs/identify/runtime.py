@@ -1,22 +1,146 @@
-"""Runtime identification with the bundled ONNX classifiers (filled in by the classifier work)."""
+"""Runtime identification with the bundled ONNX classifiers (numpy + onnxruntime only).
+
+For an inner loop (attitude, altitude):
+
+1. the last steady cycles become the classifier input (:mod:`mrft_gcs.features`);
+2. the network gives a probability per representative shape;
+3. for each likely shape ``k`` the time scale follows from the period,
+   ``c = T / T_k`` (``T_k``: the shape's simulated unit-scale period at the
+   test's ``beta``), and the gain from the amplitude by exact gain scaling,
+   ``K = a / (h c A_k)`` (``A_k``: its simulated unit amplitude; the
+   describing function would use ``4/pi |G_k|``);
+4. the shape's unit optimal PD is mapped to the process, ``Kc = Kc_k / (c K)``,
+   ``Kd = Kd_k / K``, and the gains of the three likeliest shapes are blended
+   by their probabilities in log space ("soft gains", SPEC Appendix B).
+
+The reported model is the likeliest shape at its recovered scale and gain;
+``class_index`` is the representative process of that shape nearest in scale.
+"""
 
 from __future__ import annotations
 
+import json
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
 from mrft_gcs.errors import IdentificationError
+from mrft_gcs.features import cycle_features
+from mrft_gcs.identify.api import Identification, RelaySettings
+from mrft_gcs.loops import LoopKind
+from mrft_gcs.plant import PD, InnerModel
 
-__all__ = ["identify", "relay_settings"]
+__all__ = ["identify", "relay_settings", "load_bundle", "Bundle", "MODELS_DIR", "GainScaling"]
 
-
-def _missing():
-    return IdentificationError(
-        "no bundled classifier models found in models/: regenerate them with "
-        "'mrft-tune design train' (needs pip install -e '.[design]')"
-    )
-
-
-def relay_settings(kind, inner=None):
-    raise _missing()
+MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 
 
-def identify(kind, t, u, y, *, beta, h, bias=0.0, inner=None):
-    raise _missing()
+class GainScaling:
+    """How the process gain is recovered from the amplitude."""
+
+    EXACT = "exact"  # simulated unit amplitude of the class (zeta table)
+    DF = "df"  # describing function, zeta = 4/pi
+    TRUE = "true"  # gain known (normalised-gain evaluation only)
+
+
+@dataclass(frozen=True)
+class Bundle:
+    """A loop kind's classifier and class table."""
+
+    kind: LoopKind
+    beta: float
+    h: float
+    shape_params: np.ndarray
+    shape_pd: np.ndarray
+    unit_period: np.ndarray
+    unit_amplitude: np.ndarray
+    zeta: np.ndarray
+    reps: np.ndarray
+    rep_shape: np.ndarray
+    session: object
+
+    def logits(self, x: np.ndarray) -> np.ndarray:
+        return self.session.run(None, {"x": np.atleast_2d(x).astype(np.float32)})[0]
+
+
+@lru_cache(maxsize=8)
+def load_bundle(kind: LoopKind, models: Path = MODELS_DIR) -> Bundle:
+    """Load ``models/<kind>/classes.json`` and ``classifier.onnx`` (cached)."""
+    d = models / kind.value
+    table, onnx_path = d / "classes.json", d / "classifier.onnx"
+    if not (table.exists() and onnx_path.exists()):
+        raise IdentificationError(
+            f"no bundled {kind.value} classifier in {d}: regenerate it with "
+            f"'mrft-tune design train --loop {kind.value}' (needs pip install -e '.[design]')")
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    opts.inter_op_num_threads = 1
+    session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
+    c = json.loads(table.read_text())
+    arr = {k: np.asarray(c[k], float) for k in ("shape_params", "shape_pd", "unit_period",
+                                                 "unit_amplitude", "zeta", "reps")}
+    return Bundle(kind=kind, beta=float(c["beta"]), h=float(c["h"]),
+                  rep_shape=np.asarray(c["rep_shape"], int), session=session, **arr)
+
+
+def relay_settings(kind: LoopKind, inner: Identification | None = None) -> RelaySettings:
+    if kind is LoopKind.SIDE:
+        raise IdentificationError("side-motion classifiers are not bundled yet")
+    b = load_bundle(kind)
+    return RelaySettings(beta=b.beta, h=b.h)
+
+
+def _softmax(z: np.ndarray) -> np.ndarray:
+    z = z - z.max(axis=-1, keepdims=True)
+    e = np.exp(z)
+    return e / e.sum(axis=-1, keepdims=True)
+
+
+def scaled_gains(b: Bundle, probs: np.ndarray, period_s: float, amplitude: float, h: float,
+                 scaling: str = GainScaling.EXACT, K_true: float | None = None,
+                 top: int = 3) -> tuple[PD, int, float, float]:
+    """Blend the likeliest shapes' gains; returns ``(pd, best shape, scale c, gain K)``."""
+    order = np.argsort(-probs)[:top]
+    w = probs[order] / probs[order].sum()
+    logs = []
+    for k in order:
+        c = period_s / b.unit_period[k]
+        if scaling == GainScaling.TRUE:
+            K = float(K_true)
+        elif scaling == GainScaling.DF:
+            K = amplitude / (h * c * b.unit_amplitude[k] / b.zeta[k] * 4 / np.pi)
+        else:
+            K = amplitude / (h * c * b.unit_amplitude[k])
+        logs.append((np.log(b.shape_pd[k, 0] / (c * K)), np.log(b.shape_pd[k, 1] / K), c, K))
+    lk = np.array([(a, d) for a, d, _, _ in logs])
+    Kc, Kd = np.exp(w @ lk)
+    _, _, c0, K0 = logs[0]
+    return PD(float(Kc), float(Kd)), int(order[0]), float(c0), float(K0)
+
+
+def identify(kind: LoopKind, t, u, y, *, beta: float, h: float, bias: float = 0.0,
+             inner: Identification | None = None) -> Identification:
+    if kind is LoopKind.SIDE:
+        raise IdentificationError("side-motion classifiers are not bundled yet")
+    b = load_bundle(kind)
+    if abs(beta - b.beta) > 1e-6:
+        raise IdentificationError(
+            f"the {kind.value} classifier was trained for beta={b.beta}, the test ran beta={beta}")
+    f = cycle_features(t, u, y)
+    probs = _softmax(b.logits(f.x)[0])
+    pd, k, c, K = scaled_gains(b, probs, f.period_s, f.amplitude, f.h)
+    shape = b.shape_params[k]
+    model = InnerModel(K=K, T_prop=float(shape[0] * c), T1=float(shape[1] * c),
+                       tau=float(shape[2] * c))
+    same = np.flatnonzero(b.rep_shape == k)
+    rep = int(same[np.argmin(np.abs(np.log(b.reps[same, 1] / c)))]) if same.size else k
+    return Identification(kind=kind, model=model, class_index=rep, confidence=float(probs[k]),
+                          beta=beta, h=f.h, period_s=f.period_s, amplitude=f.amplitude,
+                          gains=pd, extras={"shape": k, "scale": c, "gain": K,
+                                            "top": np.argsort(-probs)[:3].tolist(),
+                                            "probs": np.sort(probs)[::-1][:3].tolist(),
+                                            "duty": f.duty, "bias": f.bias})

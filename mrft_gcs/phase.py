@@ -1,0 +1,249 @@
+"""Distinguishing phase (paper Algorithm 1), exact gain scaling (zeta) and cascade structure (Algorithm 2).
+
+MRFT cycles of the representative shapes are *simulated* (not taken from the
+describing function), on each shape stretched so its predicted period is about
+one second and sampled finely (1e-4 s), which approximates the continuous-time
+test; results are mapped back to unit scale (``T1 = 1``, ``K = 1``, ``h = 1``)
+using the time-scale property: period and amplitude both scale with the time
+scale.
+
+A *non-parametric tuning rule* at test phase ``beta`` turns a measured cycle
+into PD gains: ``Kc = c1 h / a``, ``Kd = c2 Kc T / (2 pi)``. Each shape's own
+optimum fixes its ``(c1, c2)``; applying that rule to every other shape gives
+its worst deterioration. The distinguishing phase is the ``beta`` of the rule
+whose worst deterioration is least (Algorithm 1). A rule's gains are first
+pulled back (a pure gain reduction) to the 20 deg phase-margin constraint the
+optimal designs obey: otherwise over-tuned gains would count as "better than
+optimal" (negative J bought with a smaller margin, SPEC Appendix B).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mrft_gcs.pd_design import PM_MIN_DEG, ise, margins
+from mrft_gcs.plant import closed_inner_response, inner_response, side_response
+from mrft_gcs.simulate import find_cycle, simulate_mrft
+
+__all__ = [
+    "UnitCycles",
+    "hb_period",
+    "unit_cycles",
+    "PhaseResult",
+    "distinguishing_phase",
+    "zeta_table",
+    "cascade_structure",
+    "CascadeStep",
+    "BETA_GRID",
+]
+
+#: Test phases searched by Algorithm 1 (beta; negative is phase lead).
+BETA_GRID = np.round(np.arange(-0.9, 0.301, 0.05), 3)
+
+
+def hb_period(params: np.ndarray, beta: float, w: np.ndarray | None = None) -> np.ndarray:
+    """Describing-function period (s) of MRFT on unit-gain inner plants, shape ``(n,)``."""
+    p = np.atleast_2d(params)
+    w = np.logspace(-3, 5, 4000) if w is None else w
+    G = inner_response(1.0, p[:, 0], p[:, 1], p[:, 2], w)
+    ph = np.unwrap(np.angle(G), axis=1)
+    target = -np.pi + np.arcsin(beta)
+    idx = np.argmax(ph <= target, axis=1)
+    return 2 * np.pi / w[idx]
+
+
+@dataclass(frozen=True)
+class UnitCycles:
+    """Simulated MRFT cycles at unit scale: ``period[i, k]``, ``amplitude[i, k]`` for shape i, beta k."""
+
+    betas: np.ndarray
+    period: np.ndarray
+    amplitude: np.ndarray
+    duty: np.ndarray
+
+
+def unit_cycles(params: np.ndarray, betas, cycles: int = 14, dt_frac: float = 1e-4) -> UnitCycles:
+    """Simulate MRFT (``h = 1``, ``K = 1``) on unit shapes for each ``beta``; return unit-scale cycles.
+
+    Parameters
+    ----------
+    params : array (n, 3)
+        Processes ``(T_prop, T1, tau)`` (typically ``T1 = 1``).
+    betas : sequence of float
+    cycles : int
+        Periods simulated (the last full one is measured).
+    dt_frac : float
+        Step as a fraction of the predicted period.
+    """
+    params = np.atleast_2d(params)
+    betas = np.atleast_1d(np.asarray(betas, float))
+    n, nb = len(params), len(betas)
+    P = np.empty((n, nb))
+    A = np.empty((n, nb))
+    D = np.empty((n, nb))
+    for k, beta in enumerate(betas):
+        T_hb = hb_period(params, beta)
+        c = 1.0 / T_hb  # stretch so the predicted period is one second
+        run = simulate_mrft(1.0 / c, params[:, 0] * c, params[:, 1] * c, params[:, 2] * c, beta=beta,
+                            h=1.0, duration_s=float(cycles), dt=dt_frac, keep_s=3.0)
+        for i in range(n):
+            cyc = find_cycle(run.u[i], run.y[i], run.dt)
+            # With gain 1/c the stretched plant is exactly G(c s): same amplitude, period x c.
+            P[i, k] = cyc.period_s / c[i] if cyc else np.nan
+            A[i, k] = cyc.amplitude if cyc else np.nan
+            D[i, k] = cyc.duty if cyc else np.nan
+    return UnitCycles(betas, P, A, D)
+
+
+@dataclass(frozen=True)
+class PhaseResult:
+    """Outcome of Algorithm 1.
+
+    Attributes
+    ----------
+    beta : float
+        Distinguishing ``beta``; the phase is ``arcsin(beta)``.
+    phase_deg : float
+    worst_J : array (nb,)
+        For each beta, the least worst deterioration (%) over the rules.
+    rule_index : int
+        Shape whose rule is globally optimal.
+    c1, c2 : float
+        That rule's constants.
+    """
+
+    beta: float
+    phase_deg: float
+    worst_J: np.ndarray
+    betas: np.ndarray
+    rule_index: int
+    c1: float
+    c2: float
+
+
+def _feasible_cost(Kc, Kd, G, w) -> float:
+    """ISE after scaling the gains down until the phase margin is at least 20 deg."""
+    L = (Kc + Kd * 1j * w) * G
+    m = margins(L, w)
+    if not (m.stable and m.pm_deg >= PM_MIN_DEG):
+        lo, hi = 0.0, 1.0
+        for _ in range(18):
+            mid = 0.5 * (lo + hi)
+            mm = margins(L * mid, w)
+            if mm.stable and mm.pm_deg >= PM_MIN_DEG:
+                lo = mid
+            else:
+                hi = mid
+        if lo == 0.0:
+            return np.inf
+        Kc, Kd = Kc * lo, Kd * lo
+    return ise(Kc, Kd, G, w)
+
+
+def distinguishing_phase(params: np.ndarray, pds: np.ndarray, ises: np.ndarray,
+                         cycles: UnitCycles, w: np.ndarray) -> PhaseResult:
+    """Algorithm 1 over the unit shapes ``params`` with optimal PDs ``pds`` (n, 2) and ISEs."""
+    n = len(params)
+    G = inner_response(1.0, params[:, 0], params[:, 1], params[:, 2], w)
+    worst_per_beta = np.full(len(cycles.betas), np.inf)
+    best = (np.inf, 0, 0, 0.0, 0.0)
+    for k, beta in enumerate(cycles.betas):
+        T, a = cycles.period[:, k], cycles.amplitude[:, k]
+        if not np.all(np.isfinite(T) & np.isfinite(a)):
+            continue
+        c1 = pds[:, 0] * a  # Kc = c1 h / a  with h = 1
+        c2 = pds[:, 1] * 2 * np.pi / (pds[:, 0] * T)
+        for i in range(n):
+            Kc = c1[i] / a
+            Kd = c2[i] * Kc * T / (2 * np.pi)
+            worst = 0.0
+            for j in range(n):
+                q = _feasible_cost(Kc[j], Kd[j], G[j], w)
+                worst = max(worst, (q - ises[j]) / ises[j] * 100)
+                if worst >= worst_per_beta[k] and worst >= best[0]:
+                    break
+            if worst < worst_per_beta[k]:
+                worst_per_beta[k] = worst
+            if worst < best[0]:
+                best = (worst, k, i, float(c1[i]), float(c2[i]))
+    _, k, i, c1b, c2b = best
+    beta = float(cycles.betas[k])
+    return PhaseResult(beta, float(np.degrees(np.arcsin(beta))), worst_per_beta, cycles.betas, i,
+                       c1b, c2b)
+
+
+def zeta_table(params: np.ndarray, period: np.ndarray, amplitude: np.ndarray) -> np.ndarray:
+    """Exact gain scaling ``zeta = a / (h |G(j 2 pi / T)|)`` per unit shape (DF gives 4/pi)."""
+    w = 2 * np.pi / period
+    g = np.array([abs(inner_response(1.0, *p, [wi])[0, 0]) for p, wi in zip(params, w)])
+    return amplitude / g
+
+
+@dataclass(frozen=True)
+class CascadeStep:
+    """One step of Algorithm 2: whether the chain is split (a loop closed) after ``name``."""
+
+    name: str
+    split: bool
+    period_s: float
+    inner_amplitude: float
+    reason: str
+
+
+def cascade_structure(att_vertices: np.ndarray, side_vertices: np.ndarray, beta: float,
+                      att_pd_for, max_period_s: float = 4.0, max_tilt_rad: float = 0.52,
+                      outer_amp_m_s: float = 0.5) -> list[CascadeStep]:
+    """Algorithm 2 on the side-motion chain ``{G1, G2, G3, G4}`` (eq. 23) at the vertices of D.
+
+    ``G1`` = rate dynamics ``e^{-tau s}/((T1 s+1)(T_prop s+1))``, ``G2 = 1/s``
+    (attitude), ``G3 = e^{-tau_side s}/(T2 s + 1)`` (velocity, with the side gain
+    ``g T2`` so tilt maps to m/s), ``G4 = 1/s`` (position). At each step the
+    relay is imagined on the next output with the chain so far inside; the
+    chain is split (its loop closed with its optimal PD) when the describing
+    function predicts an impractical test: period above ``max_period_s`` or an
+    inner attitude swing above ``max_tilt_rad`` for an ``outer_amp_m_s``
+    oscillation of the next output.
+    """
+    w = np.logspace(-3, 4, 6000)
+    s = 1j * w
+    steps = []
+    names = ["rate (G1)", "attitude (G1 G2)", "velocity (G1 G2 G3)"]
+    for level in range(3):
+        periods, tilts = [], []
+        for Tp, T1, tau in att_vertices:
+            g1 = np.exp(-tau * s) / ((T1 * s + 1) * (Tp * s + 1))
+            if level == 2:
+                Kc, Kd = att_pd_for(Tp, T1, tau)
+                inner = closed_inner_response(Kc, Kd, (g1 / s)[None, :], w)[0]
+            for T2, ts in side_vertices:
+                g3 = 9.81 * T2 * np.exp(-ts * s) / (T2 * s + 1)
+                chain = [g1 / s, g1 / s * g3, (inner if level == 2 else g1 / s) * g3 / s][level]
+                ph = np.unwrap(np.angle(chain))
+                i = int(np.argmax(ph <= -np.pi + np.arcsin(beta)))
+                if i == 0:
+                    periods.append(np.inf)
+                    tilts.append(np.inf)
+                    continue
+                periods.append(2 * np.pi / w[i])
+                # attitude swing when the chain's output oscillates with outer_amp
+                att_gain = abs((g1 / s)[i]) / abs(chain[i]) if level == 1 else (
+                    abs(inner[i] if level == 2 else 1.0) / abs(chain[i]) if level == 2 else 0.0)
+                tilts.append(outer_amp_m_s * att_gain if level else 0.0)
+        T, tilt = float(np.max(periods)), float(np.max(tilts))
+        impractical = T > max_period_s or tilt > max_tilt_rad
+        reason = (f"worst-case test period {T:.2f} s, attitude swing {np.degrees(tilt):.0f} deg "
+                  f"per {outer_amp_m_s} output amplitude")
+        steps.append(CascadeStep(names[level], impractical and level == 1, T, tilt, reason))
+    return steps
+
+
+def side_hb(inner_pd, att: np.ndarray, T2, tau_side, beta: float, w: np.ndarray) -> np.ndarray:
+    """DF period of MRFT on the side cascade (closed attitude loop, then side part)."""
+    G = inner_response(1.0, *att, w)
+    T = closed_inner_response(inner_pd[0], inner_pd[1], G, w)
+    S = side_response(1.0, T2, tau_side, w)
+    ph = np.unwrap(np.angle(T * S), axis=1)
+    idx = np.argmax(ph <= -np.pi + np.arcsin(beta), axis=1)
+    return 2 * np.pi / w[idx]
