@@ -124,7 +124,8 @@ def speed() -> None:
     import tempfile
     from pathlib import Path
 
-    from mrft_gcs.dryrun import dry_run, write_relay_tlog
+    from mrft_gcs.dryrun import dry_run
+    from mrft_gcs.residual.synth import write_relay_tlog
 
     rec = sitl_relay_record("roll", **{**RELAY["roll"], "duration_s": 600.0})
     with tempfile.TemporaryDirectory() as d:

@@ -371,7 +371,11 @@ def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
     model while the classifiers are not bundled).
     """
     det = CycleDetector()
-    keep = seg.t >= seg.t[-1] - 0.9 * det.max_s
+    # The detector only needs the last cycles: feed it about ten periods (a long test
+    # would otherwise cost seconds of per-sample work for nothing).
+    rises = np.flatnonzero(np.diff((seg.u > 0.5 * (seg.u.min() + seg.u.max())).astype(int)) > 0)
+    period = float(np.median(np.diff(seg.t[rises]))) if rises.size > 2 else det.max_s
+    keep = seg.t >= seg.t[-1] - min(0.9 * det.max_s, 10 * period)
     for ti, ui, yi in zip(seg.t[keep], seg.u[keep], seg.y[keep], strict=False):
         status = det.update(float(ti), float(ui), float(yi))
     notes = []
