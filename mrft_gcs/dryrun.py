@@ -64,7 +64,8 @@ class RelaySegment:
     source : str
         Where ``u`` came from (``"csv"``, ``"actuator"``, ``"attitude target"``, ``"telemetry"``).
     beta_from : str
-        ``"metadata"`` or ``"switches"``.
+        ``"metadata"``, ``"switches"`` or ``"domain"`` (inferred, within 0.1 of the beta a
+        tune uses on that loop, and snapped to it).
     """
 
     loop: Loop
@@ -359,7 +360,23 @@ def _segment(loop, source, t, u, y, meta) -> RelaySegment:
         beta, frm = float(meta["beta"]), "metadata"
     else:
         beta, frm = infer_beta(u, y), "switches"
+        dom = _domain_beta(loop)
+        if dom is not None and abs(dom - beta) < 0.1:
+            # A tune runs the domain's beta; the inferred value is that one, blurred by sampling.
+            beta, frm = dom, "domain"
     return RelaySegment(loop, t, u, y, beta, h, bias, source, frm)
+
+
+def _domain_beta(loop: Loop) -> float | None:
+    """The ``beta`` a live tune uses on this loop (None without bundled models or for x/y)."""
+    if loop.kind is LoopKind.SIDE:
+        return None
+    try:
+        from mrft_gcs.identify import relay_settings
+
+        return float(relay_settings(loop.kind).beta)
+    except MrftError:
+        return None
 
 
 # ------------------------------------------------------------------ per loop

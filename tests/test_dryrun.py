@@ -89,11 +89,19 @@ def test_controller_output_is_not_a_relay():
     assert segs == [] and "not a two-level relay" in why["roll"]
 
 
-def test_identify_wiring_once_models_exist(relay_tlog):
+def test_identify_wiring_once_models_exist(tmp_path):
     if not MODELS.exists() or not list((MODELS.parent / "attitude").glob("*.onnx")):
         pytest.skip("the attitude classifier is not bundled yet (models/)")
-    path, rec = relay_tlog
-    r = dry_run(path, profile=None).loops[0]
+    from mrft_gcs.identify import relay_settings
+    from mrft_gcs.loops import LoopKind
+
+    beta = relay_settings(LoopKind.ATTITUDE).beta
+    rec = sitl_relay_record("roll", seed=4, beta=beta, h=0.08, duration_s=6.0)
+    path = tmp_path / "tune.tlog"
+    write_relay_tlog(path, "roll", rec.t, rec.u, rec.y)
+    r = dry_run(path).loops[0]
+    assert r.segment.beta == beta and r.segment.beta_from == "domain"
     assert r.identification is not None, r.notes
     assert isinstance(r.identification.model, InnerModel)
+    assert r.identification.gains.Kc > 0 and r.identification.gains.Kd > 0
     assert r.residual is not None
