@@ -77,11 +77,12 @@ def make_dataset(disc: Discretisation, domain: Domain, beta: float, unit_period:
     scale = params[:, 1]  # T1 of a unit shape is 1
     # Each process's own describing-function period sizes its record (its region's
     # representative can be a good deal faster or slower).
-    T_est = 1.15 * np.concatenate([hb_period(params[i:i + 500], beta)
-                                   for i in range(0, n, 500)])
+    bias = rng.uniform(-BIAS_MAX, BIAS_MAX, n)
+    # A biased relay lengthens the cycle: the slow half is driven by only h - |bias|.
+    T_est = 1.15 / (1 - np.abs(bias)) * np.concatenate(
+        [hb_period(params[i:i + 500], beta) for i in range(0, n, 500)])
     A_est = unit_amplitude[label] * scale
     noise = rng.uniform(0, NOISE_MAX, n) * A_est
-    bias = rng.uniform(-BIAS_MAX, BIAS_MAX, n)
     rows = np.zeros((n, 2 * N_POINTS + 2), np.float32)
     period = np.full(n, np.nan)
     amp = np.full(n, np.nan)

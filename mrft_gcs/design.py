@@ -198,3 +198,56 @@ def step_train(kind: LoopKind, models: Path = MODELS_DIR, seed: int = 0, epochs:
             "onnx_bytes": (d / "classifier.onnx").stat().st_size}
     record(models, kind, "train", info)
     return info
+
+
+def _side_task(args: tuple) -> dict:
+    """Design, data and classifier for one attitude shape (a picklable executor task)."""
+    k, att, att_pd, lo, hi, grid_n, n_rows, seed, out_dir, train = args
+    from mrft_gcs.side_design import design_side_for_shape, side_dataset
+
+    sc = design_side_for_shape(k, np.asarray(att), np.asarray(att_pd), lo, hi, grid_n=grid_n)
+    d = Path(out_dir) / f"shape_{k:02d}"
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "classes.json").write_text(json.dumps({**sc.to_json(), "scale_lo": lo, "scale_hi": hi}))
+    info = {"shape": k, "classes": len(sc.params), "beta": sc.beta, "worst_J": sc.worst_J,
+            "zeta_min": float(sc.zeta.min()), "zeta_max": float(sc.zeta.max()),
+            "design_s": sc.seconds}
+    if train:
+        from mrft_gcs.train import export_onnx, train_classifier
+
+        tr = side_dataset(sc, lo, hi, n_rows, seed + 2 * k)
+        va = side_dataset(sc, lo, hi, n_rows // 3, seed + 2 * k + 1)
+        res = train_classifier(tr, va, len(sc.params), seed=seed, epochs=40,
+                               search=[(2, 128, "relu", "ce")])
+        export_onnx(res, d / "classifier.onnx")
+        info.update({"rows": len(tr), "val_accuracy": res.val_accuracy,
+                     "val_mean_J": res.val_mean_J, "train_s": res.seconds})
+    return info
+
+
+def step_side(models: Path = MODELS_DIR, grid_n: int = 6, n_rows: int = 900, seed: int = 0,
+              workers: int = 1, dask: str | None = None, train: bool = True,
+              shapes: list[int] | None = None) -> list[dict]:
+    """Algorithm 3 for every attitude shape: side classes, phase, zeta, data and classifier."""
+    from mrft_gcs.discretize import reachable_scales
+    from mrft_gcs.executor import make_executor
+
+    t0 = time.perf_counter()
+    disc = Discretisation.from_json(load_json(LoopKind.ATTITUDE, "discretisation", models))
+    dom = domain_for(LoopKind.ATTITUDE)
+    out = _dir(LoopKind.SIDE, models)
+    tasks = []
+    for k in shapes if shapes is not None else range(len(disc.shapes)):
+        own = np.flatnonzero(disc.cand_owner == k)
+        lo, hi = reachable_scales(dom, disc.cand_shapes[own, 0], disc.cand_shapes[own, 1])
+        ok = lo <= hi
+        lo_k, hi_k = float(lo[ok].min()), float(hi[ok].max())
+        att = [float(np.exp(disc.shapes[k, 0])), 1.0, float(np.exp(disc.shapes[k, 1]))]
+        tasks.append((k, att, disc.shape_pd[k].tolist(), lo_k, hi_k, grid_n, n_rows, seed,
+                      str(out), train))
+    with make_executor(workers, dask) as ex:
+        infos = ex.map(_side_task, tasks)
+    record(models, LoopKind.SIDE, "side", {"grid_n": grid_n, "rows": n_rows, "seed": seed,
+                                           "per_shape": infos,
+                                           "seconds": time.perf_counter() - t0})
+    return infos

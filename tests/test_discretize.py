@@ -96,7 +96,7 @@ def test_tiny_end_to_end_design_and_identify(tmp_path, monkeypatch):
     assert "discretize" in manifest and "dataset" in manifest
     pytest.importorskip("torch", reason="training needs the design extra (torch)")
     pytest.importorskip("onnx", reason="export needs the design extra (onnx)")
-    info = dz.step_train(kind, tmp_path, epochs=15, search=[(2, 64, "relu")])
+    info = dz.step_train(kind, tmp_path, epochs=15, search=[(2, 64, "relu", "ce")])
     assert (tmp_path / "attitude" / "classifier.onnx").exists()
     from mrft_gcs.identify import runtime
 

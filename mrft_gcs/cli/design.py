@@ -185,3 +185,31 @@ def evaluate_cmd(
     if json_out:
         json_out.write_text(json.dumps({"loop": ev.kind, "n": n, "seed": seed,
                                         "accuracy": ev.accuracy, "table": ev.table()}, indent=2))
+
+
+@design_app.command("side")
+def side_cmd(
+    grid: Annotated[int, typer.Option(help="side candidates per axis")] = 6,
+    rows: Annotated[int, typer.Option(help="training rows per attitude shape")] = 900,
+    seed: int = 0,
+    workers: Annotated[int, typer.Option(help="local worker processes")] = 1,
+    dask: Annotated[str | None, typer.Option(help="Dask scheduler address, e.g. tcp://host:8786")]
+    = None,
+    no_train: Annotated[bool, typer.Option("--no-train", help="classes, phase, zeta only")] = False,
+    models: ModelsOpt = None,
+) -> None:
+    """Side motion (Algorithm 3): per attitude shape, side classes, phase, zeta and classifier.
+
+    Example:  mrft-tune design side --workers 2
+    """
+    from mrft_gcs.design import step_side
+
+    with console.status("designing side classes for every attitude shape"):
+        infos = step_side(_models(models), grid, rows, seed, workers, dask, not no_train)
+    t = Table(title="side motion per attitude shape")
+    for col in ("shape", "classes", "beta", "worst J %", "zeta", "val acc"):
+        t.add_column(col)
+    for i in infos:
+        t.add_row(str(i["shape"]), str(i["classes"]), f"{i['beta']:.2f}", f"{i['worst_J']:.1f}",
+                  f"{i['zeta_min']:.3f}-{i['zeta_max']:.3f}", f"{i.get('val_accuracy', 0):.2f}")
+    console.print(t)

@@ -87,11 +87,83 @@ def load_bundle(kind: LoopKind, models: Path = MODELS_DIR) -> Bundle:
                   rep_shape=np.asarray(c["rep_shape"], int), session=session, **arr)
 
 
+@dataclass(frozen=True)
+class SideBundle:
+    """Side classes and classifier of one attitude shape (unit attitude scale)."""
+
+    att_shape: int
+    beta: float
+    params: np.ndarray
+    pd: np.ndarray
+    unit_period: np.ndarray
+    unit_amplitude: np.ndarray
+    session: object
+
+    def logits(self, x: np.ndarray) -> np.ndarray:
+        return self.session.run(None, {"x": np.atleast_2d(x).astype(np.float32)})[0]
+
+
+@lru_cache(maxsize=64)
+def load_side_bundle(att_shape: int, models: Path = MODELS_DIR) -> SideBundle:
+    d = models / "side" / f"shape_{att_shape:02d}"
+    table, onnx_path = d / "classes.json", d / "classifier.onnx"
+    if not (table.exists() and onnx_path.exists()):
+        raise IdentificationError(
+            f"no bundled side classifier for attitude shape {att_shape} in {d}: regenerate with "
+            "'mrft-tune design side' (needs pip install -e '.[design]')")
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    c = json.loads(table.read_text())
+    return SideBundle(att_shape, float(c["beta"]), np.asarray(c["params"]), np.asarray(c["pd"]),
+                      np.asarray(c["unit_period"]), np.asarray(c["unit_amplitude"]),
+                      ort.InferenceSession(str(onnx_path), opts,
+                                           providers=["CPUExecutionProvider"]))
+
+
+def _inner_shape(inner: Identification | None) -> tuple[int, float]:
+    if inner is None or "shape" not in inner.extras:
+        raise IdentificationError("side motion needs the attitude loop identified first")
+    return int(inner.extras["shape"]), float(inner.extras["scale"])
+
+
 def relay_settings(kind: LoopKind, inner: Identification | None = None) -> RelaySettings:
     if kind is LoopKind.SIDE:
-        raise IdentificationError("side-motion classifiers are not bundled yet")
+        from mrft_gcs.side_design import SIDE_H
+
+        k, _ = _inner_shape(inner)
+        return RelaySettings(beta=load_side_bundle(k).beta, h=SIDE_H)
     b = load_bundle(kind)
     return RelaySettings(beta=b.beta, h=b.h)
+
+
+def _identify_side(t, u, y, beta: float, inner: Identification | None) -> Identification:
+    from mrft_gcs.plant import SideModel
+    from mrft_gcs.side_design import side_features
+
+    k, c = _inner_shape(inner)
+    b = load_side_bundle(k)
+    if abs(beta - b.beta) > 1e-6:
+        raise IdentificationError(
+            f"the side classifier of attitude shape {k} expects beta={b.beta}, the test ran {beta}")
+    f, x = side_features(t, u, y, c)
+    probs = _softmax(b.logits(x)[0])
+    order = np.argsort(-probs)[:3]
+    w = probs[order] / probs[order].sum()
+    logs = []
+    for j in order:
+        K = f.amplitude / (f.h * c * b.unit_amplitude[j])
+        logs.append((np.log(b.pd[j, 0] / (c * K)), np.log(b.pd[j, 1] / K)))
+    Kc, Kd = np.exp(w @ np.array(logs))
+    j = int(order[0])
+    K = f.amplitude / (f.h * c * b.unit_amplitude[j])
+    model = SideModel(K=float(K), T2=float(b.params[j, 0] * c), tau=float(b.params[j, 1] * c))
+    return Identification(kind=LoopKind.SIDE, model=model, class_index=j,
+                          confidence=float(probs[j]), beta=beta, h=f.h, period_s=f.period_s,
+                          amplitude=f.amplitude, gains=PD(float(Kc), float(Kd)),
+                          extras={"att_shape": k, "att_scale": c, "gain": float(K),
+                                  "top": order.tolist(), "duty": f.duty, "bias": f.bias})
 
 
 def _softmax(z: np.ndarray) -> np.ndarray:
@@ -125,7 +197,7 @@ def scaled_gains(b: Bundle, probs: np.ndarray, period_s: float, amplitude: float
 def identify(kind: LoopKind, t, u, y, *, beta: float, h: float, bias: float = 0.0,
              inner: Identification | None = None) -> Identification:
     if kind is LoopKind.SIDE:
-        raise IdentificationError("side-motion classifiers are not bundled yet")
+        return _identify_side(t, u, y, beta, inner)
     b = load_bundle(kind)
     if abs(beta - b.beta) > 1e-6:
         raise IdentificationError(

@@ -1,0 +1,240 @@
+"""Side-motion design (paper Algorithm 3): one set of side classes per attitude shape.
+
+The side plant is the closed attitude loop (the attitude shape ``k`` under its
+optimal PD) in cascade with ``K e^{-tau s}/((T2 s + 1) s)``. The whole cascade
+can be stretched in time, so for an attitude process of shape ``k`` at scale
+``c`` the side problem equals the unit-scale one with side parameters
+``(T2 / c, tau / c)``. Each attitude shape therefore gets one side
+discretisation over the *normalised* box ``D_side / [c_lo, c_hi]`` (its
+attitude scale range), one distinguishing phase, one zeta table and one
+classifier; at run time the attitude identification supplies ``k`` and ``c``.
+
+Functions here reuse the inner-loop machinery: the greedy net
+(:func:`mrft_gcs.discretize.greedy_net`), optimal PD design, the non-parametric
+tuning rules of Algorithm 1 and the simulator.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mrft_gcs.dataset import BIAS_MAX, NOISE_MAX, Dataset
+from mrft_gcs.discretize import J_FAR, greedy_net
+from mrft_gcs.domains import D_SIDE
+from mrft_gcs.features import N_POINTS, cycle_features
+from mrft_gcs.pd_design import PM_MIN_DEG, PDDesign, ise, margins, optimal_pd
+from mrft_gcs.plant import closed_inner_response, inner_response, side_response
+from mrft_gcs.simulate import find_cycle, simulate_side_mrft
+
+__all__ = ["SideClasses", "side_plant_response", "design_side_for_shape", "side_dataset",
+           "SIDE_BETAS", "SIDE_H", "side_features"]
+
+SIDE_BETAS = np.round(np.arange(-0.8, 0.21, 0.1), 3)
+#: Default side relay amplitude: tilt set point in rad (about 4.6 deg).
+SIDE_H = 0.08
+
+
+def side_plant_response(att: np.ndarray, att_pd: tuple[float, float], T2, tau, w) -> np.ndarray:
+    """Closed unit attitude loop times the unit-gain side part, shape ``(n, m)``."""
+    G = inner_response(1.0, *att, w)
+    T = closed_inner_response(att_pd[0], att_pd[1], G, w)
+    return T * side_response(1.0, T2, tau, w)
+
+
+def side_features(t, u, y, att_scale: float):
+    """Inner features plus the log of the period over the attitude scale (side is not scale-free)."""
+    f = cycle_features(t, u, y)
+    return f, np.concatenate([f.x, [np.log(f.period_s / att_scale)]]).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class SideClasses:
+    """Side classes of one attitude shape (normalised to unit attitude scale)."""
+
+    att_shape: int
+    att_params: np.ndarray
+    att_pd: np.ndarray
+    box_lo: np.ndarray
+    box_hi: np.ndarray
+    cand: np.ndarray  # (m, 2) log T2', log tau'
+    cand_owner: np.ndarray
+    cand_J: np.ndarray
+    params: np.ndarray  # (S, 2) T2', tau'
+    pd: np.ndarray  # (S, 2) unit optimal (Kc, Kd)
+    ise: np.ndarray
+    beta: float
+    worst_J: float
+    unit_period: np.ndarray
+    unit_amplitude: np.ndarray
+    zeta: np.ndarray
+    seconds: float
+
+    def owner_of(self, T2n, taun) -> np.ndarray:
+        ab = np.column_stack([np.log(T2n), np.log(taun)])
+        scale = np.ptp(self.cand, axis=0)
+        scale[scale == 0] = 1
+        d = np.linalg.norm((ab[:, None, :] - self.cand[None]) / scale, axis=2)
+        return np.argmin(d, axis=1)
+
+    def to_json(self) -> dict:
+        return {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                for k, v in self.__dict__.items()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> SideClasses:
+        return cls(**{k: (np.asarray(v) if isinstance(v, list) else v) for k, v in d.items()})
+
+
+def _cost(Kc, Kd, P, w, feasible: bool = False) -> float:
+    L = (Kc + Kd * 1j * w) * P
+    m = margins(L, w)
+    if feasible and not (m.stable and m.pm_deg >= PM_MIN_DEG):
+        lo, hi = 0.0, 1.0
+        for _ in range(16):
+            mid = 0.5 * (lo + hi)
+            mm = margins(L * mid, w)
+            lo, hi = (mid, hi) if (mm.stable and mm.pm_deg >= PM_MIN_DEG) else (lo, mid)
+        if lo == 0:
+            return np.inf
+        Kc, Kd, m = Kc * lo, Kd * lo, margins(L * lo, w)
+    return ise(Kc, Kd, P, w) if m.stable else np.inf
+
+
+def _unit_side_cycles(att, att_pd, params, betas, cycles=12, dt_frac=2e-4):
+    """Simulated side MRFT cycles (K = 1, h = 1, unit attitude scale) for each beta."""
+    w = np.logspace(-3, 5, 3000)
+    n = len(params)
+    P = np.empty((n, len(betas)))
+    A = np.empty((n, len(betas)))
+    for k, beta in enumerate(betas):
+        resp = side_plant_response(att, att_pd, params[:, 0], params[:, 1], w)
+        ph = np.unwrap(np.angle(resp), axis=1)
+        T_hb = 2 * np.pi / w[np.argmax(ph <= -np.pi + np.arcsin(beta), axis=1)]
+        c = 1.0 / T_hb  # stretch the whole cascade so the cycle lasts about a second
+        inner = (1.0 / c, att[0] * c, att[1] * c, att[2] * c)
+        run = simulate_side_mrft(inner, (att_pd[0], att_pd[1] * c), (1.0 / c, params[:, 0] * c,
+                                 params[:, 1] * c), beta=beta, h=1.0, duration_s=float(cycles),
+                                 dt=dt_frac, keep_s=3.0)
+        for i in range(n):
+            cyc = find_cycle(run.u[i], run.y[i], run.dt)
+            P[i, k] = cyc.period_s / c[i] if cyc else np.nan
+            A[i, k] = cyc.amplitude if cyc else np.nan
+    return P, A
+
+
+def design_side_for_shape(k: int, att: np.ndarray, att_pd: np.ndarray, scale_lo: float,
+                          scale_hi: float, J_target: float = 10.0, grid_n: int = 7) -> SideClasses:
+    """Algorithm 3 for one attitude shape: discretise, distinguishing phase, zeta."""
+    t0 = time.perf_counter()
+    (T2_lo, tau_lo), (T2_hi, tau_hi) = D_SIDE.low, D_SIDE.high
+    lo = np.array([T2_lo / scale_hi, tau_lo / scale_hi])
+    hi = np.array([T2_hi / scale_lo, tau_hi / scale_lo])
+    A, B = np.meshgrid(*(np.linspace(np.log(lo[i]), np.log(hi[i]), grid_n) for i in range(2)),
+                       indexing="ij")
+    cand = np.column_stack([A.ravel(), B.ravel()])
+    params = np.exp(cand)
+    w = np.logspace(np.log10(1e-3 / (hi[0] + hi[1] + 1)), np.log10(200 / min(att[0], att[2])), 900)
+    P = side_plant_response(att, tuple(att_pd), params[:, 0], params[:, 1], w)
+    designs: list[PDDesign] = []
+    prev = None
+    for i in range(len(cand)):
+        d = optimal_pd(P[i], w, x0=prev)
+        designs.append(d)
+        prev = (d.pd.Kc, d.pd.Kd)
+    step = (hi - lo) * 0 + np.array([np.ptp(cand[:, 0]), np.ptp(cand[:, 1])]) / (grid_n - 1)
+    nb: dict[int, dict[int, float]] = {i: {} for i in range(len(cand))}
+    for i in range(len(cand)):
+        for j in range(i + 1, len(cand)):
+            if np.all(np.abs(cand[i] - cand[j]) <= 2.01 * step):
+                qij = _cost(designs[i].pd.Kc, designs[i].pd.Kd, P[j], w)
+                qji = _cost(designs[j].pd.Kc, designs[j].pd.Kd, P[i], w)
+                dist = max((qij - designs[j].ise) / designs[j].ise,
+                           (qji - designs[i].ise) / designs[i].ise) * 100
+                nb[i][j] = nb[j][i] = dist
+    cover = J_target / 2
+    chosen = greedy_net(len(cand), nb, cover)
+    owner = np.array([min((c for c in chosen if c == i or nb[i].get(c, np.inf) <= cover),
+                          key=lambda c: 0 if c == i else nb[i][c]) for i in range(len(cand))])
+    cand_J = np.array([[0.0 if i == c else min(nb[i].get(c, J_FAR), J_FAR) for c in chosen]
+                       for i in range(len(cand))])
+    sp = params[chosen]
+    spd = np.array([[designs[c].pd.Kc, designs[c].pd.Kd] for c in chosen])
+    sise = np.array([designs[c].ise for c in chosen])
+    # Distinguishing phase over the side classes (Algorithm 1 with feasible rules).
+    Pc, Ac = _unit_side_cycles(att, tuple(att_pd), sp, SIDE_BETAS)
+    Pch = P[chosen]
+    best = (np.inf, 0)
+    for b in range(len(SIDE_BETAS)):
+        T, a = Pc[:, b], Ac[:, b]
+        if not np.all(np.isfinite(T) & np.isfinite(a)):
+            continue
+        c1 = spd[:, 0] * a
+        c2 = spd[:, 1] * 2 * np.pi / (spd[:, 0] * T)
+        for i in range(len(sp)):
+            worst = 0.0
+            for j in range(len(sp)):
+                Kc = c1[i] / a[j]
+                Kd = c2[i] * Kc * T[j] / (2 * np.pi)
+                q = _cost(Kc, Kd, Pch[j], w, feasible=True)
+                worst = max(worst, (q - sise[j]) / sise[j] * 100)
+                if worst >= best[0]:
+                    break
+            if worst < best[0]:
+                best = (worst, b)
+    beta = float(SIDE_BETAS[best[1]])
+    up, ua = _unit_side_cycles(att, tuple(att_pd), sp, [beta], cycles=16, dt_frac=1e-4)
+    gabs = np.array([abs(side_plant_response(att, tuple(att_pd), T2, ta, [2 * np.pi / T])[0, 0])
+                     for (T2, ta), T in zip(sp, up[:, 0])])
+    return SideClasses(att_shape=k, att_params=np.asarray(att), att_pd=np.asarray(att_pd),
+                       box_lo=lo, box_hi=hi, cand=cand,
+                       cand_owner=np.array([chosen.index(o) for o in owner]), cand_J=cand_J,
+                       params=sp, pd=spd, ise=sise, beta=beta, worst_J=float(best[0]),
+                       unit_period=up[:, 0], unit_amplitude=ua[:, 0], zeta=ua[:, 0] / gabs,
+                       seconds=time.perf_counter() - t0)
+
+
+def side_dataset(sc: SideClasses, scale_lo: float, scale_hi: float, n: int, seed: int,
+                 dt: float = 1e-3) -> Dataset:
+    """Labelled side MRFT cycles for one attitude shape (real time units, random attitude scale)."""
+    rng = np.random.default_rng(seed)
+    c = np.exp(rng.uniform(np.log(scale_lo), np.log(scale_hi), n))
+    side = D_SIDE.sample_log_uniform(n, rng)
+    cand = sc.owner_of(side[:, 0] / c, side[:, 1] / c)
+    label = sc.cand_owner[cand]
+    J = sc.cand_J[cand]
+    bias = rng.uniform(-BIAS_MAX, BIAS_MAX, n)
+    T_est = 1.3 / (1 - np.abs(bias)) * sc.unit_period[label] * c
+    A_est = sc.unit_amplitude[label] * c
+    noise = rng.uniform(0, NOISE_MAX, n) * A_est
+    att = sc.att_params
+    rows = np.zeros((n, 2 * N_POINTS + 3), np.float32)
+    per, amp = np.full(n, np.nan), np.full(n, np.nan)
+    ok = np.zeros(n, bool)
+    order = np.argsort(T_est)
+    for s in range(0, n, 400):
+        idx = order[s:s + 400]
+        Tmax = float(T_est[idx].max())
+        dur = 2.0 + 10 * Tmax
+        run = simulate_side_mrft((1.0, att[0] * c[idx], att[1] * c[idx], att[2] * c[idx]),
+                                 (sc.att_pd[0] / c[idx], sc.att_pd[1]),
+                                 (1.0, side[idx, 0], side[idx, 1]), beta=sc.beta, h=1.0,
+                                 bias=bias[idx], noise_std=noise[idx], band=4 * noise[idx],
+                                 duration_s=dur, dt=dt, keep_s=3.5 * Tmax,
+                                 seed=int(rng.integers(2**31)))
+        for j, i in enumerate(idx):
+            try:
+                f, x = side_features(run.t, run.u[j], run.y[j], c[i])
+            except Exception:  # noqa: BLE001 - a run without two cycles is dropped
+                continue
+            rows[i], per[i], amp[i], ok[i] = x, f.period_s, f.amplitude, True
+    params = np.column_stack([side, c])
+    return Dataset(rows[ok], label[ok], J[ok], params[ok], per[ok], amp[ok], noise[ok], bias[ok])
+
+
+def save(path: Path, sc: SideClasses) -> None:
+    path.write_text(json.dumps(sc.to_json()))
