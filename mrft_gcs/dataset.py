@@ -34,7 +34,7 @@ class Dataset:
 
     Attributes
     ----------
-    x : array (n, 2 * N_POINTS + 2), float32
+    x : array (n, N_POINTS + 2), float32
     label : array (n,)
         Representative shape index.
     J : array (n, S)
@@ -83,7 +83,7 @@ def make_dataset(disc: Discretisation, domain: Domain, beta: float, unit_period:
         [hb_period(params[i:i + 500], beta) for i in range(0, n, 500)])
     A_est = unit_amplitude[label] * scale
     noise = rng.uniform(0, NOISE_MAX, n) * A_est
-    rows = np.zeros((n, 2 * N_POINTS + 2), np.float32)
+    rows = np.zeros((n, N_POINTS + 2), np.float32)
     period = np.full(n, np.nan)
     amp = np.full(n, np.nan)
     ok = np.zeros(n, bool)
@@ -95,7 +95,7 @@ def make_dataset(disc: Discretisation, domain: Domain, beta: float, unit_period:
         run = simulate_mrft(1.0, params[idx, 0], params[idx, 1], params[idx, 2], beta=beta, h=1.0,
                             bias=bias[idx], noise_std=noise[idx], band=4 * noise[idx],
                             duration_s=duration, dt=dt, seed=int(rng.integers(2**31)),
-                            keep_s=min(duration, 3.2 * Tmax + 0.05))
+                            keep_s=min(duration, 5.2 * Tmax + 0.05))
         t = run.t
         for j, i in enumerate(idx):
             try:

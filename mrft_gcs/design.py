@@ -25,7 +25,13 @@ from mrft_gcs.discretize import Discretisation, _grid_for, discretize_inner
 from mrft_gcs.domains import domain_for
 from mrft_gcs.errors import UsageError
 from mrft_gcs.loops import LoopKind
-from mrft_gcs.phase import BETA_GRID, distinguishing_phase, unit_cycles, zeta_table
+from mrft_gcs.phase import (
+    BETA_GRID,
+    distinguishing_phase,
+    rule_cost_table,
+    unit_cycles,
+    zeta_table,
+)
 
 __all__ = [
     "MODELS_DIR",
@@ -135,8 +141,11 @@ def step_zeta(kind: LoopKind, models: Path = MODELS_DIR) -> dict:
     cyc = unit_cycles(params, [beta], cycles=20, dt_frac=5e-5)
     period, amp = cyc.period[:, 0], cyc.amplitude[:, 0]
     zeta = zeta_table(params, period, amp)
+    cost = rule_cost_table(params, disc.shape_pd, disc.shape_ise, period, amp,
+                           _grid_for(disc.shapes))
     out = {"beta": beta, "unit_period": period.tolist(), "unit_amplitude": amp.tolist(),
-           "zeta": zeta.tolist(), "zeta_df": 4 / np.pi}
+           "zeta": zeta.tolist(), "zeta_df": 4 / np.pi,
+           "rule_cost": np.where(np.isfinite(cost), cost, 1e6).tolist()}
     (_dir(kind, models) / "zeta.json").write_text(json.dumps(out))
     record(models, kind, "zeta", {"zeta_min": float(zeta.min()), "zeta_max": float(zeta.max()),
                                   "seconds": time.perf_counter() - t0})
@@ -189,6 +198,7 @@ def step_train(kind: LoopKind, models: Path = MODELS_DIR, seed: int = 0, epochs:
         "h": DEFAULT_H[kind], "shape_params": _shape_params(disc).tolist(),
         "shape_pd": disc.shape_pd.tolist(), "unit_period": z["unit_period"],
         "unit_amplitude": z["unit_amplitude"], "zeta": z["zeta"], "reps": disc.reps.tolist(),
+        "rule_cost": z["rule_cost"],
         "rep_shape": disc.rep_shape.tolist(), "input": "features.cycle_features v1",
     }
     (d / "classes.json").write_text(json.dumps(table))
@@ -241,7 +251,10 @@ def step_side(models: Path = MODELS_DIR, grid_n: int = 6, n_rows: int = 900, see
         own = np.flatnonzero(disc.cand_owner == k)
         lo, hi = reachable_scales(dom, disc.cand_shapes[own, 0], disc.cand_shapes[own, 1])
         ok = lo <= hi
-        lo_k, hi_k = float(lo[ok].min()), float(hi[ok].max())
+        if not ok.any():  # the shape's region holds no reachable candidate: use its own range
+            lo, hi = reachable_scales(dom, disc.shapes[k:k + 1, 0], disc.shapes[k:k + 1, 1])
+            ok = np.ones(1, bool)
+        lo_k, hi_k = float(lo[ok].min()), float(max(hi[ok].max(), lo[ok].min()))
         att = [float(np.exp(disc.shapes[k, 0])), 1.0, float(np.exp(disc.shapes[k, 1]))]
         tasks.append((k, att, disc.shape_pd[k].tolist(), lo_k, hi_k, grid_n, n_rows, seed,
                       str(out), train))

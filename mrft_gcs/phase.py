@@ -11,10 +11,11 @@ A *non-parametric tuning rule* at test phase ``beta`` turns a measured cycle
 into PD gains: ``Kc = c1 h / a``, ``Kd = c2 Kc T / (2 pi)``. Each shape's own
 optimum fixes its ``(c1, c2)``; applying that rule to every other shape gives
 its worst deterioration. The distinguishing phase is the ``beta`` of the rule
-whose worst deterioration is least (Algorithm 1). A rule's gains are first
-pulled back (a pure gain reduction) to the 20 deg phase-margin constraint the
-optimal designs obey: otherwise over-tuned gains would count as "better than
-optimal" (negative J bought with a smaller margin, SPEC Appendix B).
+whose worst deterioration is least (Algorithm 1). Over-tuning is not better
+tuning (negative J bought with a smaller margin, SPEC Appendix B), so the
+deterioration of a rule on a process is scored as :func:`rule_cost`:
+``|J| + 2 max(0, 20 - PM)`` (two points per degree of margin lost), and
+infinite when the loop is unstable.
 """
 
 from __future__ import annotations
@@ -123,23 +124,32 @@ class PhaseResult:
     c2: float
 
 
-def _feasible_cost(Kc, Kd, G, w) -> float:
-    """ISE after scaling the gains down until the phase margin is at least 20 deg."""
-    L = (Kc + Kd * 1j * w) * G
-    m = margins(L, w)
-    if not (m.stable and m.pm_deg >= PM_MIN_DEG):
-        lo, hi = 0.0, 1.0
-        for _ in range(18):
-            mid = 0.5 * (lo + hi)
-            mm = margins(L * mid, w)
-            if mm.stable and mm.pm_deg >= PM_MIN_DEG:
-                lo = mid
-            else:
-                hi = mid
-        if lo == 0.0:
-            return np.inf
-        Kc, Kd = Kc * lo, Kd * lo
-    return ise(Kc, Kd, G, w)
+PM_PENALTY = 2.0  # % of J per degree of phase margin below the 20 deg constraint
+
+
+def rule_cost(Kc: float, Kd: float, G: np.ndarray, w: np.ndarray, q_opt: float) -> float:
+    """Cost (%) of PD ``(Kc, Kd)`` on a plant whose optimal ISE is ``q_opt``: |J| + margin penalty."""
+    m = margins((Kc + Kd * 1j * w) * G, w)
+    if not m.stable:
+        return np.inf
+    J = (ise(Kc, Kd, G, w) - q_opt) / q_opt * 100.0
+    return abs(J) + PM_PENALTY * max(0.0, PM_MIN_DEG - m.pm_deg)
+
+
+def rule_cost_table(params: np.ndarray, pds: np.ndarray, ises: np.ndarray, period: np.ndarray,
+                    amplitude: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``C[i, j]``: cost of shape ``i``'s tuning rule applied to shape ``j`` (time-scale invariant)."""
+    n = len(params)
+    G = inner_response(1.0, params[:, 0], params[:, 1], params[:, 2], w)
+    c1 = pds[:, 0] * amplitude
+    c2 = pds[:, 1] * 2 * np.pi / (pds[:, 0] * period)
+    C = np.empty((n, n))
+    for i in range(n):
+        Kc = c1[i] / amplitude
+        Kd = c2[i] * Kc * period / (2 * np.pi)
+        for j in range(n):
+            C[i, j] = rule_cost(Kc[j], Kd[j], G[j], w, ises[j])
+    return C
 
 
 def distinguishing_phase(params: np.ndarray, pds: np.ndarray, ises: np.ndarray,
@@ -160,8 +170,7 @@ def distinguishing_phase(params: np.ndarray, pds: np.ndarray, ises: np.ndarray,
             Kd = c2[i] * Kc * T / (2 * np.pi)
             worst = 0.0
             for j in range(n):
-                q = _feasible_cost(Kc[j], Kd[j], G[j], w)
-                worst = max(worst, (q - ises[j]) / ises[j] * 100)
+                worst = max(worst, rule_cost(Kc[j], Kd[j], G[j], w, ises[j]))
                 if worst >= worst_per_beta[k] and worst >= best[0]:
                     break
             if worst < worst_per_beta[k]:

@@ -27,7 +27,8 @@ from mrft_gcs.dataset import BIAS_MAX, NOISE_MAX, Dataset
 from mrft_gcs.discretize import J_FAR, greedy_net
 from mrft_gcs.domains import D_SIDE
 from mrft_gcs.features import N_POINTS, cycle_features
-from mrft_gcs.pd_design import PM_MIN_DEG, PDDesign, ise, margins, optimal_pd
+from mrft_gcs.pd_design import PDDesign, ise, margins, optimal_pd
+from mrft_gcs.phase import rule_cost
 from mrft_gcs.plant import closed_inner_response, inner_response, side_response
 from mrft_gcs.simulate import find_cycle, simulate_side_mrft
 
@@ -72,6 +73,7 @@ class SideClasses:
     unit_period: np.ndarray
     unit_amplitude: np.ndarray
     zeta: np.ndarray
+    rule_cost: np.ndarray
     seconds: float
 
     def owner_of(self, T2n, taun) -> np.ndarray:
@@ -90,18 +92,8 @@ class SideClasses:
         return cls(**{k: (np.asarray(v) if isinstance(v, list) else v) for k, v in d.items()})
 
 
-def _cost(Kc, Kd, P, w, feasible: bool = False) -> float:
-    L = (Kc + Kd * 1j * w) * P
-    m = margins(L, w)
-    if feasible and not (m.stable and m.pm_deg >= PM_MIN_DEG):
-        lo, hi = 0.0, 1.0
-        for _ in range(16):
-            mid = 0.5 * (lo + hi)
-            mm = margins(L * mid, w)
-            lo, hi = (mid, hi) if (mm.stable and mm.pm_deg >= PM_MIN_DEG) else (lo, mid)
-        if lo == 0:
-            return np.inf
-        Kc, Kd, m = Kc * lo, Kd * lo, margins(L * lo, w)
+def _cost(Kc, Kd, P, w) -> float:
+    m = margins((Kc + Kd * 1j * w) * P, w)
     return ise(Kc, Kd, P, w) if m.stable else np.inf
 
 
@@ -180,8 +172,7 @@ def design_side_for_shape(k: int, att: np.ndarray, att_pd: np.ndarray, scale_lo:
             for j in range(len(sp)):
                 Kc = c1[i] / a[j]
                 Kd = c2[i] * Kc * T[j] / (2 * np.pi)
-                q = _cost(Kc, Kd, Pch[j], w, feasible=True)
-                worst = max(worst, (q - sise[j]) / sise[j] * 100)
+                worst = max(worst, rule_cost(Kc, Kd, Pch[j], w, sise[j]))
                 if worst >= best[0]:
                     break
             if worst < best[0]:
@@ -190,11 +181,17 @@ def design_side_for_shape(k: int, att: np.ndarray, att_pd: np.ndarray, scale_lo:
     up, ua = _unit_side_cycles(att, tuple(att_pd), sp, [beta], cycles=16, dt_frac=1e-4)
     gabs = np.array([abs(side_plant_response(att, tuple(att_pd), T2, ta, [2 * np.pi / T])[0, 0])
                      for (T2, ta), T in zip(sp, up[:, 0])])
+    T, a = up[:, 0], ua[:, 0]
+    c1 = spd[:, 0] * a
+    c2 = spd[:, 1] * 2 * np.pi / (spd[:, 0] * T)
+    cost = np.array([[rule_cost(c1[i] / a[j], c2[i] * c1[i] / a[j] * T[j] / (2 * np.pi), Pch[j], w,
+                                sise[j]) for j in range(len(sp))] for i in range(len(sp))])
     return SideClasses(att_shape=k, att_params=np.asarray(att), att_pd=np.asarray(att_pd),
                        box_lo=lo, box_hi=hi, cand=cand,
                        cand_owner=np.array([chosen.index(o) for o in owner]), cand_J=cand_J,
                        params=sp, pd=spd, ise=sise, beta=beta, worst_J=float(best[0]),
                        unit_period=up[:, 0], unit_amplitude=ua[:, 0], zeta=ua[:, 0] / gabs,
+                       rule_cost=np.where(np.isfinite(cost), cost, 1e6),
                        seconds=time.perf_counter() - t0)
 
 
@@ -212,19 +209,19 @@ def side_dataset(sc: SideClasses, scale_lo: float, scale_hi: float, n: int, seed
     A_est = sc.unit_amplitude[label] * c
     noise = rng.uniform(0, NOISE_MAX, n) * A_est
     att = sc.att_params
-    rows = np.zeros((n, 2 * N_POINTS + 3), np.float32)
+    rows = np.zeros((n, N_POINTS + 3), np.float32)
     per, amp = np.full(n, np.nan), np.full(n, np.nan)
     ok = np.zeros(n, bool)
     order = np.argsort(T_est)
     for s in range(0, n, 400):
         idx = order[s:s + 400]
         Tmax = float(T_est[idx].max())
-        dur = 2.0 + 10 * Tmax
+        dur = 2.0 + 12 * Tmax
         run = simulate_side_mrft((1.0, att[0] * c[idx], att[1] * c[idx], att[2] * c[idx]),
                                  (sc.att_pd[0] / c[idx], sc.att_pd[1]),
                                  (1.0, side[idx, 0], side[idx, 1]), beta=sc.beta, h=1.0,
                                  bias=bias[idx], noise_std=noise[idx], band=4 * noise[idx],
-                                 duration_s=dur, dt=dt, keep_s=3.5 * Tmax,
+                                 duration_s=dur, dt=dt, keep_s=5.5 * Tmax,
                                  seed=int(rng.integers(2**31)))
         for j, i in enumerate(idx):
             try:

@@ -9,9 +9,14 @@ For an inner loop (attitude, altitude):
    test's ``beta``), and the gain from the amplitude by exact gain scaling,
    ``K = a / (h c A_k)`` (``A_k``: its simulated unit amplitude; the
    describing function would use ``4/pi |G_k|``);
-4. the shape's unit optimal PD is mapped to the process, ``Kc = Kc_k / (c K)``,
-   ``Kd = Kd_k / K``, and the gains of the three likeliest shapes are blended
-   by their probabilities in log space ("soft gains", SPEC Appendix B).
+4. the gains are those of the shape ``i`` whose tuning rule has the least
+   *expected* cost under the classifier's probabilities,
+   ``i = argmin_i sum_j p_j C[i, j]``, where ``C[i, j]`` (precomputed, time-scale
+   invariant) is the cost of shape ``i``'s optimal PD, mapped by its rule, on
+   shape ``j``: ``|J|`` plus two points per degree of phase margin below 20.
+   When the classifier is unsure this picks a rule that is safe for all the
+   likely shapes (a Bayes decision, rather than blending gains). The shape's unit
+   optimal PD is mapped to the process as ``Kc = Kc_i / (c K)``, ``Kd = Kd_i / K``.
 
 The reported model is the likeliest shape at its recovered scale and gain;
 ``class_index`` is the representative process of that shape nearest in scale.
@@ -59,6 +64,7 @@ class Bundle:
     zeta: np.ndarray
     reps: np.ndarray
     rep_shape: np.ndarray
+    rule_cost: np.ndarray
     session: object
 
     def logits(self, x: np.ndarray) -> np.ndarray:
@@ -82,7 +88,7 @@ def load_bundle(kind: LoopKind, models: Path = MODELS_DIR) -> Bundle:
     session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
     c = json.loads(table.read_text())
     arr = {k: np.asarray(c[k], float) for k in ("shape_params", "shape_pd", "unit_period",
-                                                 "unit_amplitude", "zeta", "reps")}
+                                                 "unit_amplitude", "zeta", "reps", "rule_cost")}
     return Bundle(kind=kind, beta=float(c["beta"]), h=float(c["h"]),
                   rep_shape=np.asarray(c["rep_shape"], int), session=session, **arr)
 
@@ -97,6 +103,7 @@ class SideBundle:
     pd: np.ndarray
     unit_period: np.ndarray
     unit_amplitude: np.ndarray
+    rule_cost: np.ndarray
     session: object
 
     def logits(self, x: np.ndarray) -> np.ndarray:
@@ -118,7 +125,7 @@ def load_side_bundle(att_shape: int, models: Path = MODELS_DIR) -> SideBundle:
     c = json.loads(table.read_text())
     return SideBundle(att_shape, float(c["beta"]), np.asarray(c["params"]), np.asarray(c["pd"]),
                       np.asarray(c["unit_period"]), np.asarray(c["unit_amplitude"]),
-                      ort.InferenceSession(str(onnx_path), opts,
+                      np.asarray(c["rule_cost"]), ort.InferenceSession(str(onnx_path), opts,
                                            providers=["CPUExecutionProvider"]))
 
 
@@ -150,12 +157,9 @@ def _identify_side(t, u, y, beta: float, inner: Identification | None) -> Identi
     f, x = side_features(t, u, y, c)
     probs = _softmax(b.logits(x)[0])
     order = np.argsort(-probs)[:3]
-    w = probs[order] / probs[order].sum()
-    logs = []
-    for j in order:
-        K = f.amplitude / (f.h * c * b.unit_amplitude[j])
-        logs.append((np.log(b.pd[j, 0] / (c * K)), np.log(b.pd[j, 1] / K)))
-    Kc, Kd = np.exp(w @ np.array(logs))
+    r = int(np.argmin(b.rule_cost @ probs))  # Bayes decision, as for the inner loops
+    Kr = f.amplitude / (f.h * c * b.unit_amplitude[r])
+    Kc, Kd = b.pd[r, 0] / (c * Kr), b.pd[r, 1] / Kr
     j = int(order[0])
     K = f.amplitude / (f.h * c * b.unit_amplitude[j])
     model = SideModel(K=float(K), T2=float(b.params[j, 0] * c), tau=float(b.params[j, 1] * c))
@@ -173,25 +177,18 @@ def _softmax(z: np.ndarray) -> np.ndarray:
 
 
 def scaled_gains(b: Bundle, probs: np.ndarray, period_s: float, amplitude: float, h: float,
-                 scaling: str = GainScaling.EXACT, K_true: float | None = None,
-                 top: int = 3) -> tuple[PD, int, float, float]:
-    """Blend the likeliest shapes' gains; returns ``(pd, best shape, scale c, gain K)``."""
-    order = np.argsort(-probs)[:top]
-    w = probs[order] / probs[order].sum()
-    logs = []
-    for k in order:
-        c = period_s / b.unit_period[k]
-        if scaling == GainScaling.TRUE:
-            K = float(K_true)
-        elif scaling == GainScaling.DF:
-            K = amplitude / (h * c * b.unit_amplitude[k] / b.zeta[k] * 4 / np.pi)
-        else:
-            K = amplitude / (h * c * b.unit_amplitude[k])
-        logs.append((np.log(b.shape_pd[k, 0] / (c * K)), np.log(b.shape_pd[k, 1] / K), c, K))
-    lk = np.array([(a, d) for a, d, _, _ in logs])
-    Kc, Kd = np.exp(w @ lk)
-    _, _, c0, K0 = logs[0]
-    return PD(float(Kc), float(Kd)), int(order[0]), float(c0), float(K0)
+                 scaling: str = GainScaling.EXACT, K_true: float | None = None
+                 ) -> tuple[PD, int, float, float]:
+    """Gains of the Bayes-chosen rule; returns ``(pd, chosen shape, its scale c, gain K)``."""
+    i = int(np.argmin(b.rule_cost @ probs))
+    c = period_s / b.unit_period[i]
+    if scaling == GainScaling.TRUE:
+        K = float(K_true)
+    elif scaling == GainScaling.DF:
+        K = amplitude / (h * c * b.unit_amplitude[i] / b.zeta[i] * 4 / np.pi)
+    else:
+        K = amplitude / (h * c * b.unit_amplitude[i])
+    return PD(float(b.shape_pd[i, 0] / (c * K)), float(b.shape_pd[i, 1] / K)), i, c, K
 
 
 def identify(kind: LoopKind, t, u, y, *, beta: float, h: float, bias: float = 0.0,
@@ -204,7 +201,10 @@ def identify(kind: LoopKind, t, u, y, *, beta: float, h: float, bias: float = 0.
             f"the {kind.value} classifier was trained for beta={b.beta}, the test ran beta={beta}")
     f = cycle_features(t, u, y)
     probs = _softmax(b.logits(f.x)[0])
-    pd, k, c, K = scaled_gains(b, probs, f.period_s, f.amplitude, f.h)
+    pd, rule, _, _ = scaled_gains(b, probs, f.period_s, f.amplitude, f.h)
+    k = int(np.argmax(probs))  # the reported model: the likeliest shape
+    c = f.period_s / b.unit_period[k]
+    K = f.amplitude / (f.h * c * b.unit_amplitude[k])
     shape = b.shape_params[k]
     model = InnerModel(K=K, T_prop=float(shape[0] * c), T1=float(shape[1] * c),
                        tau=float(shape[2] * c))
@@ -212,7 +212,7 @@ def identify(kind: LoopKind, t, u, y, *, beta: float, h: float, bias: float = 0.
     rep = int(same[np.argmin(np.abs(np.log(b.reps[same, 1] / c)))]) if same.size else k
     return Identification(kind=kind, model=model, class_index=rep, confidence=float(probs[k]),
                           beta=beta, h=f.h, period_s=f.period_s, amplitude=f.amplitude,
-                          gains=pd, extras={"shape": k, "scale": c, "gain": K,
+                          gains=pd, extras={"shape": k, "scale": c, "gain": K, "rule": rule,
                                             "top": np.argsort(-probs)[:3].tolist(),
                                             "probs": np.sort(probs)[::-1][:3].tolist(),
                                             "duty": f.duty, "bias": f.bias})
