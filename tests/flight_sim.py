@@ -67,7 +67,9 @@ def fly(seq: TuningSequence, vehicle: str = "qdrone", seed: int = 0, max_s: floa
     ap.set_actuator_controls(0, 0, 0, 0)
     assert ap.set_mode(FlightMode.OFFBOARD).name == "ACCEPTED"
     ap.arm(True)
-    v.run(0.05)
+    for _ in range(100):  # 0.4 s on the ground: the noise that sets the relay bands
+        v.run(0.004)
+        seq.observe(state_of(v))
     seq.start(state_of(v))
     max_tilt = 0.0
     t_done = math.inf

@@ -19,6 +19,7 @@ A failed tune's exception carries what was done so far as ``err.partial_result``
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import math
 import os
@@ -31,6 +32,7 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort
 from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.onboard import onboard_gains
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
 from mrft_gcs.flight.sequence import (
     CycleSnapshot,
@@ -96,6 +98,7 @@ class LoopResult:
     t_tuned_s: float
     note: str
     cycles: tuple[np.ndarray, np.ndarray, np.ndarray] | None  # t_s, u, y of the identified cycles
+    band: float = math.nan  # the relay's noise band (loop output units)
 
 
 @dataclass(frozen=True)
@@ -164,7 +167,9 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
          heartbeat_timeout_s: float = 5.0, max_relay_s: float = 30.0, hover_check_s: float = 2.0,
          on_progress: Callable[[dict], None] | None = None,
          identifier: Identifier | None = None,
-         relay: dict[LoopKind, RelaySettings] | None = None) -> TuneResult:
+         relay: dict[LoopKind, RelaySettings] | None = None,
+         gcs_delay_s: float | None = None,
+         config: SequenceConfig | None = None) -> TuneResult:
     """Tune the vehicle at ``connection`` from take-off; returns what was done.
 
     Parameters
@@ -194,6 +199,13 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
     relay : dict, optional
         Relay settings per loop kind instead of the classifiers' (side settings
         are still asked with the attitude identification when missing here).
+    gcs_delay_s : float, optional
+        Delay the GCS-side relay adds to the identified inner loops (s); the written
+        gains are re-targeted to the onboard loop without it
+        (:func:`mrft_gcs.flight.onboard.onboard_gains`). Default: one setpoint period.
+    config : SequenceConfig, optional
+        Sequence settings (relay noise bands, amplitudes...); actuation, altitude,
+        hover guess and tilt command limit are always taken from the tune's arguments.
 
     Raises
     ------
@@ -216,6 +228,8 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
                                tlog_path=tlog_path, signing_key=signing_key)
     run = _Run(link, prof, act, lim, z_ref_m, connection, started, backup_dir, rate_hz,
                max_relay_s, hover_check_s, on_progress, ident_fn, relay or {})
+    run.gcs_delay_s = 1.0 / rate_hz if gcs_delay_s is None else gcs_delay_s
+    run.config = config or SequenceConfig()
     try:
         return run.execute(dry_link)
     except MrftError as err:
@@ -258,6 +272,9 @@ class _Run:
         self.limit_hit: LimitExceeded | None = None
         self.hover_error_m = math.nan
         self.notes: list[str] = []
+        self.gcs_delay_s = 0.0
+        self.config = SequenceConfig()
+        self.written: dict[Loop, PD] = {}
 
     # ------------------------------------------------------------------ result
     def result(self, status: str, error: str | None = None) -> TuneResult:
@@ -275,8 +292,9 @@ class _Run:
                 lp, t.state.value, t.beta, t.h, t.bias,
                 snap.status.period_s if snap else t.status.period_s,
                 snap.status.amplitude if snap else t.status.amplitude,
-                ident, ident.gains if ident else None, t.t_tuned_s - seq.t_start_s, t.note,
-                (snap.t_s, snap.u, snap.y) if snap else None)
+                ident, self.written.get(lp, ident.gains if ident else None),
+                t.t_tuned_s - seq.t_start_s, t.note,
+                (snap.t_s, snap.u, snap.y) if snap else None, t.band)
         stream = self.streamer.stats() if self.streamer is not None else None
         return TuneResult(
             connection=self.connection, autopilot=self.link.family.value, profile=self.prof.name,
@@ -306,9 +324,10 @@ class _Run:
             return self.result("dry-link")
         att = self.relay.get(LoopKind.ATTITUDE) or relay_settings(LoopKind.ATTITUDE)
         alt = self.relay.get(LoopKind.ALTITUDE) or relay_settings(LoopKind.ALTITUDE)
-        cfg = SequenceConfig(actuation=self.act, z_ref_m=self.z_ref_m,
-                             hover_thrust_guess=self.hover if 0 < self.hover < 1 else None,
-                             max_tilt_cmd_rad=0.6 * math.radians(self.lim.max_tilt_deg))
+        cfg = dataclasses.replace(
+            self.config, actuation=self.act, z_ref_m=self.z_ref_m,
+            hover_thrust_guess=self.hover if 0 < self.hover < 1 else None,
+            max_tilt_cmd_rad=0.6 * math.radians(self.lim.max_tilt_deg))
         self.seq = TuningSequence(cfg, att, alt)
         try:
             self._fly(client)
@@ -336,7 +355,10 @@ class _Run:
 
         def make(_t: float):
             s = telemetry.poll()
-            if s is None or seq.phase is Phase.PREFLIGHT:
+            if s is None:
+                return idle
+            if seq.phase is Phase.PREFLIGHT:
+                seq.observe(s)  # on the ground: the noise that sets the relays' bands
                 return idle
             if self.monitor is not None:
                 try:
@@ -446,9 +468,15 @@ class _Run:
     def _write_back(self, client: ParamClient) -> None:
         seq = self.seq
         assert seq is not None
-        gains = {lp: PDGains(t.identification.gains.Kc, t.identification.gains.Kd)
-                 for lp, t in seq.loops.items()
-                 if t.state is LoopState.TUNED and t.identification is not None}
+        for lp, t in seq.loops.items():
+            if t.state is LoopState.TUNED and t.identification is not None:
+                self.written[lp] = onboard_gains(t.identification, self.gcs_delay_s)
+        if any(self.written[lp] != seq.loops[lp].identification.gains for lp in self.written):
+            self.notes.append(
+                f"written roll, pitch and altitude gains are re-targeted from the GCS-side loop "
+                f"to the onboard loop ({self.gcs_delay_s * 1e3:.1f} ms less delay); the report's "
+                f"gains are the written ones")
+        gains = {lp: PDGains(g.Kc, g.Kd) for lp, g in self.written.items()}
         values = gains_to_params(self.prof, gains, self.hover)
         if not values:
             return

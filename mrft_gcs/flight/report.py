@@ -50,6 +50,7 @@ def _loop(lr: LoopResult) -> dict[str, Any]:
         "beta": _num(lr.beta),
         "h": _num(lr.h),
         "bias": _num(lr.bias),
+        "band": _num(lr.band),
         "period_s": _num(lr.period_s),
         "amplitude": _num(lr.amplitude),
         "gains": {"Kc": _num(lr.gains.Kc), "Kd": _num(lr.gains.Kd)} if lr.gains else None,

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mrft_gcs.flight.controllers import FlightState, PDLoop, YawHold
+from mrft_gcs.flight.noise import NoiseEstimator
 from mrft_gcs.flight.takeoff import TABLE_V, TakeoffController, TakeoffSettings
 from mrft_gcs.identify import CycleDetector, CycleStatus, Identification, RelaySettings
 from mrft_gcs.loops import INNER_LOOPS, SIDE_LOOPS, Loop
@@ -103,6 +104,11 @@ class LoopTest:
     t_tuned_s: float = _NAN
     note: str = ""
     u: float = 0.0
+    band: float = _NAN
+    ext: float = 0.0  # extreme error since the relay's last switch
+    unarmed: int = 0  # switches made before the threshold could arm (relay too small)
+    raises: int = 0  # times the relay amplitude was raised
+    switches: int = 0  # relay switches since the relay (re)started
 
 
 @dataclass(frozen=True)
@@ -120,13 +126,29 @@ class SequenceConfig:
     hover_thrust_guess: float | None = None
     max_tilt_cmd_rad: float = 0.35
     airborne_m: float = 0.03
-    identify_cycles: int = 3
+    #: cycles handed to identification (the classifier input averages up to four)
+    identify_cycles: int = 4
     steady_periods: tuple[int, int, int] = (3, 2, 2)  # attitude, altitude, side
-    #: the GCS-side attitude PDs run through the link (a few ms more delay than the model
-    #: they were designed for); they are softened by this factor. Written gains are not.
-    gcs_attitude_pd_scale: float = 0.6
+    #: factor on the identified attitude PDs while they run on the GCS (during the side
+    #: tests and the hover); the written gains are never scaled.
+    gcs_attitude_pd_scale: float = 1.0
+    #: relay noise band = this many standard deviations of the signal's noise, measured
+    #: on the ground before the take-off (the classifiers were trained with 4 sigma)
+    noise_band_sigmas: float = 4.0
+    #: bands used when too few ground samples were seen to measure the noise
     relay_band_att_rad: float = 0.003
-    relay_band_pos_m: float = 0.01
+    relay_band_pos_m: float = 0.003
+    #: the relay amplitude is raised (x ``h_raise``, up to ``h_max``: attitude torque,
+    #: altitude thrust, side tilt in rad) when the oscillation is too small for the noise:
+    #: switches before the MRFT threshold clears the band, or noise over ``max_noise_ratio``
+    #: of the amplitude (the classifiers were trained with up to 3 %)
+    h_raise: float = 1.6
+    #: smallest starting amplitude of the roll/pitch relays (normalised torque): the
+    #: classifiers' default (Table V: 0.05) gives cycles of 0.01-0.016 rad at beta -0.8 on
+    #: the bundled airframes, too small to clear a 4-sigma band of 0.8 mrad noise
+    h_att_min: float = 0.12
+    h_max: tuple[float, float, float] = (0.3, 0.25, 0.2)
+    max_noise_ratio: float = 0.025
 
 
 def quat_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
@@ -178,15 +200,35 @@ class TuningSequence:
         self.state: FlightState | None = None
         self.tilt_cmd = (0.0, 0.0)  # (roll_ref, pitch_ref), rad
         self._t_att_prev = self._t_pos_prev = -math.inf
+        self.att_noise = NoiseEstimator(2)  # roll, pitch (rad)
+        self.pos_noise = NoiseEstimator(3)  # x, y, z up (m)
         alt = self.loops[Loop.ALTITUDE]
         alt.beta, alt.h = self.altitude_relay.beta, self.altitude_relay.h
         for lp in (Loop.ROLL, Loop.PITCH):
             t = self.loops[lp]
-            t.beta, t.h = self.attitude_relay.beta, self.attitude_relay.h
+            t.beta, t.h = self.attitude_relay.beta, max(self.attitude_relay.h, cfg.h_att_min)
             if cfg.actuation is Actuation.ATTITUDE:
                 t.state = LoopState.LEFT_ALONE
                 t.note = ("attitude path: the autopilot keeps its own attitude loop "
                           "(SET_ATTITUDE_TARGET), so roll and pitch are not tested")
+
+    def observe(self, s: FlightState) -> None:
+        """A sample on the ground before the take-off command: measures the signals' noise."""
+        with self._lock:
+            if self.phase is Phase.PREFLIGHT:
+                self.att_noise.update(s.t_att_s, (s.roll_rad, s.pitch_rad))
+                self.pos_noise.update(s.t_pos_s, (s.x_m, s.y_m, s.z_up_m))
+
+    def noise_band(self, loop: Loop) -> float:
+        """Relay noise band of ``loop`` (its units): ``noise_band_sigmas`` x measured noise."""
+        cfg = self.config
+        if loop in (Loop.ROLL, Loop.PITCH):
+            sig, default = self.att_noise.sigma()[0 if loop is Loop.ROLL else 1], \
+                cfg.relay_band_att_rad
+        else:
+            i = {Loop.X: 0, Loop.Y: 1, Loop.ALTITUDE: 2}[loop]
+            sig, default = self.pos_noise.sigma()[i], cfg.relay_band_pos_m
+        return float(cfg.noise_band_sigmas * sig) if np.isfinite(sig) else default
 
     def start(self, s: FlightState) -> None:
         """Take-off command: remember the take-off point and heading, enter TAKEOFF."""
@@ -198,6 +240,7 @@ class TuningSequence:
             self.phase = Phase.TAKEOFF
             alt = self.loops[Loop.ALTITUDE]
             alt.state, alt.t_relay_start_s = LoopState.RELAY, self.t_start_s
+            alt.band = self.takeoff.band_m = self.noise_band(Loop.ALTITUDE)
 
     def leave_alone(self, loop: Loop, why: str) -> None:
         """Give up on a loop (it keeps what it had) and say why in the report."""
@@ -246,6 +289,11 @@ class TuningSequence:
         with self._lock:
             for t in self.loops.values():
                 if t.state is LoopState.RELAY and t.status.steady:
+                    sigma = t.band / self.config.noise_band_sigmas
+                    if sigma > self.config.max_noise_ratio * t.status.amplitude:
+                        self._raise_h(t, sigma / (0.7 * self.config.max_noise_ratio
+                                                  * t.status.amplitude))
+                        continue
                     ts, u, y = t.detector.last_cycles(self.config.identify_cycles)
                     if ts.size < 8:
                         continue
@@ -253,6 +301,42 @@ class TuningSequence:
                     t.snapshot = CycleSnapshot(t.loop, ts, u, y, t.beta, t.h, t.bias, t.status)
                     out.append(t.snapshot)
         return out
+
+    def _h_max(self, loop: Loop) -> float:
+        return self.config.h_max[0 if loop in (Loop.ROLL, Loop.PITCH) else
+                                 1 if loop is Loop.ALTITUDE else 2]
+
+    def _raise_h(self, t: LoopTest, factor: float) -> None:
+        """Raise a relay's amplitude (the oscillation is too small for the noise); start over."""
+        relay = self.takeoff.relay if t.loop is Loop.ALTITUDE else t.relay
+        h = min(self._h_max(t.loop), t.h * max(factor, self.config.h_raise))
+        if relay is None or h <= t.h * 1.01:
+            return
+        t.h = h
+        relay.h[:] = h
+        if t.loop is Loop.ALTITUDE:
+            self.takeoff.h = h
+        t.raises += 1
+        t.unarmed = t.switches = 0
+        t.detector.reset()
+        t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
+
+    def _watch(self, t: LoopTest, relay: MRFT, e: float, state_before: float) -> None:
+        """After a relay step: two switches in a row before the threshold armed raise h."""
+        st = float(relay.state[0])
+        if state_before != 0 and st != state_before:
+            t.switches += 1
+            if t.switches > 2 and abs(t.ext) * (1 + t.beta) <= t.band:
+                t.unarmed += 1
+                if t.unarmed >= 2:
+                    self._raise_h(t, self.config.h_raise)
+            else:
+                t.unarmed = 0
+            t.ext = 0.0
+        elif st > 0:
+            t.ext = max(t.ext, e)
+        else:
+            t.ext = min(t.ext, e)
 
     def retry(self, loop: Loop) -> None:
         """Identification failed on this cycle: keep the relay going and wait for the next."""
@@ -293,7 +377,8 @@ class TuningSequence:
                 if t.state is not LoopState.WAITING:
                     continue
                 t.beta, t.h = rs.beta, rs.h
-                t.relay = MRFT(rs.beta, rs.h, band=self.config.relay_band_pos_m)
+                t.band = self.noise_band(lp)
+                t.relay = MRFT(rs.beta, rs.h, band=t.band)
                 t.state = LoopState.RELAY
                 t.t_relay_start_s = max(now.t_att_s, now.t_pos_s) if now else _NAN
             self._advance()
@@ -352,9 +437,13 @@ class TuningSequence:
         if t.pd is not None:
             u = t.pd.step(self.config.z_ref_m, z, s.vz_up_m_s)
         else:
+            relay = self.takeoff.relay
+            before = float(relay.state[0]) if relay is not None else 0.0
             u = self.takeoff.step(s.t_pos_s, z)
             if self.takeoff.switched:
                 t.bias = self.takeoff.u_z0
+                if relay is not None:
+                    self._watch(t, relay, self.config.z_ref_m - z, before)
                 self._feed(t, s.t_pos_s, u, z, new)
         t.u = u
         return u
@@ -372,7 +461,9 @@ class TuningSequence:
             if t.pd is not None:
                 u = t.pd.step(self.origin[0 if t is tx else 1], pos, vel)
             elif t.relay is not None:
+                before = float(t.relay.state[0])
                 u = float(t.relay.step(e)[0])
+                self._watch(t, t.relay, e, before)
                 self._feed(t, s.t_pos_s, u, pos, new)
             else:
                 u = 0.0
@@ -389,10 +480,13 @@ class TuningSequence:
             u = 0.0
         else:
             if t.state is LoopState.WAITING:
-                t.relay = MRFT(t.beta, t.h, band=self.config.relay_band_att_rad)
+                t.band = self.noise_band(loop)
+                t.relay = MRFT(t.beta, t.h, band=t.band)
                 t.state, t.t_relay_start_s = LoopState.RELAY, t_s
             assert t.relay is not None
+            before = float(t.relay.state[0])
             u = float(t.relay.step(ref - y)[0])
+            self._watch(t, t.relay, ref - y, before)
             self._feed(t, t_s, u, y, new)
         t.u = u
         return u
