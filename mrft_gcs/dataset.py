@@ -22,10 +22,16 @@ from mrft_gcs.simulate import simulate_mrft
 
 __all__ = ["Dataset", "make_dataset", "NOISE_MAX", "BIAS_MAX"]
 
-#: Largest measurement noise, as a fraction of the expected cycle amplitude.
-NOISE_MAX = 0.03
-#: Largest relay bias, as a fraction of ``h`` (paper: half the relay amplitude).
-BIAS_MAX = 0.5
+#: Largest measurement noise (standard deviation), as a fraction of the expected cycle
+#: amplitude: EKF / motion-capture grade. With 2-3 % noise *and* a relay bias of 0.2 h or
+#: more the relay test itself degenerates into a slow, large cycle (measured: J p90 ~ 280 %
+#: over random attitude processes), whatever the classifier does.
+NOISE_MAX = 0.01
+#: Largest relay bias, as a fraction of ``h``. The paper trains with up to h/2, but an
+#: MRFT with the distinguishing lead does not keep a proper cycle at that bias (see
+#: :data:`mrft_gcs.phase.BETA_GRID`); 0.3 h is what the test survives, and live tuning
+#: keeps the relay centred on the hover command.
+BIAS_MAX = 0.3
 
 
 @dataclass(frozen=True)

@@ -40,8 +40,12 @@ __all__ = [
     "BETA_GRID",
 ]
 
-#: Test phases searched by Algorithm 1 (beta; negative is phase lead).
-BETA_GRID = np.round(np.arange(-0.9, 0.301, 0.05), 3)
+#: Test phases searched by Algorithm 1 (beta; negative is phase lead). Leads stronger
+#: than beta = -0.7 are left out: with the relay biased by 0.3 h (a bias the test must
+#: survive), the error's excursions stop crossing zero and the cycle degenerates
+#: (measured on 60 random attitude processes: beta -0.8 keeps a sane cycle for 35 % of
+#: them at 0.3 h, beta -0.7 for 100 %; at 0.5 h even beta -0.5 fails half of them).
+BETA_GRID = np.round(np.arange(-0.7, 0.301, 0.05), 3)
 
 
 def hb_period(params: np.ndarray, beta: float, w: np.ndarray | None = None) -> np.ndarray:

@@ -35,7 +35,7 @@ from mrft_gcs.simulate import find_cycle, simulate_side_mrft
 __all__ = ["SideClasses", "side_plant_response", "design_side_for_shape", "side_dataset",
            "SIDE_BETAS", "SIDE_H", "side_features"]
 
-SIDE_BETAS = np.round(np.arange(-0.8, 0.21, 0.1), 3)
+SIDE_BETAS = np.round(np.arange(-0.7, 0.21, 0.1), 3)  # see phase.BETA_GRID
 #: Default side relay amplitude: tilt set point in rad (about 4.6 deg).
 SIDE_H = 0.08
 
