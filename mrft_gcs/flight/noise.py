@@ -18,7 +18,7 @@ from collections import deque
 
 import numpy as np
 
-__all__ = ["NoiseEstimator", "detrended_std"]
+__all__ = ["ComplementaryFilter", "NoiseEstimator", "detrended_std"]
 
 
 def detrended_std(t_s: np.ndarray, y: np.ndarray) -> float:
@@ -76,3 +76,40 @@ class NoiseEstimator:
         t = np.asarray(self.t)
         v = np.asarray(self.v)
         return np.array([detrended_std(t, v[:, i]) for i in range(self.n)])
+
+
+class ComplementaryFilter:
+    """Position smoothed with its own velocity: ``x^ += v dt + k (x - x^ - v dt)``.
+
+    Where the position and velocity come from one estimator (LOCAL_POSITION_NED), the
+    velocity carries the motion and the position only corrects the drift, so the output
+    follows the motion without the phase lag of a low-pass filter while white position
+    noise shrinks by ``sqrt(k / (2 - k))`` (0.16 at ``k = 0.05``). The side-motion relay
+    needs this: with a 4-sigma band its cycles turn irregular once the noise exceeds
+    about 1 % of the cycle amplitude.
+
+    >>> f = ComplementaryFilter(0.05)
+    >>> [round(f.update(0.004 * i, 0.01 * i, 2.5), 4) for i in range(3)]
+    [0.0, 0.01, 0.02]
+    """
+
+    def __init__(self, k: float = 0.05) -> None:
+        if not 0 < k <= 1:
+            raise ValueError("the complementary filter gain must lie in (0, 1]")
+        self.k = k
+        self.reset()
+
+    def reset(self) -> None:
+        self.x: float | None = None
+        self.t = float("nan")
+
+    def update(self, t_s: float, x: float, v: float) -> float:
+        """Add a sample (position, velocity at ``t_s``); returns the filtered position."""
+        if self.x is None or not t_s > self.t:
+            if self.x is None:
+                self.x, self.t = x, t_s
+            return self.x
+        pred = self.x + v * (t_s - self.t)
+        self.x = pred + self.k * (x - pred)
+        self.t = t_s
+        return self.x

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mrft_gcs.flight.controllers import FlightState, PDLoop, YawHold
-from mrft_gcs.flight.noise import NoiseEstimator
+from mrft_gcs.flight.noise import ComplementaryFilter, NoiseEstimator
 from mrft_gcs.flight.takeoff import TABLE_V, TakeoffController, TakeoffSettings
 from mrft_gcs.identify import CycleDetector, CycleStatus, Identification, RelaySettings
 from mrft_gcs.loops import INNER_LOOPS, SIDE_LOOPS, Loop
@@ -147,6 +147,12 @@ class SequenceConfig:
     #: classifiers' default (Table V: 0.05) gives cycles of 0.01-0.016 rad at beta -0.8 on
     #: the bundled airframes, too small to clear a 4-sigma band of 0.8 mrad noise
     h_att_min: float = 0.12
+    #: the same for the x/y relays (tilt, rad): the side classifiers' 0.08 gives cycles of
+    #: about 2 cm on qdrone, where 0.8 mm position noise is already 4 % of the amplitude
+    h_side_min: float = 0.16
+    #: gain of the complementary filter (position + velocity) on x and y for the side
+    #: relays and their identification (1 = raw position)
+    side_filter_k: float = 0.05
     h_max: tuple[float, float, float] = (0.3, 0.25, 0.2)
     max_noise_ratio: float = 0.025
 
@@ -201,7 +207,10 @@ class TuningSequence:
         self.tilt_cmd = (0.0, 0.0)  # (roll_ref, pitch_ref), rad
         self._t_att_prev = self._t_pos_prev = -math.inf
         self.att_noise = NoiseEstimator(2)  # roll, pitch (rad)
-        self.pos_noise = NoiseEstimator(3)  # x, y, z up (m)
+        self.pos_noise = NoiseEstimator(3)  # x, y (filtered), z up (m)
+        self.xy_filter = (ComplementaryFilter(cfg.side_filter_k),
+                          ComplementaryFilter(cfg.side_filter_k))
+        self.xy_f = (0.0, 0.0)
         alt = self.loops[Loop.ALTITUDE]
         alt.beta, alt.h = self.altitude_relay.beta, self.altitude_relay.h
         for lp in (Loop.ROLL, Loop.PITCH):
@@ -216,8 +225,13 @@ class TuningSequence:
         """A sample on the ground before the take-off command: measures the signals' noise."""
         with self._lock:
             if self.phase is Phase.PREFLIGHT:
+                self._filter_xy(s)
                 self.att_noise.update(s.t_att_s, (s.roll_rad, s.pitch_rad))
-                self.pos_noise.update(s.t_pos_s, (s.x_m, s.y_m, s.z_up_m))
+                self.pos_noise.update(s.t_pos_s, (*self.xy_f, s.z_up_m))
+
+    def _filter_xy(self, s: FlightState) -> None:
+        fx, fy = self.xy_filter
+        self.xy_f = (fx.update(s.t_pos_s, s.x_m, s.vx_m_s), fy.update(s.t_pos_s, s.y_m, s.vy_m_s))
 
     def noise_band(self, loop: Loop) -> float:
         """Relay noise band of ``loop`` (its units): ``noise_band_sigmas`` x measured noise."""
@@ -376,9 +390,9 @@ class TuningSequence:
                 t = self.loops[lp]
                 if t.state is not LoopState.WAITING:
                     continue
-                t.beta, t.h = rs.beta, rs.h
+                t.beta, t.h = rs.beta, max(rs.h, self.config.h_side_min)
                 t.band = self.noise_band(lp)
-                t.relay = MRFT(rs.beta, rs.h, band=t.band)
+                t.relay = MRFT(t.beta, t.h, band=t.band)
                 t.state = LoopState.RELAY
                 t.t_relay_start_s = max(now.t_att_s, now.t_pos_s) if now else _NAN
             self._advance()
@@ -406,6 +420,8 @@ class TuningSequence:
             new_att = s.t_att_s > self._t_att_prev
             new_pos = s.t_pos_s > self._t_pos_prev
             self._t_att_prev, self._t_pos_prev = s.t_att_s, s.t_pos_s
+            if new_pos:
+                self._filter_xy(s)
             thrust = self._altitude(s, z, new_pos)
             if self.phase is Phase.TAKEOFF and self.takeoff.switched:
                 self.phase = Phase.INNER_MRFT
@@ -452,19 +468,21 @@ class TuningSequence:
         ex = self.origin[0] - s.x_m
         ey = self.origin[1] - s.y_m
         tx, ty = self.loops[Loop.X], self.loops[Loop.Y]
+        xf, yf = self.xy_f
         if tx.state is LoopState.WAITING and ty.state is LoopState.WAITING:
             bb = self.bounding.step(np.array([ex, ey]))
             tx.u, ty.u = float(bb[0]), float(bb[1])
             return tx.u, ty.u
         out = []
-        for t, e, pos, vel in ((tx, ex, s.x_m, s.vx_m_s), (ty, ey, s.y_m, s.vy_m_s)):
+        for t, pos, vel, o, pf in ((tx, s.x_m, s.vx_m_s, self.origin[0], xf),
+                                   (ty, s.y_m, s.vy_m_s, self.origin[1], yf)):
             if t.pd is not None:
-                u = t.pd.step(self.origin[0 if t is tx else 1], pos, vel)
+                u = t.pd.step(o, pos, vel)
             elif t.relay is not None:
                 before = float(t.relay.state[0])
-                u = float(t.relay.step(e)[0])
-                self._watch(t, t.relay, e, before)
-                self._feed(t, s.t_pos_s, u, pos, new)
+                u = float(t.relay.step(o - pf)[0])
+                self._watch(t, t.relay, o - pf, before)
+                self._feed(t, s.t_pos_s, u, pf, new)
             else:
                 u = 0.0
             t.u = u
