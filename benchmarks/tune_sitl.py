@@ -1,23 +1,30 @@
 """Benchmark: full tunes of the SITL over loopback UDP, each airframe, several seeds.
 
 Prints per run: simulated time from take-off command to the last gains applied, max tilt,
-setpoint rate and p99 jitter, and J (%) of each loop's written gains against the optimal PD
-of the airframe's true linear model (x/y: of the true cascade under the attitude gains in
-use), with the phase margin on the true process.
+setpoint rate and p99 jitter, and J (%) of each loop's *written* gains against the optimal
+PD of the airframe's true linear model (x/y: of the true cascade under the written attitude
+gains, each axis with its own identified gains and, as ``xy``, with the one set both share
+once written), with the phase margin on the true process.
 
-    .venv/bin/python benchmarks/tune_sitl.py [--vehicles qdrone,racer250,f550] [--seeds 5]
+    .venv/bin/python benchmarks/tune_sitl.py [--vehicles qdrone,racer250,f550] [--seeds 5] \
+        [--json runs.json] [--figure8]
 
-Identification uses the bundled classifiers (models/). Without them, ``--truth`` runs the
-whole flight with the truth identifier of the tests (J is then 0 by construction: only the
-timing, tilt and stream figures mean anything).
+Identification uses the bundled classifiers (models/). ``--truth`` runs the whole flight
+with the truth identifier of the tests instead (J is then about 0 by construction: only
+the timing, tilt and stream figures mean anything). ``--figure8`` also flies the
+figure-eight (2 x 1 m, 5.5 s) on the tuned gains right after each tune, with the
+identified models as feed-forward (``mrft_gcs.verify.verify_figure8``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import platform
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -32,58 +39,114 @@ from mrft_gcs.profiles import load_profile, params_to_gains  # noqa: E402
 from mrft_gcs.sitl import SitlProcess, load_airframe  # noqa: E402
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--vehicles", default="qdrone,racer250,f550")
-    ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--truth", action="store_true", help="truth identifier (no classifiers)")
-    args = ap.parse_args()
-    kw = {}
-    if args.truth:
+def _num(x: float) -> float | None:
+    return float(x) if x is not None and math.isfinite(x) else None
+
+
+def run_one(vehicle: str, seed: int, *, truth: bool = False, figure8: bool = False,
+            speedup: float = 1.0) -> dict:
+    """One tune (and optionally a figure-eight) on a fresh SITL; returns a JSON-able record."""
+    kw: dict = {}
+    if truth:
         from flight_sim import ALT_RELAY, ATT_RELAY, SIDE_RELAY, truth_identifier
 
+        ti = truth_identifier(vehicle)
         kw["relay"] = {LoopKind.ATTITUDE: ATT_RELAY, LoopKind.ALTITUDE: ALT_RELAY,
                        LoopKind.SIDE: SIDE_RELAY}
+        kw["identifier"] = lambda lp, s, i: ti(lp, s, i)
+    prof = load_profile("sitl")
+    af = load_airframe(vehicle)
+    rec: dict = {"vehicle": vehicle, "seed": seed, "identifier": "truth" if truth else "bundled"}
+    wall = time.monotonic()
+    with tempfile.TemporaryDirectory() as d, \
+            SitlProcess(vehicle=vehicle, port=None, seed=seed, speedup=speedup) as sitl:
+        try:
+            r = tune(sitl.connection_string, prof, backup_dir=d, **kw)
+        except MrftError as err:
+            r = getattr(err, "partial_result", None)
+            rec.update(status=f"error: {err}")
+        else:
+            rec["status"] = r.status
+        if r is not None and figure8 and r.status == "ok":
+            from mrft_gcs.verify import verify_figure8
+
+            models = {lp.value: lr.identification.model.as_dict() for lp, lr in r.loops.items()
+                      if lr.identification is not None}
+            try:
+                f8 = verify_figure8(sitl.connection_string, laps=2, models=models)
+                rec["figure8_mean_m"] = f8.errors.mean_m
+                rec["figure8_max_m"] = f8.errors.max_m
+            except MrftError as err:
+                rec["figure8_error"] = str(err)
+    rec["wall_s"] = time.monotonic() - wall
+    if r is None:
+        return rec
+    rec["duration_s"] = _num(r.duration_s)
+    rec["max_tilt_deg"] = _num(r.max_tilt_deg)
+    if r.stream is not None:
+        rec["stream_hz"] = _num(r.stream.rate_hz_achieved)
+        rec["jitter_p99_ms"] = _num(r.stream.jitter_p99_ms)
+    rec["loops"] = {lp.value: {"state": lr.state, "h": _num(lr.h), "period_s": _num(lr.period_s),
+                               "tuned_after_s": _num(lr.t_tuned_s),
+                               "class": lr.identification.class_index
+                               if lr.identification else None}
+                    for lp, lr in r.loops.items()}
+    gains = {lp: lr.gains for lp, lr in r.loops.items() if lr.gains is not None}
+    models = af.linear_models()
+    for lp, s in score_gains(models, gains).items():
+        rec["loops"][lp.value].update(J_pct=_num(s.J_pct) if s.stable else None,
+                                      pm_deg=_num(s.pm_deg), stable=s.stable)
+    values = {c.name: c.new for c in r.parameters}
+    if values:
+        values[prof.altitude.hover_thrust] = af.hover_thrust
+        written = params_to_gains(prof, values)
+        if Loop.X in written and Loop.ROLL in gains and Loop.PITCH in gains:
+            sw = score_gains(models, {**gains, Loop.X: written[Loop.X], Loop.Y: written[Loop.Y]})
+            rec["xy_shared_J_pct"] = [_num(sw[lp].J_pct) if sw[lp].stable else None
+                                      for lp in (Loop.X, Loop.Y)]
+    return rec
+
+
+def line(rec: dict) -> str:
+    """One printed line per run."""
+    head = f"{rec['vehicle']} seed {rec['seed']}:"
+    if "duration_s" not in rec:
+        return f"{head} {rec['status']}"
+    js = " ".join(
+        f"{k} {v['J_pct']:5.1f}% (PM {v['pm_deg']:4.1f})" if v.get("J_pct") is not None else
+        f"{k} {'unstable' if v.get('stable') is False else '-'}"
+        for k, v in rec["loops"].items())
+    f8 = f", figure-8 {rec['figure8_mean_m']:.3f} m" if "figure8_mean_m" in rec else ""
+    return (f"{head} {rec['status']}, {rec['duration_s'] or math.nan:5.2f} s, tilt "
+            f"{rec['max_tilt_deg'] or math.nan:4.1f} deg, stream {rec.get('stream_hz', 0):.1f} Hz "
+            f"p99 jitter {rec.get('jitter_p99_ms', math.nan):.2f} ms; J {js}{f8}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--vehicles", default="qdrone,racer250,f550")
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--truth", action="store_true", help="truth identifier (no classifiers)")
+    ap.add_argument("--figure8", action="store_true", help="fly the figure-eight after each tune")
+    ap.add_argument("--json", type=Path, default=None, help="append the records to this file")
+    args = ap.parse_args()
     print(f"machine: {platform.machine()}, {platform.python_implementation()} "
           f"{platform.python_version()}, identifier: {'truth' if args.truth else 'bundled'}")
-    prof = load_profile("sitl")
+    records = []
     for vehicle in args.vehicles.split(","):
-        models = load_airframe(vehicle).linear_models()
-        durations, Js = [], {lp: [] for lp in Loop}
-        for seed in range(args.seeds):
-            if args.truth:
-                ti = truth_identifier(vehicle)
-                kw["identifier"] = lambda lp, s, i, ti=ti: ti(lp, s, i)
-            with tempfile.TemporaryDirectory() as d, \
-                    SitlProcess(vehicle=vehicle, port=None, seed=seed) as sitl:
-                try:
-                    r = tune(sitl.connection_string, prof, backup_dir=d, **kw)
-                except MrftError as err:
-                    print(f"{vehicle} seed {seed}: FAILED {err}")
-                    continue
-            values = {c.name: c.new for c in r.parameters}
-            values[prof.altitude.hover_thrust] = load_airframe(vehicle).hover_thrust
-            # score what each loop ran with (x/y: their own gains before sharing one set)
-            gains = {lp: lr.gains for lp, lr in r.loops.items() if lr.gains is not None}
-            written = params_to_gains(prof, {k: v for k, v in values.items()})
-            sc = score_gains(models, gains)
-            scw = score_gains(models, {**gains, Loop.X: written.get(Loop.X, gains[Loop.X]),
-                                       Loop.Y: written.get(Loop.Y, gains[Loop.Y])})
-            durations.append(r.duration_s)
-            st = r.stream
-            line = " ".join(f"{lp.value} {sc[lp].J_pct:5.1f}% (PM {sc[lp].pm_deg:4.1f})"
-                            for lp in Loop if lp in sc)
-            wx = f"written x/y J {scw[Loop.X].J_pct:.1f}/{scw[Loop.Y].J_pct:.1f}%"
-            for lp in Loop:
-                if lp in sc:
-                    Js[lp].append(sc[lp].J_pct)
-            print(f"{vehicle} seed {seed}: {r.duration_s:5.2f} s, tilt {r.max_tilt_deg:4.1f} deg,"
-                  f" stream {st.rate_hz_achieved:.1f} Hz p99 jitter {st.jitter_p99_ms:.2f} ms; "
-                  f"J {line}; {wx}", flush=True)
-        if durations:
-            print(f"{vehicle}: duration mean {np.mean(durations):.2f} s max "
-                  f"{np.max(durations):.2f} s; J max " +
-                  ", ".join(f"{lp.value} {max(v):.1f}%" for lp, v in Js.items() if v))
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
+            rec = run_one(vehicle, seed, truth=args.truth, figure8=args.figure8)
+            records.append(rec)
+            print(line(rec), flush=True)
+            if args.json is not None:
+                old = json.loads(args.json.read_text()) if args.json.exists() else []
+                args.json.write_text(json.dumps(old + [rec], indent=1))
+        done = [r for r in records if r["vehicle"] == vehicle and r.get("status") == "ok"]
+        if done:
+            d = [r["duration_s"] for r in done]
+            print(f"{vehicle}: {len(done)} ok, duration mean {np.mean(d):.2f} s max "
+                  f"{np.max(d):.2f} s", flush=True)
 
 
 if __name__ == "__main__":

@@ -305,7 +305,7 @@ class _Run:
             tlog=str(self.link.tlog_path) if self.link.tlog_path else None,
             max_tilt_deg=self.monitor.max_tilt_seen_deg if self.monitor else math.nan,
             limits=self.lim, hover_error_m=self.hover_error_m,
-            notes=tuple([YAW_NOTE] + self.notes))
+            notes=tuple([YAW_NOTE] + self.notes + (list(seq.events) if seq else [])))
 
     # ------------------------------------------------------------------ steps
     def execute(self, dry_link: bool) -> TuneResult:

@@ -211,6 +211,7 @@ class TuningSequence:
         self.xy_filter = (ComplementaryFilter(cfg.side_filter_k),
                           ComplementaryFilter(cfg.side_filter_k))
         self.xy_f = (0.0, 0.0)
+        self.events: list[str] = []  # for the report's notes (relay amplitude raised...)
         alt = self.loops[Loop.ALTITUDE]
         alt.beta, alt.h = self.altitude_relay.beta, self.altitude_relay.h
         for lp in (Loop.ROLL, Loop.PITCH):
@@ -326,6 +327,8 @@ class TuningSequence:
         h = min(self._h_max(t.loop), t.h * max(factor, self.config.h_raise))
         if relay is None or h <= t.h * 1.01:
             return
+        self.events.append(f"{t.loop.value}: relay amplitude raised from {t.h:.3g} to {h:.3g} "
+                           f"(cycle too small for the measured noise)")
         t.h = h
         relay.h[:] = h
         if t.loop is Loop.ALTITUDE:
