@@ -105,7 +105,7 @@ def make_dataset(disc: Discretisation, domain: Domain, beta: float, unit_period:
         t = run.t
         for j, i in enumerate(idx):
             try:
-                f = cycle_features(t, run.u[j], run.y[j])
+                f = cycle_features(t, run.u[j], run.y[j], setpoint=0.0)
             except Exception:  # noqa: BLE001 - a rare run without two cycles is dropped
                 continue
             rows[i], period[i], amp[i], ok[i] = f.x, f.period_s, f.amplitude, True

@@ -198,11 +198,12 @@ def step_train(kind: LoopKind, models: Path = MODELS_DIR, seed: int = 0, epochs:
         "h": DEFAULT_H[kind], "shape_params": _shape_params(disc).tolist(),
         "shape_pd": disc.shape_pd.tolist(), "unit_period": z["unit_period"],
         "unit_amplitude": z["unit_amplitude"], "zeta": z["zeta"], "reps": disc.reps.tolist(),
-        "rule_cost": z["rule_cost"],
+        "rule_cost": z["rule_cost"], "temperature": res.temperature,
         "rep_shape": disc.rep_shape.tolist(), "input": "features.cycle_features v1",
     }
     (d / "classes.json").write_text(json.dumps(table))
     info = {"config": list(res.config), "val_accuracy": res.val_accuracy,
+            "temperature": res.temperature,
             "val_mean_J": res.val_mean_J, "search": res.search, "epochs": epochs, "seed": seed,
             "seconds": time.perf_counter() - t0,
             "onnx_bytes": (d / "classifier.onnx").stat().st_size}
@@ -230,6 +231,9 @@ def _side_task(args: tuple) -> dict:
         res = train_classifier(tr, va, len(sc.params), seed=seed, epochs=40,
                                search=[(2, 128, "relu", "ce")])
         export_onnx(res, d / "classifier.onnx")
+        table = json.loads((d / "classes.json").read_text())
+        table["temperature"] = res.temperature
+        (d / "classes.json").write_text(json.dumps(table))
         info.update({"rows": len(tr), "val_accuracy": res.val_accuracy,
                      "val_mean_J": res.val_mean_J, "train_s": res.seconds})
     return info

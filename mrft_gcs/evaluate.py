@@ -39,10 +39,19 @@ class MethodScore:
     pm: np.ndarray
 
     def summary(self) -> dict[str, float]:
-        finite = np.isfinite(self.J)
-        return {"J_avg": float(np.mean(self.J[finite])) if finite.any() else np.inf,
-                "J_max": float(np.max(self.J)), "PM_avg": float(np.mean(self.pm)),
-                "PM_min": float(np.min(self.pm)), "unstable": int(np.sum(~finite))}
+        """J and PM over the identified loops; failures counted apart.
+
+        ``no_cycle``: no steady relay cycle to identify (``J`` is NaN there);
+        ``unstable``: the tuned loop is unstable (``J`` infinite).
+        """
+        ok = np.isfinite(self.J)
+        ident = ~np.isnan(self.J)
+        return {"J_avg": float(np.mean(self.J[ok])) if ok.any() else np.inf,
+                "J_p95": float(np.percentile(self.J[ok], 95)) if ok.any() else np.inf,
+                "J_max": float(np.max(self.J[ident])) if ident.any() else np.inf,
+                "PM_avg": float(np.mean(self.pm[ok])) if ok.any() else np.nan,
+                "PM_min": float(np.min(self.pm[ident])) if ident.any() else np.nan,
+                "unstable": int(np.sum(np.isinf(self.J))), "no_cycle": int(np.sum(~ident))}
 
 
 @dataclass(frozen=True)
@@ -83,8 +92,8 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
                         band=4 * noise, duration_s=dur, keep_s=5.0, seed=seed)
     base = simulate_mrft(K, *params.T, beta=0.0, h=h, bias=bias, noise_std=noise, band=4 * noise,
                          duration_s=dur, keep_s=5.0, seed=seed + 7)
-    J = {m: np.full(n, np.inf) for m in METHODS}
-    PM = {m: np.full(n, -180.0) for m in METHODS}
+    J = {m: np.full(n, np.nan) for m in METHODS}
+    PM = {m: np.full(n, np.nan) for m in METHODS}
     hits = 0
     from mrft_gcs.discretize import Discretisation
     from mrft_gcs.design import load_json
@@ -96,7 +105,7 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
         w = frequency_grid(*p, n=500)
         design = optimal_pd(inner_response(1.0, *p, w)[0], w)
         try:
-            f = cycle_features(run.t, run.u[i], run.y[i])
+            f = cycle_features(run.t, run.u[i], run.y[i], setpoint=0.0)
         except Exception:  # noqa: BLE001 - no cycle: counts as a failure (J = inf)
             continue
         probs = _softmax(b.logits(f.x)[0])
@@ -106,7 +115,7 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
             pd, *_ = scaled_gains(b, probs, f.period_s, f.amplitude, f.h, scaling, K_true=K[i])
             J[name][i], PM[name][i] = _score(pd.Kc * K[i], pd.Kd * K[i], p, design, w)
         try:
-            fb = cycle_features(base.t, base.u[i], base.y[i])
+            fb = cycle_features(base.t, base.u[i], base.y[i], setpoint=0.0)
             Ku = 4 * fb.h / (np.pi * fb.amplitude)
             Kc = 0.8 * Ku
             Kd = Kc * fb.period_s / 8

@@ -70,7 +70,8 @@ def rising_switches(u: np.ndarray) -> np.ndarray:
     return np.flatnonzero(~high[:-1] & high[1:]) + 1
 
 
-def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 4) -> CycleFeatures:
+def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 4,
+                   setpoint=None) -> CycleFeatures:
     """Features of the last ``n_cycles`` complete relay cycles of a record.
 
     Parameters
@@ -79,11 +80,16 @@ def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 
         Sample times (s, increasing, any rate), relay output, measured variable.
     n_cycles : int
         Complete cycles to average (fewer are used if fewer exist).
+    setpoint : float or array (m,), optional
+        The relay's set point. When given, each cycle used must be a proper MRFT
+        cycle: the error crosses the set point in every half-cycle before the relay
+        switches. A cycle that does not (too much relay bias for the test's phase
+        lead, or noise) is not the oscillation the classifier knows and is refused.
 
     Raises
     ------
     IdentificationError
-        Fewer than one complete cycle, or too few samples per cycle.
+        Fewer than one complete (proper) cycle, or too few samples per cycle.
     """
     t, u, y = (np.asarray(a, float) for a in (t, u, y))
     if not (t.size == u.size == y.size) or t.size < 8:
@@ -98,10 +104,15 @@ def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 
     k = min(n_cycles, rises.size - 1)
     half = N_POINTS // 2
     grid = (np.arange(half) + 0.5) / half
+    e = None if setpoint is None else np.broadcast_to(np.asarray(setpoint, float), y.shape) - y
     ys, fracs = [], []
+    improper = 0
     for a, b in zip(rises[-k - 1:-1], rises[-k:]):
         f = falls[(falls > a) & (falls < b)]
         if f.size != 1 or min(f[0] - a, b - f[0]) < 3:
+            continue
+        if e is not None and not (e[a:f[0]].max() > 0 and e[f[0]:b].min() < 0):
+            improper += 1
             continue
         # Switch instants are placed midway between the samples that straddle them.
         ta, tf, tb = (0.5 * (t[i - 1] + t[i]) for i in (a, f[0], b))
@@ -109,6 +120,10 @@ def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 
                                   np.interp(tf + grid * (tb - tf), t, y)]))
         fracs.append((tf - ta) / (tb - ta))
     if not ys:
+        if improper:
+            raise IdentificationError(
+                "the relay cycles do not cross the set point every half-cycle: the relay bias is "
+                "too large for this test; re-centre the relay on the hover command and retry")
         raise IdentificationError(
             "no clean relay cycle (too few samples per half-cycle: telemetry too slow for this loop?)")
     yc = np.mean(ys, axis=0)

@@ -14,7 +14,7 @@ its worst deterioration. The distinguishing phase is the ``beta`` of the rule
 whose worst deterioration is least (Algorithm 1). Over-tuning is not better
 tuning (negative J bought with a smaller margin, SPEC Appendix B), so the
 deterioration of a rule on a process is scored as :func:`rule_cost`:
-``|J| + 2 max(0, 20 - PM)`` (two points per degree of margin lost), and
+``|J| + 5 max(0, 20 - PM)`` (five points per degree of margin lost), and
 infinite when the loop is unstable.
 """
 
@@ -128,7 +128,7 @@ class PhaseResult:
     c2: float
 
 
-PM_PENALTY = 2.0  # % of J per degree of phase margin below the 20 deg constraint
+PM_PENALTY = 5.0  # % of J per degree of phase margin below the 20 deg constraint
 
 
 def rule_cost(Kc: float, Kd: float, G: np.ndarray, w: np.ndarray, q_opt: float) -> float:

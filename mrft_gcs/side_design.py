@@ -47,9 +47,9 @@ def side_plant_response(att: np.ndarray, att_pd: tuple[float, float], T2, tau, w
     return T * side_response(1.0, T2, tau, w)
 
 
-def side_features(t, u, y, att_scale: float):
+def side_features(t, u, y, att_scale: float, setpoint=None):
     """Inner features plus the log of the period over the attitude scale (side is not scale-free)."""
-    f = cycle_features(t, u, y)
+    f = cycle_features(t, u, y, setpoint=setpoint)
     return f, np.concatenate([f.x, [np.log(f.period_s / att_scale)]]).astype(np.float32)
 
 
@@ -225,7 +225,7 @@ def side_dataset(sc: SideClasses, scale_lo: float, scale_hi: float, n: int, seed
                                  seed=int(rng.integers(2**31)))
         for j, i in enumerate(idx):
             try:
-                f, x = side_features(run.t, run.u[j], run.y[j], c[i])
+                f, x = side_features(run.t, run.u[j], run.y[j], c[i], setpoint=0.0)
             except Exception:  # noqa: BLE001 - a run without two cycles is dropped
                 continue
             rows[i], per[i], amp[i], ok[i] = x, f.period_s, f.amplitude, True

@@ -53,6 +53,7 @@ class TrainResult:
     seconds: float
     mean: np.ndarray
     std: np.ndarray
+    temperature: float = 1.0
 
 
 def _build(torch, n_in: int, n_out: int, depth: int, width: int, act: str, dropout: float):
@@ -122,8 +123,21 @@ def train_classifier(train: Dataset, val: Dataset, n_classes: int, seed: int = 0
         if best is None or mean_J < best[1]:
             best = (net, mean_J, acc, tuple(config))
     assert best is not None
+    # Temperature scaling on the validation set: honest probabilities for the Bayes
+    # choice of gains at run time.
+    with torch.no_grad():
+        logits = best[0](Xv).numpy().astype(float)
+    temps = np.exp(np.linspace(np.log(0.3), np.log(10.0), 60))
+    nll = [_nll(logits / T, val.label) for T in temps]
     return TrainResult(best[0], best[3], best[2], best[1], results, time.perf_counter() - t0,
-                       mean.astype(np.float32), std.astype(np.float32))
+                       mean.astype(np.float32), std.astype(np.float32),
+                       float(temps[int(np.argmin(nll))]))
+
+
+def _nll(logits: np.ndarray, label: np.ndarray) -> float:
+    z = logits - logits.max(axis=1, keepdims=True)
+    logp = z - np.log(np.exp(z).sum(axis=1, keepdims=True))
+    return float(-np.mean(logp[np.arange(len(label)), label]))
 
 
 def export_onnx(result: TrainResult, path: Path) -> None:

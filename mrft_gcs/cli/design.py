@@ -176,11 +176,13 @@ def evaluate_cmd(
         ev = evaluate(_kind(loop), n, seed, progress=lambda a, b: p.update(task, completed=a))
     t = Table(title=f"{ev.kind}: {n} random processes (seed {seed}), classifier accuracy "
               f"{ev.accuracy:.1%}")
-    for col in ("method", "J avg %", "J max %", "PM avg", "PM min", "unstable"):
+    for col in ("method", "J avg %", "J p95 %", "J max %", "PM avg", "PM min", "unstable",
+                "no cycle"):
         t.add_column(col)
     for row in ev.table():
-        t.add_row(row["method"], f"{row['J_avg']:.2f}", f"{row['J_max']:.2f}",
-                  f"{row['PM_avg']:.1f}", f"{row['PM_min']:.1f}", str(row["unstable"]))
+        t.add_row(row["method"], f"{row['J_avg']:.2f}", f"{row['J_p95']:.2f}",
+                  f"{row['J_max']:.2f}", f"{row['PM_avg']:.1f}", f"{row['PM_min']:.1f}",
+                  str(row["unstable"]), str(row["no_cycle"]))
     console.print(t)
     if json_out:
         json_out.write_text(json.dumps({"loop": ev.kind, "n": n, "seed": seed,

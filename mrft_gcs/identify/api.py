@@ -187,7 +187,8 @@ def relay_settings(kind: LoopKind, inner: Identification | None = None) -> Relay
 
 
 def identify(kind: LoopKind, t: np.ndarray, u: np.ndarray, y: np.ndarray, *, beta: float,
-             h: float, bias: float = 0.0, inner: Identification | None = None) -> Identification:
+             h: float, bias: float = 0.0, inner: Identification | None = None,
+             setpoint=None) -> Identification:
     """Identify a loop from samples of its steady relay oscillation.
 
     Parameters
@@ -202,6 +203,9 @@ def identify(kind: LoopKind, t: np.ndarray, u: np.ndarray, y: np.ndarray, *, bet
         The relay that ran.
     inner : Identification, optional
         The attitude identification, required for side motion.
+    setpoint : float or array (m,), optional
+        The relay's set point; when given, cycles that do not cross it every
+        half-cycle (a degenerate test) are refused rather than identified.
 
     Raises
     ------
@@ -212,4 +216,4 @@ def identify(kind: LoopKind, t: np.ndarray, u: np.ndarray, y: np.ndarray, *, bet
         raise IdentificationError("side-motion identification needs the attitude loop identified first")
     from mrft_gcs.identify.runtime import identify as _impl
 
-    return _impl(kind, t, u, y, beta=beta, h=h, bias=bias, inner=inner)
+    return _impl(kind, t, u, y, beta=beta, h=h, bias=bias, inner=inner, setpoint=setpoint)

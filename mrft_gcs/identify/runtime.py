@@ -66,9 +66,12 @@ class Bundle:
     rep_shape: np.ndarray
     rule_cost: np.ndarray
     session: object
+    temperature: float = 1.0
 
     def logits(self, x: np.ndarray) -> np.ndarray:
-        return self.session.run(None, {"x": np.atleast_2d(x).astype(np.float32)})[0]
+        """Calibrated logits (divided by the validation temperature)."""
+        return self.session.run(None, {"x": np.atleast_2d(x).astype(np.float32)})[0] / \
+            self.temperature
 
 
 @lru_cache(maxsize=8)
@@ -90,6 +93,7 @@ def load_bundle(kind: LoopKind, models: Path = MODELS_DIR) -> Bundle:
     arr = {k: np.asarray(c[k], float) for k in ("shape_params", "shape_pd", "unit_period",
                                                  "unit_amplitude", "zeta", "reps", "rule_cost")}
     return Bundle(kind=kind, beta=float(c["beta"]), h=float(c["h"]),
+                  temperature=float(c.get("temperature", 1.0)),
                   rep_shape=np.asarray(c["rep_shape"], int), session=session, **arr)
 
 
@@ -105,9 +109,11 @@ class SideBundle:
     unit_amplitude: np.ndarray
     rule_cost: np.ndarray
     session: object
+    temperature: float = 1.0
 
     def logits(self, x: np.ndarray) -> np.ndarray:
-        return self.session.run(None, {"x": np.atleast_2d(x).astype(np.float32)})[0]
+        return self.session.run(None, {"x": np.atleast_2d(x).astype(np.float32)})[0] / \
+            self.temperature
 
 
 @lru_cache(maxsize=64)
@@ -126,7 +132,8 @@ def load_side_bundle(att_shape: int, models: Path = MODELS_DIR) -> SideBundle:
     return SideBundle(att_shape, float(c["beta"]), np.asarray(c["params"]), np.asarray(c["pd"]),
                       np.asarray(c["unit_period"]), np.asarray(c["unit_amplitude"]),
                       np.asarray(c["rule_cost"]), ort.InferenceSession(str(onnx_path), opts,
-                                           providers=["CPUExecutionProvider"]))
+                                           providers=["CPUExecutionProvider"]),
+                      float(c.get("temperature", 1.0)))
 
 
 def _inner_shape(inner: Identification | None) -> tuple[int, float]:
@@ -145,7 +152,8 @@ def relay_settings(kind: LoopKind, inner: Identification | None = None) -> Relay
     return RelaySettings(beta=b.beta, h=b.h)
 
 
-def _identify_side(t, u, y, beta: float, inner: Identification | None) -> Identification:
+def _identify_side(t, u, y, beta: float, inner: Identification | None,
+                   setpoint=None) -> Identification:
     from mrft_gcs.plant import SideModel
     from mrft_gcs.side_design import side_features
 
@@ -154,7 +162,7 @@ def _identify_side(t, u, y, beta: float, inner: Identification | None) -> Identi
     if abs(beta - b.beta) > 1e-6:
         raise IdentificationError(
             f"the side classifier of attitude shape {k} expects beta={b.beta}, the test ran {beta}")
-    f, x = side_features(t, u, y, c)
+    f, x = side_features(t, u, y, c, setpoint)
     probs = _softmax(b.logits(x)[0])
     order = np.argsort(-probs)[:3]
     r = int(np.argmin(b.rule_cost @ probs))  # Bayes decision, as for the inner loops
@@ -192,14 +200,14 @@ def scaled_gains(b: Bundle, probs: np.ndarray, period_s: float, amplitude: float
 
 
 def identify(kind: LoopKind, t, u, y, *, beta: float, h: float, bias: float = 0.0,
-             inner: Identification | None = None) -> Identification:
+             inner: Identification | None = None, setpoint=None) -> Identification:
     if kind is LoopKind.SIDE:
-        return _identify_side(t, u, y, beta, inner)
+        return _identify_side(t, u, y, beta, inner, setpoint)
     b = load_bundle(kind)
     if abs(beta - b.beta) > 1e-6:
         raise IdentificationError(
             f"the {kind.value} classifier was trained for beta={b.beta}, the test ran beta={beta}")
-    f = cycle_features(t, u, y)
+    f = cycle_features(t, u, y, setpoint=setpoint)
     probs = _softmax(b.logits(f.x)[0])
     pd, rule, _, _ = scaled_gains(b, probs, f.period_s, f.amplitude, f.h)
     k = int(np.argmax(probs))  # the reported model: the likeliest shape
