@@ -13,13 +13,14 @@ from rich.table import Table
 
 from mrft_gcs.cli import app, console
 from mrft_gcs.cli.tune import progress_table, result_table
-from mrft_gcs.flight import tune
+from mrft_gcs.errors import MrftError
+from mrft_gcs.flight import TuneResult, tune
 from mrft_gcs.flight.report import write_report
-from mrft_gcs.flight.scoring import StepFigures, step_figures
+from mrft_gcs.flight.scoring import StepFigures, score_gains, step_figures
 from mrft_gcs.sitl import SimVehicle, SitlProcess, load_airframe
 from mrft_gcs.sitl.onboard import FlightMode
 
-__all__ = ["demo", "step_in_posctl"]
+__all__ = ["demo", "score_table", "step_in_posctl"]
 
 
 def step_in_posctl(vehicle: str, params: dict[str, float], seed: int = 0, hover_s: float = 3.0,
@@ -52,6 +53,21 @@ def step_in_posctl(vehicle: str, params: dict[str, float], seed: int = 0, hover_
     return hover_rms, step_figures(np.asarray(t), np.asarray(x), -step_m, 0.0)
 
 
+def score_table(vehicle: str, result: TuneResult) -> Table:
+    """The written gains against the optimal PD of the simulated airframe's true models."""
+    gains = {lp: lr.gains for lp, lr in result.loops.items() if lr.gains is not None}
+    scores = score_gains(load_airframe(vehicle).linear_models(), gains)
+    table = Table(title=f"written gains vs the optimal PD of {vehicle}'s true linear models "
+                        "(the SITL knows them; a real vehicle does not)")
+    for col in ("loop", "Kc", "Kd", "optimal Kc", "optimal Kd", "J (%)", "phase margin (deg)"):
+        table.add_column(col)
+    for lp, sc in scores.items():
+        table.add_row(lp.value, f"{sc.gains.Kc:.3g}", f"{sc.gains.Kd:.3g}",
+                      f"{sc.optimal.Kc:.3g}", f"{sc.optimal.Kd:.3g}",
+                      f"{sc.J_pct:.1f}" if sc.stable else "unstable", f"{sc.pm_deg:.1f}")
+    return table
+
+
 @app.command()
 def demo(
     vehicle: Annotated[str, typer.Option("--vehicle", help="bundled SITL airframe")] = "qdrone",
@@ -68,11 +84,18 @@ def demo(
     console.print(f"starting the SITL ({vehicle}) ...")
     with SitlProcess(vehicle=vehicle, port=None, seed=seed) as sitl:
         console.print(f"SITL at {sitl.connection_string}; tuning from the ground")
-        with Live(console=console, refresh_per_second=8, transient=True) as live:
-            result = tune(sitl.connection_string, "sitl", backup_dir=folder,
-                          tlog_path=folder / "session.tlog",
-                          on_progress=lambda snap: live.update(progress_table(snap)))
+        try:
+            with Live(console=console, refresh_per_second=8, transient=True) as live:
+                result = tune(sitl.connection_string, "sitl", backup_dir=folder,
+                              tlog_path=folder / "session.tlog",
+                              on_progress=lambda snap: live.update(progress_table(snap)))
+        except MrftError as err:
+            partial = getattr(err, "partial_result", None)
+            if partial is not None:
+                console.print(f"report: {write_report(partial, folder / 'report.json')}")
+            raise
     console.print(result_table(result))
+    console.print(score_table(vehicle, result))
     if result.stream is not None:
         console.print(f"setpoint stream: {result.stream.line()}")
     console.print(f"report: {write_report(result, folder / 'report.json')}")
