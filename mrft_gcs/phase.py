@@ -196,59 +196,53 @@ def zeta_table(params: np.ndarray, period: np.ndarray, amplitude: np.ndarray) ->
 
 @dataclass(frozen=True)
 class CascadeStep:
-    """One step of Algorithm 2: whether the chain is split (a loop closed) after ``name``."""
+    """One step of Algorithm 2: a relay test on ``name`` with the chain below it open."""
 
     name: str
     split: bool
     period_s: float
-    inner_amplitude: float
+    inner_swing_deg: float
     reason: str
 
 
-def cascade_structure(att_vertices: np.ndarray, side_vertices: np.ndarray, beta: float,
-                      att_pd_for, max_period_s: float = 4.0, max_tilt_rad: float = 0.52,
-                      outer_amp_m_s: float = 0.5) -> list[CascadeStep]:
-    """Algorithm 2 on the side-motion chain ``{G1, G2, G3, G4}`` (eq. 23) at the vertices of D.
+def _hb_index(chain: np.ndarray, beta: float) -> int:
+    ph = np.unwrap(np.angle(chain))
+    hit = np.flatnonzero(ph <= -np.pi + np.arcsin(beta))
+    return int(hit[0]) if hit.size else -1
 
-    ``G1`` = rate dynamics ``e^{-tau s}/((T1 s+1)(T_prop s+1))``, ``G2 = 1/s``
-    (attitude), ``G3 = e^{-tau_side s}/(T2 s + 1)`` (velocity, with the side gain
-    ``g T2`` so tilt maps to m/s), ``G4 = 1/s`` (position). At each step the
-    relay is imagined on the next output with the chain so far inside; the
-    chain is split (its loop closed with its optimal PD) when the describing
-    function predicts an impractical test: period above ``max_period_s`` or an
-    inner attitude swing above ``max_tilt_rad`` for an ``outer_amp_m_s``
-    oscillation of the next output.
+
+def cascade_structure(att_vertices: np.ndarray, side_vertices: np.ndarray, beta: float,
+                      max_period_s: float = 4.0, max_tilt_deg: float = 30.0,
+                      velocity_amp_m_s: float = 0.5) -> list[CascadeStep]:
+    """Algorithm 2 on the side-motion chain ``{G1, G2, G3, G4}`` (eq. 23), at the vertices of D.
+
+    ``G1 = e^{-tau s}/((T1 s + 1)(T_prop s + 1))`` (rate), ``G2 = 1/s`` (attitude),
+    ``G3 = g T2 e^{-tau_side s}/(T2 s + 1)`` (tilt to velocity), ``G4 = 1/s``. Walking up the
+    chain, the relay is imagined on the next output with everything below open; the chain
+    is split (the loop below is closed with its optimal PD) when the describing function
+    predicts an impractical test at some vertex: a period above ``max_period_s``, or an
+    attitude swing above ``max_tilt_deg`` for a ``velocity_amp_m_s`` velocity oscillation.
+    Returns one step per candidate: relay on attitude, relay on velocity (attitude open).
     """
-    w = np.logspace(-3, 4, 6000)
+    w = np.logspace(-3, 4, 8000)
     s = 1j * w
     steps = []
-    names = ["rate (G1)", "attitude (G1 G2)", "velocity (G1 G2 G3)"]
-    for level in range(3):
-        periods, tilts = [], []
+    for name in ("attitude (G1 G2)", "velocity (G1 G2 G3)"):
+        worst_T, worst_tilt = 0.0, 0.0
         for Tp, T1, tau in att_vertices:
-            g1 = np.exp(-tau * s) / ((T1 * s + 1) * (Tp * s + 1))
-            if level == 2:
-                Kc, Kd = att_pd_for(Tp, T1, tau)
-                inner = closed_inner_response(Kc, Kd, (g1 / s)[None, :], w)[0]
+            g12 = np.exp(-tau * s) / ((T1 * s + 1) * (Tp * s + 1) * s)
             for T2, ts in side_vertices:
                 g3 = 9.81 * T2 * np.exp(-ts * s) / (T2 * s + 1)
-                chain = [g1 / s, g1 / s * g3, (inner if level == 2 else g1 / s) * g3 / s][level]
-                ph = np.unwrap(np.angle(chain))
-                i = int(np.argmax(ph <= -np.pi + np.arcsin(beta)))
-                if i == 0:
-                    periods.append(np.inf)
-                    tilts.append(np.inf)
-                    continue
-                periods.append(2 * np.pi / w[i])
-                # attitude swing when the chain's output oscillates with outer_amp
-                att_gain = abs((g1 / s)[i]) / abs(chain[i]) if level == 1 else (
-                    abs(inner[i] if level == 2 else 1.0) / abs(chain[i]) if level == 2 else 0.0)
-                tilts.append(outer_amp_m_s * att_gain if level else 0.0)
-        T, tilt = float(np.max(periods)), float(np.max(tilts))
-        impractical = T > max_period_s or tilt > max_tilt_rad
-        reason = (f"worst-case test period {T:.2f} s, attitude swing {np.degrees(tilt):.0f} deg "
-                  f"per {outer_amp_m_s} output amplitude")
-        steps.append(CascadeStep(names[level], impractical and level == 1, T, tilt, reason))
+                chain = g12 if name.startswith("attitude") else g12 * g3
+                i = _hb_index(chain, beta)
+                T = np.inf if i < 0 else 2 * np.pi / w[i]
+                tilt = 0.0 if name.startswith("attitude") or i < 0 else \
+                    np.degrees(velocity_amp_m_s / abs(g3[i]))
+                worst_T, worst_tilt = max(worst_T, T), max(worst_tilt, tilt)
+        split = worst_T > max_period_s or worst_tilt > max_tilt_deg
+        steps.append(CascadeStep(name, split, worst_T, worst_tilt,
+                                 f"worst-case period {worst_T:.2f} s, attitude swing "
+                                 f"{worst_tilt:.0f} deg per {velocity_amp_m_s} m/s"))
     return steps
 
 

@@ -105,3 +105,15 @@ def test_tiny_end_to_end_design_and_identify(tmp_path, monkeypatch):
     logits = b.logits(val.x)
     assert logits.shape == (len(val), len(b.shape_params))
     assert info["val_accuracy"] >= 0.0
+
+
+def test_cascade_structure_closes_the_attitude_loop_first():
+    # Algorithm 2 on the side chain: a relay on attitude (rate dynamics open) is practical;
+    # a relay on velocity with the attitude open is not, so attitude and side motion
+    # become the two loops of the cascade (paper: "met only when i = 2").
+    from mrft_gcs.domains import D_SIDE
+    from mrft_gcs.phase import cascade_structure
+
+    steps = cascade_structure(D_ATT.vertices(), D_SIDE.vertices(), beta=-0.5)
+    assert [s.split for s in steps] == [False, True]
+    assert steps[0].period_s < 4.0
