@@ -448,7 +448,8 @@ class _Run:
         seq = self.seq
         assert seq is not None
         settings: dict[Loop, RelaySettings] = {}
-        for lp, inner_lp in _SIDE_INNER.items():
+        for lp in seq.side_ready():
+            inner_lp = _SIDE_INNER[lp]
             inner = seq.loops[inner_lp].identification
             if inner is None:
                 seq.leave_alone(lp, f"{lp.value} needs the identified {inner_lp.value} loop for "

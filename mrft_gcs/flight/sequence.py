@@ -46,6 +46,8 @@ __all__ = [
 ]
 
 _NAN = float("nan")
+#: the attitude loop behind each side loop (x north: -pitch, y east: +roll)
+SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 
 
 class Phase(enum.Enum):
@@ -273,11 +275,22 @@ class TuningSequence:
     def all_done(self) -> bool:
         return all(t.state in (LoopState.TUNED, LoopState.LEFT_ALONE) for t in self.loops.values())
 
+    def side_ready(self) -> list[Loop]:
+        """Side loops not started whose attitude loop (x: pitch, y: roll) is done.
+
+        Altitude must be done too: its relay swings the thrust by +-h (about a quarter of
+        hover), which modulates the horizontal force of a tilt and breaks the side cycles.
+        """
+        done = (LoopState.TUNED, LoopState.LEFT_ALONE)
+        if self.loops[Loop.ALTITUDE].state not in done:
+            return []
+        return [lp for lp, inner in SIDE_INNER.items()
+                if self.loops[lp].state is LoopState.WAITING and self.loops[inner].state in done]
+
     @property
     def side_waiting(self) -> bool:
-        """Roll and pitch are done and x/y have not started: side relay settings are due."""
-        return self.inner_done and any(self.loops[lp].state is LoopState.WAITING
-                                       for lp in SIDE_LOOPS)
+        """A side loop can start (its attitude loop is done): its relay settings are due."""
+        return bool(self.side_ready())
 
     @property
     def duration_s(self) -> float:
@@ -386,12 +399,17 @@ class TuningSequence:
             self._advance()
 
     def start_side(self, settings: dict[Loop, RelaySettings]) -> None:
-        """Start the x/y relays (beta from the side-motion domain of each attitude class)."""
+        """Start the x/y relays (beta from the side-motion domain of each attitude class).
+
+        Each axis starts as soon as its own attitude loop is done (x: pitch, y: roll);
+        settings for an axis that is not ready yet are ignored.
+        """
         with self._lock:
             now = self.state
+            ready = self.side_ready()
             for lp, rs in settings.items():
                 t = self.loops[lp]
-                if t.state is not LoopState.WAITING:
+                if lp not in ready:
                     continue
                 t.beta, t.h = rs.beta, max(rs.h, self.config.h_side_min)
                 t.band = self.noise_band(lp)
@@ -472,14 +490,16 @@ class TuningSequence:
         ey = self.origin[1] - s.y_m
         tx, ty = self.loops[Loop.X], self.loops[Loop.Y]
         xf, yf = self.xy_f
-        if tx.state is LoopState.WAITING and ty.state is LoopState.WAITING:
-            bb = self.bounding.step(np.array([ex, ey]))
-            tx.u, ty.u = float(bb[0]), float(bb[1])
-            return tx.u, ty.u
+        bb = (0.0, 0.0)
+        if tx.state is LoopState.WAITING or ty.state is LoopState.WAITING:
+            # the bounding relay keeps an axis near the take-off point until its test starts
+            bb = tuple(float(v) for v in self.bounding.step(np.array([ex, ey])))
         out = []
-        for t, pos, vel, o, pf in ((tx, s.x_m, s.vx_m_s, self.origin[0], xf),
-                                   (ty, s.y_m, s.vy_m_s, self.origin[1], yf)):
-            if t.pd is not None:
+        for t, pos, vel, o, pf, b in ((tx, s.x_m, s.vx_m_s, self.origin[0], xf, bb[0]),
+                                      (ty, s.y_m, s.vy_m_s, self.origin[1], yf, bb[1])):
+            if t.state is LoopState.WAITING:
+                u = b
+            elif t.pd is not None:
                 u = t.pd.step(o, pos, vel)
             elif t.relay is not None:
                 before = float(t.relay.state[0])
