@@ -74,4 +74,6 @@ def test_attitude_path_leaves_attitude_loops_alone():
     for lp in (Loop.ROLL, Loop.PITCH):
         assert seq.loops[lp].state is LoopState.LEFT_ALONE
         assert "autopilot keeps its own attitude loop" in seq.loops[lp].note
-    assert seq.inner_done and seq.side_waiting
+    assert seq.inner_done and not seq.side_waiting  # x and y wait for altitude too
+    seq.loops[Loop.ALTITUDE].state = LoopState.TUNED
+    assert seq.side_waiting and seq.side_ready() == [Loop.X, Loop.Y]
