@@ -27,7 +27,7 @@ design_app = typer.Typer(
 )
 app.add_typer(design_app, name="design")
 
-LoopOpt = Annotated[str, typer.Option("--loop", help="attitude | altitude")]
+LoopOpt = Annotated[str, typer.Option("--loop", help="attitude | altitude | side")]
 ModelsOpt = Annotated[Path | None, typer.Option("--models", help="models folder (default: bundled)")]
 
 
@@ -35,7 +35,18 @@ def _kind(loop: str) -> LoopKind:
     try:
         return LoopKind(loop)
     except ValueError:
-        raise UsageError(f"unknown --loop '{loop}': use attitude or altitude") from None
+        raise UsageError(f"unknown --loop '{loop}': use attitude, altitude or side") from None
+
+
+def _side_design_only(models: Path | None) -> None:
+    """Side motion: classes, phase and zeta come out of one step per attitude shape."""
+    from mrft_gcs.design import step_side
+
+    with console.status("side classes, distinguishing phase and zeta per attitude shape"):
+        infos = step_side(_models(models), train=False)
+    for i in infos:
+        console.print(f"attitude shape {i['shape']}: {i['classes']} side classes, beta "
+                      f"{i['beta']:.2f}, zeta {i['zeta_min']:.3f}-{i['zeta_max']:.3f}")
 
 
 def _models(models: Path | None) -> Path:
@@ -87,8 +98,14 @@ def pd_cmd(
 def discretize_cmd(loop: LoopOpt = "attitude", J_target: Annotated[float, typer.Option(
         "--J-target", help="adjacent joint cost, %")] = 10.0, grid: Annotated[int, typer.Option(
         help="candidate shapes per chart axis")] = 16, models: ModelsOpt = None) -> None:
-    """Discretise the domain into representative processes (writes discretisation.json)."""
+    """Discretise the domain into representative processes (writes discretisation.json).
+
+    For --loop side this runs Algorithm 3 (classes, phase and zeta per attitude shape).
+    """
     from mrft_gcs.design import step_discretize
+
+    if _kind(loop) is LoopKind.SIDE:
+        return _side_design_only(models)
 
     with _progress() as p:
         task = p.add_task("discretising", total=None)
@@ -104,8 +121,11 @@ def discretize_cmd(loop: LoopOpt = "attitude", J_target: Annotated[float, typer.
 
 @design_app.command("phase")
 def phase_cmd(loop: LoopOpt = "attitude", models: ModelsOpt = None) -> None:
-    """Distinguishing phase by Algorithm 1 (writes phase.json)."""
+    """Distinguishing phase by Algorithm 1 (writes phase.json); side: see 'design side'."""
     from mrft_gcs.design import step_phase
+
+    if _kind(loop) is LoopKind.SIDE:
+        return _side_design_only(models)
 
     with console.status("simulating MRFT cycles and searching tuning rules"):
         out = step_phase(_kind(loop), _models(models))
@@ -115,8 +135,11 @@ def phase_cmd(loop: LoopOpt = "attitude", models: ModelsOpt = None) -> None:
 
 @design_app.command("zeta")
 def zeta_cmd(loop: LoopOpt = "attitude", models: ModelsOpt = None) -> None:
-    """Exact gain scaling table zeta (writes zeta.json)."""
+    """Exact gain scaling table zeta (writes zeta.json); side: see 'design side'."""
     from mrft_gcs.design import step_zeta
+
+    if _kind(loop) is LoopKind.SIDE:
+        return _side_design_only(models)
 
     with console.status("simulating unit cycles"):
         out = step_zeta(_kind(loop), _models(models))

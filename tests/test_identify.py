@@ -1,0 +1,92 @@
+"""Bundled classifiers: load, match their manifest, and identify held-out simulated cycles."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from mrft_gcs.domains import D_SIDE, domain_for
+from mrft_gcs.errors import IdentificationError
+from mrft_gcs.identify import CycleDetector, identify, relay_settings
+from mrft_gcs.identify.runtime import MODELS_DIR, load_bundle
+from mrft_gcs.loops import LoopKind
+from mrft_gcs.pd_design import frequency_grid, ise, margins, optimal_pd
+from mrft_gcs.plant import inner_response
+from mrft_gcs.simulate import simulate_mrft, simulate_side_mrft
+
+INNER = [LoopKind.ATTITUDE, LoopKind.ALTITUDE]
+
+
+@pytest.mark.parametrize("kind", INNER)
+def test_bundle_matches_manifest(kind):
+    manifest = json.loads((MODELS_DIR / "manifest.json").read_text())[kind.value]
+    b = load_bundle(kind)
+    assert len(b.shape_params) == manifest["discretize"]["shapes"]
+    assert len(b.reps) == manifest["discretize"]["representatives"]
+    assert b.beta == manifest["phase"]["beta"]
+    assert b.logits(np.zeros((1, 66), np.float32)).shape == (1, len(b.shape_params))
+    assert np.allclose(np.diag(b.rule_cost), 0, atol=0.1)  # a shape's own rule is optimal
+
+
+def _score(Kc, Kd, p):
+    w = frequency_grid(*p, n=500)
+    G = inner_response(1.0, *p, w)[0]
+    d = optimal_pd(G, w)
+    m = margins((Kc + Kd * 1j * w) * G, w)
+    return ((ise(Kc, Kd, G, w) - d.ise) / d.ise * 100 if m.stable else np.inf), m.pm_deg
+
+
+@pytest.mark.parametrize("kind", INNER)
+def test_held_out_processes_are_tuned_well(kind):
+    b = load_bundle(kind)
+    rng = np.random.default_rng(2024)  # not a training seed
+    n = 24
+    p = domain_for(kind).sample_log_uniform(n, rng)
+    K = np.exp(rng.uniform(np.log(0.5), np.log(20), n))
+    run = simulate_mrft(K, *p.T, beta=b.beta, h=b.h, duration_s=1 + 14 * p[:, 1].max(),
+                        keep_s=5.0)
+    J, pm = [], []
+    for i in range(n):
+        ident = identify(kind, run.t, run.u[i], run.y[i], beta=b.beta, h=b.h, setpoint=0.0)
+        j, m = _score(ident.gains.Kc * K[i], ident.gains.Kd * K[i], p[i])
+        J.append(j)
+        pm.append(m)
+        assert ident.model.K == pytest.approx(K[i], rel=0.6)  # gain recovered within 60 %
+    J, pm = np.array(J), np.array(pm)
+    assert np.all(np.isfinite(J))
+    assert np.median(np.abs(J)) < 5.0
+    assert np.mean(pm >= 12.0) >= 0.9
+
+
+def test_side_identification_needs_the_attitude_result():
+    with pytest.raises(IdentificationError):
+        relay_settings(LoopKind.SIDE)
+    with pytest.raises(IdentificationError):
+        identify(LoopKind.SIDE, np.arange(10.0), np.ones(10), np.ones(10), beta=0.0, h=0.1)
+
+
+def test_side_loop_identified_after_attitude():
+    b = load_bundle(LoopKind.ATTITUDE)
+    att = b.shape_params[3] * 0.5
+    run = simulate_mrft(2.0, *att, beta=b.beta, h=b.h, duration_s=10.0)
+    a_id = identify(LoopKind.ATTITUDE, run.t, run.u[0], run.y[0], beta=b.beta, h=b.h)
+    rs = relay_settings(LoopKind.SIDE, inner=a_id)
+    pd = a_id.gains
+    side = (9.81 * 0.8, 0.8, 0.05)
+    srun = simulate_side_mrft((2.0, *att), (pd.Kc, pd.Kd), side, beta=rs.beta, h=rs.h,
+                              duration_s=30.0)
+    s_id = identify(LoopKind.SIDE, srun.t, srun.u[0], srun.y[0], beta=rs.beta, h=rs.h,
+                    inner=a_id, setpoint=0.0)
+    assert D_SIDE.low[0] / 3 < s_id.model.T2 < D_SIDE.high[0] * 3
+    assert s_id.gains.Kc > 0 and s_id.gains.Kd > 0
+
+
+def test_cycle_detector_reports_steady_oscillation():
+    run = simulate_mrft(1.0, 0.05, 0.5, 0.01, beta=-0.5, h=1.0, duration_s=6.0)
+    det = CycleDetector()
+    statuses = [det.update(t, u, y) for t, u, y in zip(run.t, run.u[0], run.y[0])]
+    assert not statuses[300].steady and statuses[-1].steady
+    t, u, y = det.last_cycles(2)
+    assert t.size > 100 and u.size == y.size == t.size
