@@ -111,6 +111,8 @@ class LoopTest:
     unarmed: int = 0  # switches made before the threshold could arm (relay too small)
     raises: int = 0  # times the relay amplitude was raised
     switches: int = 0  # relay switches since the relay (re)started
+    center: float = 0.0  # side relays: the position the relay oscillates about (m)
+    settling: bool = False  # side relays: bringing the axis to rest before the relay starts
 
 
 @dataclass(frozen=True)
@@ -155,6 +157,13 @@ class SequenceConfig:
     #: gain of the complementary filter (position + velocity) on x and y for the side
     #: relays and their identification (1 = raw position)
     side_filter_k: float = 0.05
+    #: before a side relay starts, the axis is brought to rest by a soft PD (tilt per m and
+    #: per m/s) until its speed is below ``settle_speed_m_s`` (at most ``settle_max_s``); the
+    #: relay then oscillates about that point: an MRFT on the side cascade started off its
+    #: centre or moving can lock into a slow, drifting cycle the classifier never saw
+    settle_pd: tuple[float, float] = (0.3, 0.4)
+    settle_speed_m_s: float = 0.03
+    settle_max_s: float = 2.0
     h_max: tuple[float, float, float] = (0.3, 0.25, 0.2)
     max_noise_ratio: float = 0.025
 
@@ -415,6 +424,8 @@ class TuningSequence:
                 t.band = self.noise_band(lp)
                 t.relay = MRFT(t.beta, t.h, band=t.band)
                 t.state = LoopState.RELAY
+                t.settling = True
+                t.center = self.xy_f[0 if lp is Loop.X else 1]
                 t.t_relay_start_s = max(now.t_att_s, now.t_pos_s) if now else _NAN
             self._advance()
 
@@ -501,10 +512,16 @@ class TuningSequence:
                 u = b
             elif t.pd is not None:
                 u = t.pd.step(o, pos, vel)
+            elif t.relay is not None and t.settling:
+                kp, kd = self.config.settle_pd
+                u = kp * (t.center - pf) - kd * vel
+                if (abs(vel) < self.config.settle_speed_m_s or
+                        s.t_pos_s - t.t_relay_start_s > self.config.settle_max_s):
+                    t.settling, t.center = False, pf
             elif t.relay is not None:
                 before = float(t.relay.state[0])
-                u = float(t.relay.step(o - pf)[0])
-                self._watch(t, t.relay, o - pf, before)
+                u = float(t.relay.step(t.center - pf)[0])
+                self._watch(t, t.relay, t.center - pf, before)
                 self._feed(t, s.t_pos_s, u, pf, new)
             else:
                 u = 0.0
