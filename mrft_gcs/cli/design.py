@@ -192,13 +192,15 @@ def evaluate_cmd(
 
     Example:  mrft-tune evaluate --loop attitude --n 500
     """
-    from mrft_gcs.evaluate import evaluate
+    from mrft_gcs.evaluate import evaluate, evaluate_side
 
+    kind = _kind(loop)
     with _progress() as p:
         task = p.add_task("identifying", total=n)
-        ev = evaluate(_kind(loop), n, seed, progress=lambda a, b: p.update(task, completed=a))
-    t = Table(title=f"{ev.kind}: {n} random processes (seed {seed}), classifier accuracy "
-              f"{ev.accuracy:.1%}")
+        prog = lambda a, b: p.update(task, completed=a)  # noqa: E731
+        ev = evaluate_side(n, seed, prog) if kind is LoopKind.SIDE else evaluate(kind, n, seed, prog)
+    acc = "" if np.isnan(ev.accuracy) else f", classifier accuracy {ev.accuracy:.1%}"
+    t = Table(title=f"{ev.kind}: {n} random processes (seed {seed}){acc}")
     for col in ("method", "J avg %", "J p95 %", "J max %", "PM avg", "PM min", "unstable",
                 "no cycle"):
         t.add_column(col)

@@ -95,7 +95,7 @@ class CycleDetector:
         self.y.append(y)
         self.lo, self.hi = min(self.lo, u), max(self.hi, u)
         if self.hi > self.lo:
-            high = u > 0.5 * (self.lo + self.hi)
+            high = bool(u > 0.5 * (self.lo + self.hi))  # a numpy bool is never `is False`
             if self.prev_high is False and high:
                 self.rises.append(self.k)
                 if len(self.rises) >= 2:

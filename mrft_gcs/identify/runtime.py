@@ -18,8 +18,10 @@ For an inner loop (attitude, altitude):
    likely shapes (a Bayes decision, rather than blending gains). The shape's unit
    optimal PD is mapped to the process as ``Kc = Kc_i / (c K)``, ``Kd = Kd_i / K``.
 
-The reported model is the likeliest shape at its recovered scale and gain;
-``class_index`` is the representative process of that shape nearest in scale.
+The reported model is the chosen rule's shape at its recovered scale and gain,
+so the written gains are exactly that model's optimal PD (the classifier's most
+likely shape is given in ``extras["likeliest"]``); ``class_index`` is the
+representative process of that shape nearest in scale.
 """
 
 from __future__ import annotations
@@ -174,7 +176,7 @@ def _identify_side(t, u, y, beta: float, inner: Identification | None,
     return Identification(kind=LoopKind.SIDE, model=model, class_index=j,
                           confidence=float(probs[j]), beta=beta, h=f.h, period_s=f.period_s,
                           amplitude=f.amplitude, gains=PD(float(Kc), float(Kd)),
-                          extras={"att_shape": k, "att_scale": c, "gain": float(K),
+                          extras={"att_shape": k, "att_scale": c, "gain": float(K), "rule": r,
                                   "top": order.tolist(), "duty": f.duty, "bias": f.bias})
 
 
@@ -209,10 +211,8 @@ def identify(kind: LoopKind, t, u, y, *, beta: float, h: float, bias: float = 0.
             f"the {kind.value} classifier was trained for beta={b.beta}, the test ran beta={beta}")
     f = cycle_features(t, u, y, setpoint=setpoint)
     probs = _softmax(b.logits(f.x)[0])
-    pd, rule, _, _ = scaled_gains(b, probs, f.period_s, f.amplitude, f.h)
-    k = int(np.argmax(probs))  # the reported model: the likeliest shape
-    c = f.period_s / b.unit_period[k]
-    K = f.amplitude / (f.h * c * b.unit_amplitude[k])
+    pd, k, c, K = scaled_gains(b, probs, f.period_s, f.amplitude, f.h)
+    rule = k
     shape = b.shape_params[k]
     model = InnerModel(K=K, T_prop=float(shape[0] * c), T1=float(shape[1] * c),
                        tau=float(shape[2] * c))
@@ -222,5 +222,6 @@ def identify(kind: LoopKind, t, u, y, *, beta: float, h: float, bias: float = 0.
                           beta=beta, h=f.h, period_s=f.period_s, amplitude=f.amplitude,
                           gains=pd, extras={"shape": k, "scale": c, "gain": K, "rule": rule,
                                             "top": np.argsort(-probs)[:3].tolist(),
+                                            "likeliest": int(np.argmax(probs)),
                                             "probs": np.sort(probs)[::-1][:3].tolist(),
                                             "duty": f.duty, "bias": f.bias})
