@@ -21,10 +21,11 @@ from mrft_gcs.plant import InnerModel, SideModel
 from mrft_gcs.sitl import SimVehicle, load_airframe
 from mrft_gcs.sitl.onboard import FlightMode
 
-#: Relay settings used by tests until the bundled classifiers give theirs.
-ATT_RELAY = RelaySettings(beta=-0.2, h=0.05)
-ALT_RELAY = RelaySettings(beta=-0.2, h=0.10746)
-SIDE_RELAY = RelaySettings(beta=-0.2, h=0.1)
+#: Relay settings of the tests (the truth identifier ignores the cycle): the bundled
+#: classifiers' beta, so the tests fly the cycles a real tune flies.
+ATT_RELAY = RelaySettings(beta=-0.7, h=0.05)
+ALT_RELAY = RelaySettings(beta=-0.7, h=0.10746)
+SIDE_RELAY = RelaySettings(beta=-0.7, h=0.08)
 
 
 def truth_identifier(vehicle: str):

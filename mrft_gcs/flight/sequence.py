@@ -154,7 +154,7 @@ class SequenceConfig:
     #: the same for the x/y relays (tilt, rad): the side classifiers' 0.08 gives cycles of
     #: about 2 cm on qdrone, where 0.8 mm position noise is already 4 % of the amplitude
     h_side_min: float = 0.16
-    #: gain of the complementary filter (position + velocity) on x and y for the side
+    #: gain of the complementary filter (position + velocity) on x, y and altitude for the
     #: relays and their identification (1 = raw position)
     side_filter_k: float = 0.05
     #: before a side relay starts, the axis is brought to rest by a soft PD (tilt per m and
@@ -209,7 +209,8 @@ class TuningSequence:
                                       cfg.takeoff.h_o1_rad, cfg.takeoff.h_o2_rad, n=2)
         u_init = 0.0 if cfg.hover_thrust_guess is None else 0.9 * cfg.hover_thrust_guess
         self.takeoff = TakeoffController(cfg.z_ref_m, cfg.takeoff, beta=self.altitude_relay.beta,
-                                         u_init=u_init, h_alt=self.altitude_relay.h)
+                                         u_init=u_init, h_alt=self.altitude_relay.h,
+                                         relay_bias=cfg.hover_thrust_guess)
         self.origin = (0.0, 0.0, 0.0)
         self.yaw_ref = 0.0
         self.t_start_s = _NAN
@@ -221,7 +222,9 @@ class TuningSequence:
         self.pos_noise = NoiseEstimator(3)  # x, y (filtered), z up (m)
         self.xy_filter = (ComplementaryFilter(cfg.side_filter_k),
                           ComplementaryFilter(cfg.side_filter_k))
+        self.z_filter = ComplementaryFilter(cfg.side_filter_k)
         self.xy_f = (0.0, 0.0)
+        self.z_f = 0.0
         self.events: list[str] = []  # for the report's notes (relay amplitude raised...)
         alt = self.loops[Loop.ALTITUDE]
         alt.beta, alt.h = self.altitude_relay.beta, self.altitude_relay.h
@@ -239,11 +242,12 @@ class TuningSequence:
             if self.phase is Phase.PREFLIGHT:
                 self._filter_xy(s)
                 self.att_noise.update(s.t_att_s, (s.roll_rad, s.pitch_rad))
-                self.pos_noise.update(s.t_pos_s, (*self.xy_f, s.z_up_m))
+                self.pos_noise.update(s.t_pos_s, (*self.xy_f, self.z_f))
 
     def _filter_xy(self, s: FlightState) -> None:
         fx, fy = self.xy_filter
         self.xy_f = (fx.update(s.t_pos_s, s.x_m, s.vx_m_s), fy.update(s.t_pos_s, s.y_m, s.vy_m_s))
+        self.z_f = self.z_filter.update(s.t_pos_s, s.z_up_m, s.vz_up_m_s)
 
     def noise_band(self, loop: Loop) -> float:
         """Relay noise band of ``loop`` (its units): ``noise_band_sigmas`` x measured noise."""
@@ -340,8 +344,12 @@ class TuningSequence:
         return out
 
     def _h_max(self, loop: Loop) -> float:
-        return self.config.h_max[0 if loop in (Loop.ROLL, Loop.PITCH) else
-                                 1 if loop is Loop.ALTITUDE else 2]
+        if loop is Loop.ALTITUDE:
+            # the thrust must stay clear of zero: u = bias -+ h
+            bias = self.loops[Loop.ALTITUDE].bias
+            cap = 0.8 * bias if 0 < bias < 1 else self.config.h_max[1]
+            return min(self.config.h_max[1], cap)
+        return self.config.h_max[0 if loop in (Loop.ROLL, Loop.PITCH) else 2]
 
     def _raise_h(self, t: LoopTest, factor: float) -> None:
         """Raise a relay's amplitude (the oscillation is too small for the noise); start over."""
@@ -487,12 +495,13 @@ class TuningSequence:
         else:
             relay = self.takeoff.relay
             before = float(relay.state[0]) if relay is not None else 0.0
-            u = self.takeoff.step(s.t_pos_s, z)
+            zf = self.z_f - self.origin[2]  # smoothed with the climb rate, as x and y
+            u = self.takeoff.step(s.t_pos_s, zf, s.vz_up_m_s)
             if self.takeoff.switched:
                 t.bias = self.takeoff.u_z0
                 if relay is not None:
-                    self._watch(t, relay, self.config.z_ref_m - z, before)
-                self._feed(t, s.t_pos_s, u, z, new)
+                    self._watch(t, relay, self.takeoff.z_relay_m - zf, before)
+                self._feed(t, s.t_pos_s, u, zf, new)
         t.u = u
         return u
 

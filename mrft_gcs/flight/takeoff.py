@@ -7,6 +7,16 @@ for good, to the MRFT with the last PI output ``u_z0`` as the relay's bias:
 ``u = u_z0 +- h_alt``. With ``u_z0`` close to hover the oscillation is nearly
 symmetric, which is what the altitude classifier was trained on.
 
+With a known hover thrust (``relay_bias``: the autopilot's own estimate, the
+"prior knowledge" the paper allows for a faster, smoother take-off) the climb is
+instead a PD on altitude around that hover thrust (``u = hover (1 + a/g)``,
+``a = kp e - kd v``), and the relay starts, with that hover thrust as its bias,
+only once the vehicle holds the set point (within ``settle_m`` and
+``settle_speed_m_s``, or after ``settle_max_s``), about the altitude it holds
+then. Started from a climb 0.9 m below the set point, as eq. 21 does, the altitude
+MRFT at the distinguishing phase (beta -0.7) overshoots into a slow, lopsided cycle
+(about twice the period) that the classifier misreads with full confidence.
+
 Table V values are the defaults. They were optimised by the paper for a take-off
 that always succeeds across the whole parameter domain, which can be slow (the
 integrator winds up from zero); ``u_init`` preloads the integrator with a
@@ -43,6 +53,10 @@ class TakeoffSettings:
     h_o2_rad: float = 0.05
     eps1_m: float = 1.0
     eps2_m: float = 2.0
+    climb_pd: tuple[float, float] = (6.0, 4.0)  # (1/s^2, 1/s): climb with a known hover thrust
+    settle_m: float = 0.05
+    settle_speed_m_s: float = 0.05
+    settle_max_s: float = 8.0
 
 
 #: The paper's Table V.
@@ -64,6 +78,8 @@ class TakeoffController:
         Initial integrator value (normalised thrust); 0 is the paper's cold start.
     band_m : float
         Noise band of the relay (m).
+    relay_bias : float, optional
+        Bias of the relay (normalised thrust) instead of the last PI output.
 
     Examples
     --------
@@ -79,7 +95,7 @@ class TakeoffController:
 
     def __init__(self, z_ref_m: float = 1.0, settings: TakeoffSettings = TABLE_V,
                  beta: float = 0.0, u_init: float = 0.0, band_m: float = 0.0,
-                 h_alt: float | None = None) -> None:
+                 h_alt: float | None = None, relay_bias: float | None = None) -> None:
         if not (math.isfinite(z_ref_m) and z_ref_m > settings.delta_p_m):
             raise ValueError("z_ref_m must lie above the switching altitude delta_p")
         self.z_ref_m = z_ref_m
@@ -88,6 +104,7 @@ class TakeoffController:
         self.beta = beta
         self.u_init = u_init
         self.band_m = band_m
+        self.relay_bias = relay_bias
         self.reset()
 
     def reset(self) -> None:
@@ -98,10 +115,18 @@ class TakeoffController:
         self.t_switch = math.nan
         self.relay: MRFT | None = None
         self.u = 0.0
+        self.z_relay_m = self.z_ref_m  # the altitude the relay oscillates about
 
-    def step(self, t_s: float, z_up_m: float) -> float:
-        """Thrust command (normalised, clipped to [0, 1]) for the altitude sample at ``t_s``."""
+    def step(self, t_s: float, z_up_m: float, vz_up_m_s: float | None = None) -> float:
+        """Thrust command (normalised, clipped to [0, 1]) for the altitude sample at ``t_s``.
+
+        ``vz_up_m_s`` (climb rate) is needed for the known-hover climb.
+        """
         e = self.z_ref_m - z_up_m
+        if not self.switched and self.relay_bias is not None and vz_up_m_s is not None:
+            return self._climb(t_s, e, vz_up_m_s)
+        if self.switched:
+            e = self.z_relay_m - z_up_m
         if not self.switched:
             dt = 0.0 if self.t_prev is None else max(t_s - self.t_prev, 0.0)
             self.t_prev = t_s
@@ -109,7 +134,8 @@ class TakeoffController:
             u = self.settings.kc_tf * e + self.integral
             if z_up_m >= self.settings.delta_p_m:
                 self.switched = True
-                self.u_z0 = float(np.clip(self.u, 0.0, 1.0))  # the last PI output
+                last = self.u if self.relay_bias is None else self.relay_bias
+                self.u_z0 = float(np.clip(last, 0.0, 1.0))  # the last PI output
                 self.t_switch = t_s
                 self.relay = MRFT(self.beta, self.h, bias=self.u_z0, band=self.band_m)
             else:
@@ -117,4 +143,24 @@ class TakeoffController:
                 return self.u
         assert self.relay is not None
         self.u = float(np.clip(self.relay.step(e)[0], 0.0, 1.0))
+        return self.u
+
+    def _climb(self, t_s: float, e: float, vz: float) -> float:
+        st, hover = self.settings, float(self.relay_bias)  # type: ignore[arg-type]
+        if self.t_prev is None:
+            self.t_prev = t_s
+        t0 = self.t_prev
+        airborne = self.z_ref_m - e >= st.delta_p_m
+        if airborne and ((abs(e) < st.settle_m and abs(vz) < st.settle_speed_m_s)
+                         or t_s - t0 > st.settle_max_s):
+            self.switched = True
+            self.u_z0 = hover
+            self.t_switch = t_s
+            self.z_relay_m = self.z_ref_m - e
+            self.relay = MRFT(self.beta, self.h, bias=hover, band=self.band_m)
+            self.u = float(np.clip(self.relay.step(0.0)[0], 0.0, 1.0))
+            return self.u
+        g = 9.80665
+        a = float(np.clip(st.climb_pd[0] * e - st.climb_pd[1] * vz, -0.3 * g, 0.3 * g))
+        self.u = float(np.clip(hover * (1.0 + a / g), 0.0, 1.0))
         return self.u
