@@ -226,8 +226,12 @@ def _side_task(args: tuple) -> dict:
     if train:
         from mrft_gcs.train import export_onnx, train_classifier
 
-        tr = side_dataset(sc, lo, hi, n_rows, seed + 2 * k)
-        va = side_dataset(sc, lo, hi, n_rows // 3, seed + 2 * k + 1)
+        from mrft_gcs.side_design import side_dataset_realistic
+
+        disc = Discretisation.from_json(load_json(LoopKind.ATTITUDE, "discretisation",
+                                                  Path(out_dir).parent))
+        tr = side_dataset_realistic(sc, disc, n_rows, seed + 2 * k)
+        va = side_dataset_realistic(sc, disc, n_rows // 3, seed + 2 * k + 1)
         res = train_classifier(tr, va, len(sc.params), seed=seed, epochs=40,
                                search=[(2, 128, "relu", "ce")])
         export_onnx(res, d / "classifier.onnx")

@@ -235,3 +235,85 @@ def side_dataset(sc: SideClasses, scale_lo: float, scale_hi: float, n: int, seed
 
 def save(path: Path, sc: SideClasses) -> None:
     path.write_text(json.dumps(sc.to_json()))
+
+
+def side_dataset_realistic(sc: SideClasses, disc, n: int, seed: int, dt: float = 1e-3) -> Dataset:
+    """Side rows made the way flight makes them: real attitude processes, identified gains.
+
+    Attitude processes are drawn around attitude shape ``k`` (its chart region, random
+    scale and gain), their MRFT is simulated and identified with the bundled attitude
+    classifier; those whose identification picks shape ``k`` keep the gains and scale it
+    returned, and the side test then runs on the real cascade. Labels are the side
+    regions of ``(T2 / c, tau / c)`` as in :func:`side_dataset`.
+    """
+    from mrft_gcs.discretize import reachable_scales
+    from mrft_gcs.domains import D_ATT
+    from mrft_gcs.identify import identify
+    from mrft_gcs.identify.runtime import load_bundle
+    from mrft_gcs.loops import LoopKind
+    from mrft_gcs.simulate import simulate_mrft
+
+    rng = np.random.default_rng(seed)
+    ab = load_bundle(LoopKind.ATTITUDE)
+    k = sc.att_shape
+    own = np.flatnonzero(disc.cand_owner == k)
+    m = 4 * n
+    pick = rng.choice(own, m) if own.size else np.full(m, 0)
+    step = np.ptp(disc.cand_shapes, axis=0) / 15
+    chart = disc.cand_shapes[pick] + rng.uniform(-0.5, 0.5, (m, 2)) * step
+    lo, hi = reachable_scales(D_ATT, chart[:, 0], chart[:, 1])
+    ok = lo <= hi
+    chart, lo, hi = chart[ok], lo[ok], hi[ok]
+    T1 = np.exp(rng.uniform(np.log(lo), np.log(np.maximum(hi, lo))))
+    att = np.column_stack([np.exp(chart[:, 0]) * T1, T1, np.exp(chart[:, 1]) * T1])
+    Ka = np.exp(rng.uniform(np.log(0.5), np.log(50.0), len(att)))
+    run = simulate_mrft(Ka, *att.T, beta=ab.beta, h=ab.h, duration_s=1.0 + 14 * att[:, 1].max(),
+                        keep_s=5.0, seed=int(rng.integers(2**31)))
+    keep = []
+    for i in range(len(att)):
+        try:
+            a = identify(LoopKind.ATTITUDE, run.t, run.u[i], run.y[i], beta=ab.beta, h=ab.h,
+                         setpoint=0.0)
+        except Exception:  # noqa: BLE001
+            continue
+        if a.extras["shape"] == k:
+            keep.append((i, a.gains.Kc, a.gains.Kd, a.extras["scale"]))
+        if len(keep) >= n:
+            break
+    idx = np.array([r[0] for r in keep], int)
+    if idx.size == 0:
+        return side_dataset(sc, float(lo.min()), float(hi.max()), n, seed, dt)
+    Kc = np.array([r[1] for r in keep])
+    Kd = np.array([r[2] for r in keep])
+    c = np.array([r[3] for r in keep])
+    q = len(idx)
+    side = D_SIDE.sample_log_uniform(q, rng)
+    cand = sc.owner_of(side[:, 0] / c, side[:, 1] / c)
+    label = sc.cand_owner[cand]
+    J = sc.cand_J[cand]
+    bias = rng.uniform(-BIAS_MAX, BIAS_MAX, q)
+    T_est = 1.3 / (1 - np.abs(bias)) * sc.unit_period[label] * c
+    noise = rng.uniform(0, NOISE_MAX, q) * sc.unit_amplitude[label] * c * 9.81 * side[:, 0]
+    Ks = 9.81 * side[:, 0]
+    rows = np.zeros((q, N_POINTS + 3), np.float32)
+    per, amp = np.full(q, np.nan), np.full(q, np.nan)
+    good = np.zeros(q, bool)
+    order = np.argsort(T_est)
+    for s in range(0, q, 400):
+        j = order[s:s + 400]
+        Tmax = float(T_est[j].max())
+        ii = idx[j]
+        srun = simulate_side_mrft((Ka[ii], *att[ii].T), (Kc[j], Kd[j]), (Ks[j], side[j, 0],
+                                  side[j, 1]), beta=sc.beta, h=1.0, bias=bias[j],
+                                  noise_std=noise[j], band=4 * noise[j],
+                                  duration_s=2.0 + 12 * Tmax, dt=dt, keep_s=5.5 * Tmax,
+                                  seed=int(rng.integers(2**31)))
+        for r, i in enumerate(j):
+            try:
+                f, x = side_features(srun.t, srun.u[r], srun.y[r], c[i], setpoint=0.0)
+            except Exception:  # noqa: BLE001
+                continue
+            rows[i], per[i], amp[i], good[i] = x, f.period_s, f.amplitude, True
+    params = np.column_stack([side, c])
+    return Dataset(rows[good], label[good], J[good], params[good], per[good], amp[good],
+                   noise[good], bias[good])

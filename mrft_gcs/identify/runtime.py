@@ -112,6 +112,8 @@ class SideBundle:
     rule_cost: np.ndarray
     session: object
     temperature: float = 1.0
+    att_params: np.ndarray = None  # type: ignore[assignment]
+    att_pd: np.ndarray = None  # type: ignore[assignment]
 
     def logits(self, x: np.ndarray) -> np.ndarray:
         return self.session.run(None, {"x": np.atleast_2d(x).astype(np.float32)})[0] / \
@@ -135,7 +137,28 @@ def load_side_bundle(att_shape: int, models: Path = MODELS_DIR) -> SideBundle:
                       np.asarray(c["unit_period"]), np.asarray(c["unit_amplitude"]),
                       np.asarray(c["rule_cost"]), ort.InferenceSession(str(onnx_path), opts,
                                            providers=["CPUExecutionProvider"]),
-                      float(c.get("temperature", 1.0)))
+                      float(c.get("temperature", 1.0)), np.asarray(c["att_params"]),
+                      np.asarray(c["att_pd"]))
+
+
+def measured_margin_guard(pd: PD, period_s: float, amplitude: float, h: float, beta: float,
+                          zeta: float, pm_min_deg: float = 20.0) -> tuple[PD, float]:
+    """Check gains against the one frequency-response point the relay test measured.
+
+    The steady cycle gives ``G(j Omega)`` at ``Omega = 2 pi / T``: its phase is
+    ``-180 deg + arcsin(beta)`` and its magnitude ``a / (zeta h)``. If the PD puts that
+    point outside the unit circle while its phase there is already below
+    ``-180 + pm_min``, the crossover lies above ``Omega`` where the phase is lower still,
+    so the margin is certainly short: the gains are scaled down until ``|L(j Omega)| = 1``.
+    Returns the (possibly scaled) gains and the scale applied (1 when nothing changed).
+    """
+    w = 2 * np.pi / period_s
+    lead = np.degrees(np.arctan2(pd.Kd * w, pd.Kc))
+    phase = -180.0 + np.degrees(np.arcsin(beta)) + lead
+    mag = abs(complex(pd.Kc, pd.Kd * w)) * amplitude / (zeta * h)
+    if phase < -180.0 + pm_min_deg and mag > 1.0:
+        return PD(pd.Kc / mag, pd.Kd / mag), 1.0 / mag
+    return pd, 1.0
 
 
 def _inner_shape(inner: Identification | None) -> tuple[int, float]:
@@ -169,7 +192,13 @@ def _identify_side(t, u, y, beta: float, inner: Identification | None,
     order = np.argsort(-probs)[:3]
     r = int(np.argmin(b.rule_cost @ probs))  # Bayes decision, as for the inner loops
     Kr = f.amplitude / (f.h * c * b.unit_amplitude[r])
-    Kc, Kd = b.pd[r, 0] / (c * Kr), b.pd[r, 1] / Kr
+    zeta = b.unit_amplitude[r] / abs(
+        __import__("mrft_gcs.side_design", fromlist=["x"]).side_plant_response(
+            b.att_params, tuple(b.att_pd), b.params[r, 0], b.params[r, 1],
+            [2 * np.pi / b.unit_period[r]])[0, 0])
+    guarded, scale = measured_margin_guard(PD(b.pd[r, 0] / (c * Kr), b.pd[r, 1] / Kr),
+                                           f.period_s, f.amplitude, f.h, beta, zeta)
+    Kc, Kd = guarded.Kc, guarded.Kd
     j = int(order[0])
     K = f.amplitude / (f.h * c * b.unit_amplitude[j])
     model = SideModel(K=float(K), T2=float(b.params[j, 0] * c), tau=float(b.params[j, 1] * c))
@@ -177,6 +206,7 @@ def _identify_side(t, u, y, beta: float, inner: Identification | None,
                           confidence=float(probs[j]), beta=beta, h=f.h, period_s=f.period_s,
                           amplitude=f.amplitude, gains=PD(float(Kc), float(Kd)),
                           extras={"att_shape": k, "att_scale": c, "gain": float(K), "rule": r,
+                                  "margin_guard_scale": scale,
                                   "top": order.tolist(), "duty": f.duty, "bias": f.bias})
 
 
