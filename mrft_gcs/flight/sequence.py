@@ -113,6 +113,7 @@ class LoopTest:
     switches: int = 0  # relay switches since the relay (re)started
     center: float = 0.0  # side relays: the position the relay oscillates about (m)
     settling: bool = False  # side relays: bringing the axis to rest before the relay starts
+    dt_s: float = _NAN  # mean telemetry interval seen by the detector
 
 
 @dataclass(frozen=True)
@@ -132,7 +133,13 @@ class SequenceConfig:
     airborne_m: float = 0.03
     #: cycles handed to identification (the classifier input averages up to four)
     identify_cycles: int = 4
-    steady_periods: tuple[int, int, int] = (3, 2, 2)  # attitude, altitude, side
+    steady_periods: tuple[int, int, int] = (3, 2, 3)  # attitude, altitude, side
+    #: periods agree within this fraction, or 2.5 telemetry intervals if that is more
+    period_tol: float = 0.03
+    #: a relay whose error passes ``runaway_factor`` x its cycle amplitude (and the floor:
+    #: rad for attitude, m for altitude and side) while still pushing it out is restarted
+    runaway_factor: float = 3.0
+    runaway_floor: tuple[float, float, float] = (0.1, 0.15, 0.3)
     #: factor on the identified attitude PDs while they run on the GCS (during the side
     #: tests and the hover); the written gains are never scaled.
     gcs_attitude_pd_scale: float = 1.0
@@ -369,8 +376,26 @@ class TuningSequence:
         t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
 
     def _watch(self, t: LoopTest, relay: MRFT, e: float, state_before: float) -> None:
-        """After a relay step: two switches in a row before the threshold armed raise h."""
+        """After a relay step: two switches in a row before the threshold armed raise h.
+
+        A runaway (the error beyond ``runaway_factor`` cycle amplitudes while the relay
+        pushes it further out, e.g. after a noise-triggered switch-back) restarts the relay
+        as a plain sign relay, which at once pushes back, and restarts the detector.
+        """
         st = float(relay.state[0])
+        amp = t.status.amplitude
+        floor = self.config.runaway_floor[0 if t.loop in (Loop.ROLL, Loop.PITCH) else
+                                          1 if t.loop is Loop.ALTITUDE else 2]
+        limit = max(floor, self.config.runaway_factor * amp) if math.isfinite(amp) else floor
+        if abs(e) > limit and st * e < 0:  # u pushes y away: e grows
+            relay.reset()
+            relay.step(e)
+            self.events.append(f"{t.loop.value}: relay restarted (error {e:+.3g} ran away)")
+            t.unarmed = t.switches = 0
+            t.ext = 0.0
+            t.detector.reset()
+            t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
+            return
         if state_before != 0 and st != state_before:
             t.switches += 1
             if t.switches > 2 and abs(t.ext) * (1 + t.beta) <= t.band:
@@ -484,7 +509,14 @@ class TuningSequence:
     def _feed(self, t: LoopTest, t_s: float, u: float, y: float, new: bool) -> None:
         # one detector sample per telemetry sample (ticks between samples repeat the state)
         if new and t.state in (LoopState.RELAY, LoopState.IDENTIFYING):
-            t.status = t.detector.update(t_s, u, y)
+            det = t.detector
+            if det.t and math.isfinite(t.status.period_s) and t.status.period_s > 0:
+                # switches are seen on telemetry samples: a period is known to about one
+                # sample interval either way, so short cycles need a wider tolerance
+                dt = t_s - det.t[-1]
+                t.dt_s = dt if not math.isfinite(t.dt_s) else 0.99 * t.dt_s + 0.01 * dt
+                det.period_tol = max(self.config.period_tol, 2.5 * t.dt_s / t.status.period_s)
+            t.status = det.update(t_s, u, y)
 
     def _altitude(self, s: FlightState, z: float, new: bool) -> float:
         t = self.loops[Loop.ALTITUDE]
