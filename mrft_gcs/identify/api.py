@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -79,16 +80,19 @@ class CycleDetector:
         self.u: deque[float] = deque()
         self.y: deque[float] = deque()
         self.rises: deque[int] = deque()  # absolute sample numbers of rising switches
+        self.rise_t: deque[float] = deque(maxlen=64)  # their times (status() reads only these)
         self.k0 = 0  # absolute sample number of self.t[0]
         self.k = 0
         self.lo = np.inf
         self.hi = -np.inf
         self.prev_high: bool | None = None
+        self.cyc_lo, self.cyc_hi = np.inf, -np.inf  # extremes of y since the last rising switch
+        self._cached: CycleStatus | None = None
         self.amps: deque[float] = deque(maxlen=self.n_periods)
 
     def update(self, t_s: float, u: float, y: float) -> CycleStatus:
         """Add one sample; returns the current status."""
-        if not (np.isfinite(t_s) and np.isfinite(u) and np.isfinite(y)):
+        if not (math.isfinite(t_s) and math.isfinite(u) and math.isfinite(y)):
             return self.status()
         self.t.append(t_s)
         self.u.append(u)
@@ -97,13 +101,14 @@ class CycleDetector:
         if self.hi > self.lo:
             high = bool(u > 0.5 * (self.lo + self.hi))  # a numpy bool is never `is False`
             if self.prev_high is False and high:
+                self._cached = None
                 self.rises.append(self.k)
-                if len(self.rises) >= 2:
-                    a, b = self.rises[-2] - self.k0, self.rises[-1] - self.k0
-                    seg = np.fromiter((self.y[i] for i in range(max(a, 0), b)), float)
-                    if seg.size:
-                        self.amps.append(0.5 * float(seg.max() - seg.min()))
+                self.rise_t.append(t_s)
+                if len(self.rises) >= 2 and self.cyc_hi > self.cyc_lo:
+                    self.amps.append(0.5 * (self.cyc_hi - self.cyc_lo))
+                self.cyc_lo, self.cyc_hi = np.inf, -np.inf
             self.prev_high = high
+        self.cyc_lo, self.cyc_hi = min(self.cyc_lo, y), max(self.cyc_hi, y)
         self.k += 1
         while self.t and self.t[-1] - self.t[0] > self.max_s:
             self.t.popleft()
@@ -115,13 +120,15 @@ class CycleDetector:
         return self.status()
 
     def _periods(self) -> np.ndarray:
-        if len(self.rises) < 2:
-            return np.empty(0)
-        t = np.asarray(self.t)
-        idx = np.asarray(self.rises) - self.k0
-        return np.diff(t[idx])
+        return np.diff(np.fromiter(self.rise_t, float)) if len(self.rise_t) >= 2 else np.empty(0)
 
     def status(self) -> CycleStatus:
+        """Current status; recomputed only when a new cycle has completed."""
+        if self._cached is None:
+            self._cached = self._status()
+        return self._cached
+
+    def _status(self) -> CycleStatus:
         periods = self._periods()[-self.n_periods:]
         n = len(periods)
         if n == 0:
