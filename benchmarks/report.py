@@ -87,17 +87,25 @@ def tune_table(runs: list[dict]) -> str:
     return "\n".join(rows)
 
 
+def _j(x) -> str:
+    if x is None:
+        return "-"
+    return "inf (unstable)" if math.isinf(x) else f"{x:.2f}"
+
+
 def evaluation_table(evals: list[dict]) -> str:
-    head = "| loop | method | J avg (%) | J max (%) | PM avg (deg) | PM min (deg) | unstable |"
-    rows = [head, "|---|---|---|---|---|---|---|"]
+    head = ("| loop | method | J avg (%) | J p95 (%) | J max (%) | PM avg (deg) | PM min (deg) "
+            "| unstable | no cycle |")
+    rows = [head, "|---|---|---|---|---|---|---|---|---|"]
     for ev in evals:
         for row in ev["table"]:
-            rows.append(f"| {ev['loop']} ({ev['n']}, accuracy {ev['accuracy']:.0%}) | "
-                        f"{row['method']} | {_fmt(row['J_avg'], '.2f')} | "
-                        f"{_fmt(row['J_max'], '.2f')} | {_fmt(row['PM_avg'])} | "
-                        f"{_fmt(row['PM_min'])} | {row['unstable']} |")
-    rows.append(f"| attitude (paper, Table VI) | exact gain | {PAPER['att_J_avg']} | "
-                f"{PAPER['att_J_max']} | | | |")
+            rows.append(f"| {ev['loop']} ({ev['n']} processes, classifier accuracy "
+                        f"{ev['accuracy']:.0%}) | {row['method']} | {_j(row['J_avg'])} | "
+                        f"{_j(row.get('J_p95'))} | {_j(row['J_max'])} | {_fmt(row['PM_avg'])} | "
+                        f"{_fmt(row['PM_min'])} | {row['unstable']} | "
+                        f"{row.get('no_cycle', '-')} |")
+    rows.append(f"| attitude (paper, Table VI) | exact gain | {PAPER['att_J_avg']} | | "
+                f"{PAPER['att_J_max']} | | | | |")
     return "\n".join(rows)
 
 
