@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from mrft_gcs.identify.api import (
     CycleDetector,
+    attach_residual,
     CycleStatus,
     Identification,
     RelaySettings,
@@ -35,6 +36,7 @@ from mrft_gcs.identify.api import (
 )
 
 __all__ = [
+    "attach_residual",
     "CycleDetector",
     "CycleStatus",
     "Identification",
