@@ -41,7 +41,13 @@ from mrft_gcs.flight.sequence import (
     SequenceConfig,
     TuningSequence,
 )
-from mrft_gcs.identify import Identification, RelaySettings, identify, relay_settings
+from mrft_gcs.identify import (
+    Identification,
+    RelaySettings,
+    attach_residual,
+    identify,
+    relay_settings,
+)
 from mrft_gcs.link import (
     SetpointStreamer,
     StreamStats,
@@ -169,7 +175,7 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
          identifier: Identifier | None = None,
          relay: dict[LoopKind, RelaySettings] | None = None,
          gcs_delay_s: float | None = None,
-         config: SequenceConfig | None = None) -> TuneResult:
+         config: SequenceConfig | None = None, residuals: bool = True) -> TuneResult:
     """Tune the vehicle at ``connection`` from take-off; returns what was done.
 
     Parameters
@@ -206,6 +212,10 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
     config : SequenceConfig, optional
         Sequence settings (relay noise bands, amplitudes...); actuation, altitude,
         hover guess and tilt command limit are always taken from the tune's arguments.
+    residuals : bool
+        After the flight, compare each identified inner model with its measured cycles
+        (:func:`mrft_gcs.identify.attach_residual`, about a second per loop): the report's
+        ``residual`` fields.
 
     Raises
     ------
@@ -230,6 +240,7 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
                max_relay_s, hover_check_s, on_progress, ident_fn, relay or {})
     run.gcs_delay_s = 1.0 / rate_hz if gcs_delay_s is None else gcs_delay_s
     run.config = config or SequenceConfig()
+    run.residuals = residuals
     try:
         return run.execute(dry_link)
     except MrftError as err:
@@ -275,6 +286,7 @@ class _Run:
         self.gcs_delay_s = 0.0
         self.config = SequenceConfig()
         self.written: dict[Loop, PD] = {}
+        self.residuals = True
 
     # ------------------------------------------------------------------ result
     def result(self, status: str, error: str | None = None) -> TuneResult:
@@ -337,7 +349,24 @@ class _Run:
         except BaseException:
             self._emergency_land()
             raise
+        if self.residuals:
+            self._residuals()
         return self.result("ok")
+
+    def _residuals(self) -> None:
+        """Residual analysis of each identified loop (after the flight: it takes seconds)."""
+        seq = self.seq
+        assert seq is not None
+        for lp, t in seq.loops.items():
+            snap, ident = t.snapshot, t.identification
+            if ident is None or snap is None or "residual" in ident.extras:
+                continue
+            u, bias = snap.u, snap.bias
+            if lp is Loop.ALTITUDE:  # the model's input is the thrust's deviation from hover
+                u, bias = u - snap.bias, 0.0
+            band = t.band if math.isfinite(t.band) else 0.0
+            t.identification = attach_residual(ident, snap.t_s, u, snap.y, bias=bias,
+                                               band=band, hover=self.hover)
 
     def _emergency_land(self) -> None:
         if self.streamer is not None:
