@@ -37,7 +37,7 @@ def _relay(e, beta, band, state, ext, entry, first):
         ext = max(ext, e)
         if first:
             sw = e < -band
-        elif ext > 0 and ext * max(1 + beta, 0.5) > band:
+        elif ext > 0 and ext * (1 + beta) > band:
             sw = e <= -beta * ext
         else:
             sw = e < entry - 2.0 * band
@@ -47,7 +47,7 @@ def _relay(e, beta, band, state, ext, entry, first):
         ext = min(ext, e)
         if first:
             sw = e > band
-        elif ext < 0 and -ext * max(1 + beta, 0.5) > band:
+        elif ext < 0 and -ext * (1 + beta) > band:
             sw = e >= -beta * ext
         else:
             sw = e > entry + 2.0 * band
