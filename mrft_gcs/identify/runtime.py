@@ -161,6 +161,48 @@ def measured_margin_guard(pd: PD, period_s: float, amplitude: float, h: float, b
     return pd, 1.0
 
 
+def harmonic_response(t, u, y, harmonic: int = 3, cycles: int = 4) -> tuple[float, complex]:
+    """``(omega, G(j omega))`` at a harmonic of the relay cycle, from the measured signals.
+
+    The relay output is a square wave, so its odd harmonics excite the loop too; the
+    ratio of the ``y`` and ``u`` Fourier coefficients at ``harmonic * Omega`` over whole
+    cycles is a second measured point of the frequency response (noise averages out
+    over the cycles). Returns ``(nan, nan)`` when there are not enough cycles.
+    """
+    from mrft_gcs.features import rising_switches
+
+    t, u, y = (np.asarray(a, float) for a in (t, u, y))
+    r = rising_switches(u)
+    if r.size < 2:
+        return float("nan"), complex("nan")
+    a, b = r[max(0, r.size - 1 - cycles)], r[-1]
+    tt, uu, yy = t[a:b], u[a:b], y[a:b]
+    T = (t[b] - t[a]) / (min(cycles, r.size - 1))
+    w = 2 * np.pi * harmonic / T
+    ph = np.exp(-1j * w * (tt - tt[0]))
+    dt = np.gradient(tt)
+    U = np.sum((uu - uu.mean()) * ph * dt)
+    Y = np.sum((yy - yy.mean()) * ph * dt)
+    return float(w), complex(Y / U) if abs(U) > 0 else complex("nan")
+
+
+def harmonic_guard(pd: PD, w: float, G: complex, limit: float = 0.7) -> tuple[PD, float]:
+    """Scale gains so that ``|L(j w)| <= limit`` where the measured loop has passed -180 deg.
+
+    ``G`` is a measured frequency-response point (:func:`harmonic_response`). A lagging
+    loop whose phase lies between -180 and -360 deg wraps to a positive angle; there a
+    loop gain near one means little or no gain margin, so the gains are scaled down.
+    Returns the gains and the scale applied (1 when nothing changed).
+    """
+    if not (np.isfinite(w) and np.isfinite(G.real) and np.isfinite(G.imag)):
+        return pd, 1.0
+    L = complex(pd.Kc, pd.Kd * w) * G
+    if np.angle(L) > 0 and abs(L) > limit:
+        k = limit / abs(L)
+        return PD(pd.Kc * k, pd.Kd * k), k
+    return pd, 1.0
+
+
 def _inner_shape(inner: Identification | None) -> tuple[int, float]:
     if inner is None or "shape" not in inner.extras:
         raise IdentificationError("side motion needs the attitude loop identified first")
@@ -198,6 +240,10 @@ def _identify_side(t, u, y, beta: float, inner: Identification | None,
             [2 * np.pi / b.unit_period[r]])[0, 0])
     guarded, scale = measured_margin_guard(PD(b.pd[r, 0] / (c * Kr), b.pd[r, 1] / Kr),
                                            f.period_s, f.amplitude, f.h, beta, zeta)
+    for n_h in (3, 5):  # the relay's odd harmonics: two more measured points
+        wh, Gh = harmonic_response(t, u, y, harmonic=n_h)
+        guarded, sh = harmonic_guard(guarded, wh, Gh, limit=0.5)
+        scale *= sh
     Kc, Kd = guarded.Kc, guarded.Kd
     j = int(order[0])
     K = f.amplitude / (f.h * c * b.unit_amplitude[j])
