@@ -210,9 +210,11 @@ def tune_fleet(fleet: FleetSpec | str | os.PathLike[str], *, serial: bool = Fals
     spec = fleet if isinstance(fleet, FleetSpec) else load_fleet(fleet)
     if tuner is None:
         from mrft_gcs.flight.api import tune as tuner
+    assert tuner is not None
+    run: Callable[..., Any] = tuner
     t0 = time.monotonic()
     if serial:
-        outcomes = [_tune_one(v, tuner, on_status) for v in spec.vehicles]
+        outcomes = [_tune_one(v, run, on_status) for v in spec.vehicles]
     else:
         lock = threading.Lock()
 
@@ -223,7 +225,7 @@ def tune_fleet(fleet: FleetSpec | str | os.PathLike[str], *, serial: bool = Fals
 
         with ThreadPoolExecutor(max_workers=len(spec.vehicles),
                                 thread_name_prefix="fleet") as pool:
-            futures = [pool.submit(_tune_one, v, tuner, safe if on_status else None)
+            futures = [pool.submit(_tune_one, v, run, safe if on_status else None)
                        for v in spec.vehicles]
             outcomes = [f.result() for f in futures]
     return FleetResult(tuple(outcomes), time.monotonic() - t0, serial)

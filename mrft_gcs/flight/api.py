@@ -305,7 +305,7 @@ class _Run:
                 snap.status.period_s if snap else t.status.period_s,
                 snap.status.amplitude if snap else t.status.amplitude,
                 ident, self.written.get(lp, ident.gains if ident else None),
-                t.t_tuned_s - seq.t_start_s, t.note,
+                t.t_tuned_s - (seq.t_start_s if seq is not None else math.nan), t.note,
                 (snap.t_s, snap.u, snap.y) if snap else None, t.band)
         stream = self.streamer.stats() if self.streamer is not None else None
         return TuneResult(
@@ -378,7 +378,8 @@ class _Run:
         except MrftError:
             pass
 
-    def _setpoint(self, telemetry: _Telemetry) -> Callable[[float], object]:
+    def _setpoint(self, telemetry: _Telemetry
+                  ) -> Callable[[float], ActuatorTarget | AttitudeTarget | None]:
         seq, idle = self.seq, _idle(self.act)
         assert seq is not None
 
@@ -498,10 +499,12 @@ class _Run:
     def _write_back(self, client: ParamClient) -> None:
         seq = self.seq
         assert seq is not None
+        identified = {}
         for lp, t in seq.loops.items():
             if t.state is LoopState.TUNED and t.identification is not None:
+                identified[lp] = t.identification.gains
                 self.written[lp] = onboard_gains(t.identification, self.gcs_delay_s)
-        if any(self.written[lp] != seq.loops[lp].identification.gains for lp in self.written):
+        if any(self.written[lp] != g for lp, g in identified.items()):
             self.notes.append(
                 f"written roll, pitch and altitude gains are re-targeted from the GCS-side loop "
                 f"to the onboard loop ({self.gcs_delay_s * 1e3:.1f} ms less delay); the report's "

@@ -545,7 +545,8 @@ class TuningSequence:
         bb = (0.0, 0.0)
         if tx.state is LoopState.WAITING or ty.state is LoopState.WAITING:
             # the bounding relay keeps an axis near the take-off point until its test starts
-            bb = tuple(float(v) for v in self.bounding.step(np.array([ex, ey])))
+            b2 = self.bounding.step(np.array([ex, ey]))
+            bb = (float(b2[0]), float(b2[1]))
         out = []
         for t, pos, vel, o, pf, b in ((tx, s.x_m, s.vx_m_s, self.origin[0], xf, bb[0]),
                                       (ty, s.y_m, s.vy_m_s, self.origin[1], yf, bb[1])):
