@@ -553,7 +553,9 @@ class TuningSequence:
             if t.state is LoopState.WAITING:
                 u = b
             elif t.pd is not None:
-                u = t.pd.step(o, pos, vel)
+                # hold where the relay oscillated: a step back to the take-off point would
+                # disturb the other axis while its test still runs
+                u = t.pd.step(t.center if t.identification is not None else o, pos, vel)
             elif t.relay is not None and t.settling:
                 kp, kd = self.config.settle_pd
                 u = kp * (t.center - pf) - kd * vel
