@@ -95,6 +95,8 @@ def demo(
                 console.print(f"report: {write_report(partial, folder / 'report.json')}")
             raise
     console.print(result_table(result))
+    for note in result.notes:
+        console.print(f"note: {note}")
     console.print(score_table(vehicle, result))
     if result.stream is not None:
         console.print(f"setpoint stream: {result.stream.line()}")

@@ -127,6 +127,8 @@ def tune_command(
         _write_outputs(result, report, None)
         return
     console.print(result_table(result))
+    for note in result.notes:
+        console.print(f"note: {note}")
     if result.stream is not None:
         console.print(f"setpoint stream: {result.stream.line()}")
     for c in result.parameters:
