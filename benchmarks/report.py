@@ -106,17 +106,23 @@ def evaluation_table(evals: list[dict]) -> str:
                         f"{row.get('no_cycle', '-')} |")
     rows.append(f"| attitude (paper, Table VI) | exact gain | {PAPER['att_J_avg']} | | "
                 f"{PAPER['att_J_max']} | | | | |")
+    rows.append(f"| side (paper) | exact gain | | | {PAPER['side_J_max']} | | | | |")
     return "\n".join(rows)
 
 
-def run_evaluations(n: int, seed: int = 1) -> list[dict]:
-    from mrft_gcs.evaluate import evaluate
+def run_evaluations(n: int, seed: int = 1, n_side: int = 0) -> list[dict]:
+    """Table VI for attitude and altitude (``n`` processes each) and, if asked, side motion."""
+    from mrft_gcs import evaluate as ev_mod
 
     out = []
-    for kind in (LoopKind.ATTITUDE, LoopKind.ALTITUDE):
+    jobs = [(k.value, lambda k=k: ev_mod.evaluate(k, n, seed), n)
+            for k in (LoopKind.ATTITUDE, LoopKind.ALTITUDE)]
+    if n_side > 0 and hasattr(ev_mod, "evaluate_side"):
+        jobs.append(("side", lambda: ev_mod.evaluate_side(n_side, seed), n_side))
+    for name, job, count in jobs:
         t = time.monotonic()
-        ev = evaluate(kind, n, seed)
-        out.append({"loop": ev.kind, "n": n, "seed": seed, "accuracy": ev.accuracy,
+        ev = job()
+        out.append({"loop": name, "n": count, "seed": seed, "accuracy": ev.accuracy,
                     "table": ev.table(), "seconds": time.monotonic() - t})
     return out
 
@@ -147,6 +153,7 @@ def main() -> None:
     ap.add_argument("--vehicles", default="qdrone,racer250,f550")
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--n", type=int, default=500, help="processes per Table VI evaluation")
+    ap.add_argument("--n-side", type=int, default=200, help="side-motion trials (0: skip)")
     ap.add_argument("--runs", type=Path, help="reuse tune records (JSON list)")
     ap.add_argument("--evaluation", type=Path, help="reuse Table VI records (JSON list)")
     ap.add_argument("--no-figure8", action="store_true")
@@ -162,7 +169,7 @@ def main() -> None:
                 runs.append(run_one(v, seed, figure8=not args.no_figure8))
                 print(f"# {v} seed {seed}: {runs[-1].get('status')}", file=sys.stderr, flush=True)
     evals = json.loads(args.evaluation.read_text()) if args.evaluation else (
-        run_evaluations(args.n) if args.n > 0 else [])
+        run_evaluations(args.n, n_side=args.n_side) if args.n > 0 else [])
     if args.save:
         args.save.mkdir(parents=True, exist_ok=True)
         (args.save / "runs.json").write_text(json.dumps(runs, indent=1))
