@@ -99,8 +99,11 @@ def evaluation_table(evals: list[dict]) -> str:
     rows = [head, "|---|---|---|---|---|---|---|---|---|"]
     for ev in evals:
         for row in ev["table"]:
-            rows.append(f"| {ev['loop']} ({ev['n']} processes, classifier accuracy "
-                        f"{ev['accuracy']:.0%}) | {row['method']} | {_j(row['J_avg'])} | "
+            acc = ev.get("accuracy")
+            acc_s = f", classifier accuracy {acc:.0%}" if acc is not None and math.isfinite(acc) \
+                else ""
+            rows.append(f"| {ev['loop']} ({ev['n']} processes{acc_s}) | {row['method']} | "
+                        f"{_j(row['J_avg'])} | "
                         f"{_j(row.get('J_p95'))} | {_j(row['J_max'])} | {_fmt(row['PM_avg'])} | "
                         f"{_fmt(row['PM_min'])} | {row['unstable']} | "
                         f"{row.get('no_cycle', '-')} |")

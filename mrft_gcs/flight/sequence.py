@@ -120,9 +120,9 @@ class LoopTest:
 class SequenceConfig:
     """How the sequence flies; units in the names.
 
-    ``relay`` gives beta and h of the inner loops (attitude for roll and pitch,
-    altitude), normally from :func:`mrft_gcs.identify.relay_settings`.
-    ``hover_thrust_guess`` preloads the take-off integrator with 90 % of it.
+    ``hover_thrust_guess`` (the autopilot's estimate, normalised thrust) turns the
+    take-off into a climb on a PD about it, with the altitude relay started at rest and
+    biased at it (:mod:`mrft_gcs.flight.takeoff`); without it, eq. 21 with Table V.
     """
 
     actuation: Actuation = Actuation.TORQUE
@@ -154,8 +154,10 @@ class SequenceConfig:
     #: switches before the MRFT threshold clears the band, or noise over ``max_noise_ratio``
     #: of the amplitude (the classifiers were trained with up to 3 %)
     h_raise: float = 1.6
+    h_max: tuple[float, float, float] = (0.3, 0.25, 0.2)
+    max_noise_ratio: float = 0.025
     #: smallest starting amplitude of the roll/pitch relays (normalised torque): the
-    #: classifiers' default (Table V: 0.05) gives cycles of 0.01-0.016 rad at beta -0.8 on
+    #: classifiers' default (Table V: 0.05) gives cycles of 0.01-0.016 rad at beta -0.7 on
     #: the bundled airframes, too small to clear a 4-sigma band of 0.8 mrad noise
     h_att_min: float = 0.12
     #: the same for the x/y relays (tilt, rad): the side classifiers' 0.08 gives cycles of
@@ -171,8 +173,6 @@ class SequenceConfig:
     settle_pd: tuple[float, float] = (0.3, 0.4)
     settle_speed_m_s: float = 0.03
     settle_max_s: float = 2.0
-    h_max: tuple[float, float, float] = (0.3, 0.25, 0.2)
-    max_noise_ratio: float = 0.025
 
 
 def quat_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
