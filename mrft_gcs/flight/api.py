@@ -85,7 +85,7 @@ def bundled_identifier(loop: Loop, snap: CycleSnapshot,
                        inner: Identification | None = None) -> Identification:
     """Identification with the bundled classifiers (:func:`mrft_gcs.identify.identify`)."""
     return identify(loop.kind, snap.t_s, snap.u, snap.y, beta=snap.beta, h=snap.h,
-                    bias=snap.bias, inner=inner)
+                    bias=snap.bias, inner=inner, setpoint=snap.setpoint)
 
 
 @dataclass(frozen=True)
@@ -470,7 +470,7 @@ class _Run:
             ident = self.ident_fn(snap.loop, snap, inner)
         except IdentificationError as err:
             self.notes.append(f"{snap.loop.value}: identification retried ({err})")
-            seq.retry(snap.loop)
+            seq.retry(snap.loop, restart="set point" in str(err))
             return
         seq.apply(snap.loop, ident)
 

@@ -85,6 +85,10 @@ class CycleSnapshot:
     h: float
     bias: float
     status: CycleStatus
+    #: the relay's set point in the units of ``y`` (altitude, x, y: the point the relay
+    #: oscillates about); None for roll and pitch, whose set point moves with the bounding
+    #: relay. Identification refuses cycles that do not cross it every half-cycle.
+    setpoint: float | None = None
 
 
 @dataclass
@@ -346,7 +350,10 @@ class TuningSequence:
                     if ts.size < 8:
                         continue
                     t.state = LoopState.IDENTIFYING
-                    t.snapshot = CycleSnapshot(t.loop, ts, u, y, t.beta, t.h, t.bias, t.status)
+                    sp = (t.center if t.loop in SIDE_LOOPS else self.takeoff.z_relay_m
+                          if t.loop is Loop.ALTITUDE else None)
+                    t.snapshot = CycleSnapshot(t.loop, ts, u, y, t.beta, t.h, t.bias, t.status,
+                                               sp)
                     out.append(t.snapshot)
         return out
 
@@ -410,14 +417,27 @@ class TuningSequence:
         else:
             t.ext = min(t.ext, e)
 
-    def retry(self, loop: Loop) -> None:
-        """Identification failed on this cycle: keep the relay going and wait for the next."""
+    def retry(self, loop: Loop, restart: bool = False) -> None:
+        """Identification failed on this cycle: keep the relay going and wait for the next.
+
+        ``restart``: the cycles were not a proper MRFT oscillation (a slow, lopsided mode
+        the relay can lock into); the relay starts over, x and y after settling again.
+        """
         with self._lock:
             t = self.loops[loop]
             if t.state is LoopState.IDENTIFYING:
                 t.state = LoopState.RELAY
                 t.detector.reset()
                 t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
+                relay = self.takeoff.relay if loop is Loop.ALTITUDE else t.relay
+                if restart and relay is not None:
+                    relay.reset()
+                    t.unarmed = t.switches = 0
+                    t.ext = 0.0
+                    if loop in SIDE_LOOPS:
+                        t.settling = True
+                        if self.state is not None:
+                            t.t_relay_start_s = self.state.t_pos_s
 
     def apply(self, loop: Loop, ident: Identification) -> None:
         """Switch ``loop`` from its relay to the identified PD, from the next tick on."""
