@@ -93,3 +93,12 @@ def test_cycle_detector_reports_steady_oscillation():
     assert not statuses[300].steady and statuses[-1].steady
     t, u, y = det.last_cycles(2)
     assert t.size > 100 and u.size == y.size == t.size
+
+
+def test_incomplete_class_table_is_an_identification_error(tmp_path):
+    d = tmp_path / "attitude"
+    d.mkdir()
+    (d / "classes.json").write_text('{"beta": -0.7}')
+    (d / "classifier.onnx").write_bytes((MODELS_DIR / "attitude" / "classifier.onnx").read_bytes())
+    with pytest.raises(IdentificationError, match="incomplete"):
+        load_bundle(LoopKind.ATTITUDE, tmp_path)

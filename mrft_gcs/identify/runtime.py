@@ -91,12 +91,18 @@ def load_bundle(kind: LoopKind, models: Path = MODELS_DIR) -> Bundle:
     opts.intra_op_num_threads = 1
     opts.inter_op_num_threads = 1
     session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
-    c = json.loads(table.read_text())
-    arr = {k: np.asarray(c[k], float) for k in ("shape_params", "shape_pd", "unit_period",
-                                                 "unit_amplitude", "zeta", "reps", "rule_cost")}
-    return Bundle(kind=kind, beta=float(c["beta"]), h=float(c["h"]),
-                  temperature=float(c.get("temperature", 1.0)),
-                  rep_shape=np.asarray(c["rep_shape"], int), session=session, **arr)
+    try:
+        c = json.loads(table.read_text())
+        arr = {k: np.asarray(c[k], float) for k in ("shape_params", "shape_pd", "unit_period",
+                                                     "unit_amplitude", "zeta", "reps",
+                                                     "rule_cost")}
+        return Bundle(kind=kind, beta=float(c["beta"]), h=float(c["h"]),
+                      temperature=float(c.get("temperature", 1.0)),
+                      rep_shape=np.asarray(c["rep_shape"], int), session=session, **arr)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise IdentificationError(
+            f"{table} is incomplete or from an older version ({exc}): regenerate it with "
+            f"'mrft-tune design zeta --loop {kind.value}' and 'mrft-tune design train'") from exc
 
 
 @dataclass(frozen=True)
