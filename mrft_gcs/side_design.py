@@ -195,6 +195,16 @@ def design_side_for_shape(k: int, att: np.ndarray, att_pd: np.ndarray, scale_lo:
                        seconds=time.perf_counter() - t0)
 
 
+def _fill_rows(run, idx, att_scale, rows, per, amp, ok) -> None:
+    """Features of each simulated record ``run.*[r]`` into row ``idx[r]`` (no cycle: skipped)."""
+    for r, i in enumerate(idx):
+        try:
+            f, x = side_features(run.t, run.u[r], run.y[r], att_scale[i], setpoint=0.0)
+        except Exception:  # noqa: BLE001 - a run without two proper cycles is dropped
+            continue
+        rows[i], per[i], amp[i], ok[i] = x, f.period_s, f.amplitude, True
+
+
 def side_dataset(sc: SideClasses, scale_lo: float, scale_hi: float, n: int, seed: int,
                  dt: float = 1e-3) -> Dataset:
     """Labelled side MRFT cycles for one attitude shape (real time units, random attitude scale)."""
@@ -223,12 +233,7 @@ def side_dataset(sc: SideClasses, scale_lo: float, scale_hi: float, n: int, seed
                                  bias=bias[idx], noise_std=noise[idx], band=4 * noise[idx],
                                  duration_s=dur, dt=dt, keep_s=5.5 * Tmax,
                                  seed=int(rng.integers(2**31)))
-        for j, i in enumerate(idx):
-            try:
-                f, x = side_features(run.t, run.u[j], run.y[j], c[i], setpoint=0.0)
-            except Exception:  # noqa: BLE001 - a run without two cycles is dropped
-                continue
-            rows[i], per[i], amp[i], ok[i] = x, f.period_s, f.amplitude, True
+        _fill_rows(run, idx, c, rows, per, amp, ok)
     params = np.column_stack([side, c])
     return Dataset(rows[ok], label[ok], J[ok], params[ok], per[ok], amp[ok], noise[ok], bias[ok])
 
@@ -308,12 +313,7 @@ def side_dataset_realistic(sc: SideClasses, disc, n: int, seed: int, dt: float =
                                   noise_std=noise[j], band=4 * noise[j],
                                   duration_s=2.0 + 12 * Tmax, dt=dt, keep_s=5.5 * Tmax,
                                   seed=int(rng.integers(2**31)))
-        for r, i in enumerate(j):
-            try:
-                f, x = side_features(srun.t, srun.u[r], srun.y[r], c[i], setpoint=0.0)
-            except Exception:  # noqa: BLE001
-                continue
-            rows[i], per[i], amp[i], good[i] = x, f.period_s, f.amplitude, True
+        _fill_rows(srun, j, c, rows, per, amp, good)
     params = np.column_stack([side, c])
     return Dataset(rows[good], label[good], J[good], params[good], per[good], amp[good],
                    noise[good], bias[good])
