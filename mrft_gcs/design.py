@@ -214,7 +214,7 @@ def step_train(kind: LoopKind, models: Path = MODELS_DIR, seed: int = 0, epochs:
 def _side_task(args: tuple) -> dict:
     """Design, data and classifier for one attitude shape (a picklable executor task)."""
     k, att, att_pd, lo, hi, grid_n, n_rows, seed, out_dir, train = args
-    from mrft_gcs.side_design import design_side_for_shape, side_dataset
+    from mrft_gcs.side_design import design_side_for_shape
 
     sc = design_side_for_shape(k, np.asarray(att), np.asarray(att_pd), lo, hi, grid_n=grid_n)
     d = Path(out_dir) / f"shape_{k:02d}"

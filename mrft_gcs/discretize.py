@@ -30,7 +30,7 @@ import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
 from mrft_gcs.domains import Domain
-from mrft_gcs.pd_design import PDDesign, frequency_grid, ise, margins, optimal_pd
+from mrft_gcs.pd_design import PDDesign, ise, margins, optimal_pd
 from mrft_gcs.plant import inner_response
 
 #: Joint cost (%) recorded for candidate/representative pairs too far apart to evaluate.
@@ -38,7 +38,6 @@ J_FAR = 200.0
 
 __all__ = [
     "J_FAR",
-    "Shape",
     "Discretisation",
     "reachable_scales",
     "shape_grid",
@@ -48,18 +47,6 @@ __all__ = [
     "scale_ratio",
     "discretize_inner",
 ]
-
-
-@dataclass(frozen=True)
-class Shape:
-    """A gain- and scale-free inner process: ``(T_prop, T1, tau) = (e^a, 1, e^b)``."""
-
-    a: float
-    b: float
-
-    @property
-    def params(self) -> np.ndarray:
-        return np.array([np.exp(self.a), 1.0, np.exp(self.b)])
 
 
 def reachable_scales(domain: Domain, a, b) -> tuple[np.ndarray, np.ndarray]:

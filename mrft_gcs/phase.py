@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mrft_gcs.pd_design import PM_MIN_DEG, ise, margins
-from mrft_gcs.plant import closed_inner_response, inner_response, side_response
+from mrft_gcs.plant import inner_response
 from mrft_gcs.simulate import find_cycle, simulate_mrft
 
 __all__ = [
@@ -244,13 +244,3 @@ def cascade_structure(att_vertices: np.ndarray, side_vertices: np.ndarray, beta:
                                  f"worst-case period {worst_T:.2f} s, attitude swing "
                                  f"{worst_tilt:.0f} deg per {velocity_amp_m_s} m/s"))
     return steps
-
-
-def side_hb(inner_pd, att: np.ndarray, T2, tau_side, beta: float, w: np.ndarray) -> np.ndarray:
-    """DF period of MRFT on the side cascade (closed attitude loop, then side part)."""
-    G = inner_response(1.0, *att, w)
-    T = closed_inner_response(inner_pd[0], inner_pd[1], G, w)
-    S = side_response(1.0, T2, tau_side, w)
-    ph = np.unwrap(np.angle(T * S), axis=1)
-    idx = np.argmax(ph <= -np.pi + np.arcsin(beta), axis=1)
-    return 2 * np.pi / w[idx]

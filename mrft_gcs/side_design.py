@@ -138,7 +138,7 @@ def design_side_for_shape(k: int, att: np.ndarray, att_pd: np.ndarray, scale_lo:
         d = optimal_pd(P[i], w, x0=prev)
         designs.append(d)
         prev = (d.pd.Kc, d.pd.Kd)
-    step = (hi - lo) * 0 + np.array([np.ptp(cand[:, 0]), np.ptp(cand[:, 1])]) / (grid_n - 1)
+    step = np.ptp(cand, axis=0) / (grid_n - 1)
     nb: dict[int, dict[int, float]] = {i: {} for i in range(len(cand))}
     for i in range(len(cand)):
         for j in range(i + 1, len(cand)):

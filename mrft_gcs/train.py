@@ -68,10 +68,6 @@ def _build(torch, n_in: int, n_out: int, depth: int, width: int, act: str, dropo
     return nn.Sequential(*layers)
 
 
-class _Normalised:  # wraps a net with the input standardisation baked in (for export)
-    pass
-
-
 def train_classifier(train: Dataset, val: Dataset, n_classes: int, seed: int = 0,
                      epochs: int = 60, search=SEARCH_SPACE, progress=None) -> TrainResult:
     """Search the configurations and return the best network (lowest validation mean J)."""
