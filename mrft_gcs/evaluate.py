@@ -176,8 +176,11 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
         design = optimal_pd(P, w)
         if not design.margins.stable:
             continue
-        amp_guess = rs.h * Ks[i] * side[i, 0]
-        noise = rng.uniform(0, NOISE_MAX) * amp_guess * 0.05
+        # noise sized from the cycle's own amplitude (a clean run first), as for the inner loops
+        clean = simulate_side_mrft((Ka[i], *att[i]), (pd.Kc, pd.Kd), (Ks[i], *side[i]),
+                                   beta=rs.beta, h=rs.h, duration_s=4.0 + 40 * side[i, 0],
+                                   keep_s=10.0, seed=seed + i)
+        noise = rng.uniform(0, NOISE_MAX) * 0.5 * np.ptp(clean.y[0])
         bias = rng.uniform(-BIAS_MAX, BIAS_MAX) * rs.h
         srun = simulate_side_mrft((Ka[i], *att[i]), (pd.Kc, pd.Kd), (Ks[i], *side[i]),
                                   beta=rs.beta, h=rs.h, bias=bias, noise_std=noise,
@@ -190,11 +193,14 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
             continue
         for name, scale in (("exact gain", 1.0), ("DF gain", None)):
             Kc, Kd = s_id.gains.Kc, s_id.gains.Kd
-            if scale is None:  # DF: gain from 4/pi |G| instead of the simulated amplitude
+            if scale is None and "rule" in s_id.extras:  # DF: gain from 4/pi |G|, not the
+                # simulated amplitude of the chosen class
                 table = json.loads((MODELS_DIR / "side" / f"shape_{int(a_id.extras['shape']):02d}"
                                     / "classes.json").read_text())
                 z = table["zeta"][int(s_id.extras["rule"])]
                 Kc, Kd = Kc * (4 / np.pi) / z, Kd * (4 / np.pi) / z
+            elif scale is None:  # harmonic fit: DF estimate of |G| instead of the measured one
+                Kc, Kd = Kc * s_id.extras["df_factor"], Kd * s_id.extras["df_factor"]
             Kc, Kd = Kc * Ks[i], Kd * Ks[i]
             m = margins((Kc + Kd * 1j * w) * P, w)
             J[name][i] = (ise(Kc, Kd, P, w) - design.ise) / design.ise * 100 if m.stable else np.inf

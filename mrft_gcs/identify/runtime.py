@@ -225,25 +225,119 @@ def relay_settings(kind: LoopKind, inner: Identification | None = None) -> Relay
     return RelaySettings(beta=b.beta, h=b.h)
 
 
+#: A side fit on the relay's harmonics is used when the fundamental and the 3rd harmonic
+#: are measured at least this well (standard error of log G over the cycles).
+FIT_MAX_SD = (0.1, 0.25)
+
+
 def _identify_side(t, u, y, beta: float, inner: Identification | None,
                    setpoint=None) -> Identification:
-    from mrft_gcs.plant import SideModel
-    from mrft_gcs.side_design import side_features
+    """Side motion: a model fitted on the relay's measured harmonics, else the classifier.
 
+    The closed attitude loop is known (the attitude identification and its gains), so
+    the side model's three unknowns are fitted on the measured frequency-response
+    points of the cycle (:mod:`mrft_gcs.identify.harmonics`) and the gains are the
+    optimal PD of the fitted cascade. Cycles whose fundamental varies from cycle to
+    cycle are not a steady oscillation and are refused; when only the 3rd harmonic is
+    too noisy (:data:`FIT_MAX_SD`), the side classifier of the attitude shape decides,
+    as in the paper. Measured (Table VI, side, README): the fit brought the share of side
+    loops within 10 % of their optimal PD from 49 % (classifier) to 99 %.
+    """
     k, c = _inner_shape(inner)
     b = load_side_bundle(k)
     if abs(beta - b.beta) > 1e-6:
         raise IdentificationError(
             f"the side classifier of attitude shape {k} expects beta={b.beta}, the test ran {beta}")
+    t, u, y = (np.asarray(a, float) for a in (t, u, y))
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
+        raise IdentificationError("the relay record holds NaN or infinite values; drop them first")
+    fitted, fit_note = _fit_side(t, u, y, beta, b, inner, c)
+    try:
+        classified, why = _classify_side(t, u, y, beta, b, k, c, setpoint), None
+    except IdentificationError as exc:
+        classified, why = None, exc
+    if fitted is not None:
+        if classified is not None:
+            fitted.extras["classifier"] = {"class": classified.class_index,
+                                           "confidence": classified.confidence,
+                                           "Kc": classified.gains.Kc, "Kd": classified.gains.Kd}
+        return fitted
+    if classified is None:
+        raise why
+    classified.extras["fit"] = fit_note
+    return classified
+
+
+def _fit_side(t, u, y, beta, b: "SideBundle", inner: Identification, c: float):
+    """The harmonic-fit identification, or ``(None, reason)`` when the cycles do not allow it."""
+    from scipy.stats import chi2
+
+    from mrft_gcs.features import rising_switches
+    from mrft_gcs.identify.harmonics import fit_side_model, harmonic_points
+    from mrft_gcs.pd_design import optimal_pd
+    from mrft_gcs.plant import SideModel, closed_inner_response, inner_response, side_response
+
+    try:
+        pts = harmonic_points(t, u, y)
+    except ValueError as exc:
+        return None, str(exc)
+    if pts.sd[0] > FIT_MAX_SD[0]:
+        raise IdentificationError(
+            f"the side relay cycles are not steady (cycle-to-cycle spread of the fundamental "
+            f"{pts.sd[0]:.2f} in log units, need <= {FIT_MAX_SD[0]}): let the relay run longer "
+            "or reduce disturbances, then retry")
+    if pts.sd[1] > FIT_MAX_SD[1]:
+        return None, (f"3rd harmonic too noisy for the harmonic fit (standard error of log G "
+                      f"{pts.sd[1]:.2f}); the side classifier decided")
+    m, g = inner.model, inner.gains
+
+    def t_att(w):
+        return closed_inner_response(g.Kc, g.Kd, inner_response(m.K, m.T_prop, m.T1, m.tau, w),
+                                     w)[0]
+
+    from mrft_gcs.domains import D_SIDE
+
+    # searched over the side domain of Table I, widened by 2 each way
+    fit = fit_side_model(pts, t_att(pts.w), T2_range=(D_SIDE.low[0] / 2, D_SIDE.high[0] * 2),
+                         tau_range=(D_SIDE.low[1] / 2, D_SIDE.high[1] * 2))
+    w = np.logspace(np.log10(1e-2 / (fit.T2 + m.T1 + fit.tau)),
+                    np.log10(200 / min(m.T_prop, m.tau + fit.tau)), 900)
+    design = optimal_pd(t_att(w) * side_response(fit.K, fit.T2, fit.tau, w)[0], w)
+    if not design.margins.stable:
+        return None, "no stable PD for the fitted side model"
+    near = int(np.argmin(np.hypot(np.log(b.params[:, 0] * c / fit.T2),
+                                  np.log(np.maximum(b.params[:, 1] * c, 1e-4) / max(fit.tau, 1e-4)))))
+    dof = 2 * len(fit.used) - 3
+    r = rising_switches(u)
+    a0, b0 = r[max(0, r.size - 1 - pts.cycles)], r[-1]
+    amplitude = 0.5 * float(np.ptp(y[a0:b0]))
+    levels = np.asarray(u[a0:b0])
+    h = 0.5 * float(levels.max() - levels.min())
+    df = float(abs(pts.G[0]) * (4 * h / np.pi) / amplitude) if amplitude > 0 else float("nan")
+    model = SideModel(K=fit.K, T2=fit.T2, tau=fit.tau)
+    return Identification(
+        kind=LoopKind.SIDE, model=model, class_index=near,
+        confidence=float(chi2.sf(fit.cost, dof)) if dof > 0 else 1.0, beta=beta, h=h,
+        period_s=pts.period_s, amplitude=amplitude, gains=design.pd,
+        extras={"method": "harmonic fit", "att_shape": int(b.att_shape), "att_scale": c,
+                "gain": fit.K, "fit_cost": fit.cost, "harmonics": list(fit.used),
+                "harmonic_sd": [float(s) for s in pts.sd], "df_factor": df,
+                "pm_deg": float(design.margins.pm_deg)}), None
+
+
+def _classify_side(t, u, y, beta, b: "SideBundle", k: int, c: float,
+                   setpoint=None) -> Identification:
+    from mrft_gcs.plant import SideModel
+    from mrft_gcs.side_design import side_features, side_plant_response
+
     f, x = side_features(t, u, y, c, setpoint)
     probs = _softmax(b.logits(x)[0])
     order = np.argsort(-probs)[:3]
     r = int(np.argmin(b.rule_cost @ probs))  # Bayes decision, as for the inner loops
     Kr = f.amplitude / (f.h * c * b.unit_amplitude[r])
-    zeta = b.unit_amplitude[r] / abs(
-        __import__("mrft_gcs.side_design", fromlist=["x"]).side_plant_response(
-            b.att_params, tuple(b.att_pd), b.params[r, 0], b.params[r, 1],
-            [2 * np.pi / b.unit_period[r]])[0, 0])
+    zeta = b.unit_amplitude[r] / abs(side_plant_response(
+        b.att_params, tuple(b.att_pd), b.params[r, 0], b.params[r, 1],
+        [2 * np.pi / b.unit_period[r]])[0, 0])
     guarded, scale = measured_margin_guard(PD(b.pd[r, 0] / (c * Kr), b.pd[r, 1] / Kr),
                                            f.period_s, f.amplitude, f.h, beta, zeta)
     for n_h in (3, 5):  # the relay's odd harmonics: two more measured points
@@ -257,7 +351,8 @@ def _identify_side(t, u, y, beta: float, inner: Identification | None,
     return Identification(kind=LoopKind.SIDE, model=model, class_index=j,
                           confidence=float(probs[j]), beta=beta, h=f.h, period_s=f.period_s,
                           amplitude=f.amplitude, gains=PD(float(Kc), float(Kd)),
-                          extras={"att_shape": k, "att_scale": c, "gain": float(K), "rule": r,
+                          extras={"method": "classifier", "att_shape": k, "att_scale": c,
+                                  "gain": float(K), "rule": r,
                                   "margin_guard_scale": scale,
                                   "top": order.tolist(), "duty": f.duty, "bias": f.bias})
 

@@ -1,0 +1,172 @@
+"""Measured frequency-response points of a relay cycle, and the side-model fit on them.
+
+A steady relay cycle is periodic, and so is the relay output that drives it. For
+a linear plant in periodic steady state the ratio of the Fourier coefficients of
+``y`` and ``u`` at any harmonic ``k`` of the cycle is *exactly* the plant's
+frequency response there, ``G(j k Omega)``: no describing-function
+approximation. The relay's square wave carries the odd harmonics (1, 3, 5,
+7, ...), so one relay test measures several points of ``G``. Noise and slow
+drift enter through the estimate only; each cycle gives its own estimate, and
+their spread says how far to trust each harmonic.
+
+Side motion (x, y) is where this matters. Its plant is the closed attitude loop
+(identified just before, with its gains known) times ``K e^{-tau s}/(s (T2 s + 1))``.
+A single relay point (period and amplitude) cannot tell a short drag time
+constant from a long one at the test frequency, yet their optimal derivative
+gains differ several-fold (see README). The 1st and 3rd harmonics (four real
+numbers) pin down the three unknowns ``K, T2, tau``; :func:`fit_side_model` fits
+them by weighted least squares on log-magnitude and phase.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+
+from mrft_gcs.features import rising_switches
+
+__all__ = ["HarmonicPoints", "SideFit", "harmonic_points", "fit_side_model", "HARMONICS"]
+
+#: Odd harmonics of the relay cycle that are measured.
+HARMONICS = (1, 3, 5, 7)
+#: Floor on the per-harmonic uncertainty (log units): model error the fit cannot see.
+SD_FLOOR = 0.02
+
+
+@dataclass(frozen=True)
+class HarmonicPoints:
+    """Frequency-response points measured from the last relay cycles.
+
+    Attributes
+    ----------
+    w : array (k,)
+        Frequencies (rad/s): ``harmonic * 2 pi / T``.
+    G : array (k,) complex
+        ``Y_k / U_k`` averaged over the cycles.
+    sd : array (k,)
+        Standard error of ``log G`` (magnitude and phase together), from the
+        cycle-to-cycle spread, floored at :data:`SD_FLOOR`.
+    harmonics : tuple of int
+    cycles : int
+        Cycles used.
+    """
+
+    w: np.ndarray
+    G: np.ndarray
+    sd: np.ndarray
+    harmonics: tuple[int, ...]
+    cycles: int
+
+    @property
+    def period_s(self) -> float:
+        return float(2 * np.pi * self.harmonics[0] / self.w[0])
+
+
+def harmonic_points(t, u, y, cycles: int = 4, harmonics=HARMONICS) -> HarmonicPoints:
+    """Measure ``G(j k Omega)`` at the relay's odd harmonics over the last ``cycles`` cycles.
+
+    Each cycle runs from one rising switch of ``u`` to the next. Within it ``y`` is
+    detrended by the straight line through its end points (drift of the cycle's
+    centre would otherwise leak into every harmonic) and both signals lose their
+    mean; the coefficients are sums over the samples' own time steps, so any
+    (uneven) sample rate works.
+
+    Raises
+    ------
+    ValueError
+        Fewer than two complete cycles.
+    """
+    t, u, y = (np.asarray(a, float) for a in (t, u, y))
+    r = rising_switches(u)
+    if r.size < 3:
+        raise ValueError("need at least two complete relay cycles")
+    r = r[-(cycles + 1):]
+    ks = np.asarray(harmonics, float)
+    per_cycle = []
+    for a, b in zip(r[:-1], r[1:]):
+        tt, uu, yy = t[a:b + 1], u[a:b + 1], y[a:b + 1]
+        T = tt[-1] - tt[0]
+        yd = yy - (yy[0] + (yy[-1] - yy[0]) * (tt - tt[0]) / T)
+        dt = np.diff(tt)
+        s = (tt[:-1] - tt[0]) / T
+        ph = np.exp(-2j * np.pi * ks[:, None] * s[None, :])
+        U = ph @ ((uu[:-1] - np.sum(uu[:-1] * dt) / T) * dt)
+        Y = ph @ ((yd[:-1] - np.sum(yd[:-1] * dt) / T) * dt)
+        per_cycle.append(Y / U)
+    Gc = np.array(per_cycle)
+    G = Gc.mean(axis=0)
+    rel = np.log(Gc / G)  # log-magnitude and phase deviations per cycle
+    sd = np.sqrt(np.var(rel.real, axis=0) + np.var(rel.imag, axis=0)) / np.sqrt(len(Gc))
+    T = (t[r[-1]] - t[r[0]]) / (r.size - 1)
+    return HarmonicPoints(w=2 * np.pi * ks / T, G=G, sd=np.maximum(sd, SD_FLOOR),
+                          harmonics=tuple(int(k) for k in harmonics), cycles=len(Gc))
+
+
+@dataclass(frozen=True)
+class SideFit:
+    """Least-squares fit of ``K e^{-tau s}/(s (T2 s + 1))`` behind a known closed attitude loop.
+
+    ``cost`` is the weighted sum of squared log-magnitude and phase residuals (a
+    chi-square figure when the standard errors are right); ``used`` the harmonics
+    that entered the fit.
+    """
+
+    K: float
+    T2: float
+    tau: float
+    cost: float
+    used: tuple[int, ...]
+
+
+def _lk_and_cost(R, wk, wt, T2, tau):
+    """Best log K and the cost for arrays of ``T2`` and ``tau`` (broadcast)."""
+    T2, tau = np.asarray(T2)[..., None], np.asarray(tau)[..., None]
+    log_m = -0.5 * np.log1p((wk * T2) ** 2)
+    ph_m = -np.arctan(wk * T2) - wk * tau
+    dmag = np.log(np.abs(R)) - log_m
+    lk = np.sum(wt * dmag, axis=-1) / wt.sum()
+    dph = np.angle(R * np.exp(-1j * ph_m))
+    return lk, np.sum(wt * ((dmag - lk[..., None]) ** 2 + dph ** 2), axis=-1)
+
+
+def fit_side_model(points: HarmonicPoints, T_att: np.ndarray, max_sd: float = 0.5,
+                   T2_range=(0.01, 100.0), tau_range=(1e-4, 1.0)) -> SideFit:
+    """Fit the side model on measured points, the closed attitude loop ``T_att(j w)`` known.
+
+    Parameters
+    ----------
+    points : HarmonicPoints
+    T_att : array (k,) complex
+        The closed attitude loop (set point to angle) at ``points.w``.
+    max_sd : float
+        Harmonics measured worse than this are left out.
+
+    Raises
+    ------
+    ValueError
+        Fewer than two usable harmonics (three unknowns need four numbers).
+    """
+    keep = (points.sd <= max_sd) & np.isfinite(points.G) & np.isfinite(T_att)
+    if keep.sum() < 2:
+        raise ValueError("fewer than two usable harmonics for the side fit")
+    wk = points.w[keep]
+    R = points.G[keep] * (1j * wk) / T_att[keep]  # = K e^{-j w tau} / (j w T2 + 1)
+    wt = 1.0 / points.sd[keep] ** 2
+    T2g = np.exp(np.linspace(*np.log(T2_range), 90))
+    tg = np.exp(np.linspace(*np.log(tau_range), 90))
+    _, cost = _lk_and_cost(R, wk, wt, T2g[:, None], tg[None, :])
+    i, j = np.unravel_index(np.argmin(cost), cost.shape)
+    lo, hi = np.log([T2_range[0], tau_range[0]]), np.log([T2_range[1], tau_range[1]])
+
+    def f(p):
+        p = np.clip(p, lo, hi)
+        return float(_lk_and_cost(R, wk, wt, np.exp(p[0]), np.exp(p[1]))[1])
+
+    res = minimize(f, np.log([T2g[i], tg[j]]), method="Nelder-Mead",
+                   options={"xatol": 1e-5, "fatol": 1e-10})
+    T2, tau = np.exp(np.clip(res.x, lo, hi))
+    lk, cost = _lk_and_cost(R, wk, wt, T2, tau)
+    return SideFit(K=float(np.exp(lk)), T2=float(T2), tau=float(tau), cost=float(cost),
+                   used=tuple(int(k) for k, ok in zip(points.harmonics, keep) if ok))

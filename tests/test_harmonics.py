@@ -1,0 +1,90 @@
+"""Measured frequency-response points of relay cycles, and the side fit on them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mrft_gcs.identify import identify, relay_settings
+from mrft_gcs.identify.harmonics import fit_side_model, harmonic_points
+from mrft_gcs.identify.runtime import load_bundle
+from mrft_gcs.loops import LoopKind
+from mrft_gcs.pd_design import ise, margins, optimal_pd
+from mrft_gcs.plant import closed_inner_response, inner_response, side_response
+from mrft_gcs.simulate import simulate_mrft, simulate_side_mrft
+
+ATT = (40.0, 0.02, 0.25, 0.02)  # K, T_prop, T1, tau (qdrone-like roll)
+ATT_PD = (0.1, 0.012)
+
+
+def _side_run(T2: float, tau: float, noise: float = 0.0, bias: float = 0.0):
+    side = (9.81 * T2, T2, tau)
+    run = simulate_side_mrft(ATT, ATT_PD, side, beta=-0.7, h=0.1, bias=bias, noise_std=noise,
+                             band=4 * noise, duration_s=12.0 + 20 * T2, keep_s=12.0, seed=3)
+    return side, run
+
+
+def _t_att(w):
+    return closed_inner_response(*ATT_PD, inner_response(*ATT, w), w)[0]
+
+
+def test_harmonic_points_are_the_plant_response():
+    """For a linear plant in periodic steady state, Y_k / U_k is G(j k w) exactly."""
+    p = (3.0, 0.05, 0.6, 0.02)
+    run = simulate_mrft(*p, beta=-0.5, h=1.0, duration_s=12.0, keep_s=6.0)
+    pts = harmonic_points(run.t, run.u[0], run.y[0])
+    G = inner_response(*p, pts.w)[0]
+    assert np.allclose(np.abs(pts.G[:2] / G[:2]), 1.0, atol=0.02)
+    assert np.allclose(np.angle(pts.G[:2] / G[:2]), 0.0, atol=0.03)
+    assert pts.cycles == 4 and pts.sd[0] < 0.05
+
+
+def test_harmonic_points_need_two_cycles():
+    with pytest.raises(ValueError, match="two complete"):
+        harmonic_points(np.arange(10.0), np.r_[np.ones(5), -np.ones(5)], np.zeros(10))
+
+
+@pytest.mark.parametrize("T2, tau", [(0.3, 0.01), (5.0, 0.01), (1.0, 0.1)])
+def test_side_fit_recovers_the_model(T2, tau):
+    """Short and long drag time constants, which one relay point cannot tell apart."""
+    side, run = _side_run(T2, tau)
+    fit = fit_side_model(harmonic_points(run.t, run.u[0], run.y[0]),
+                         _t_att(harmonic_points(run.t, run.u[0], run.y[0]).w))
+    assert fit.T2 == pytest.approx(T2, rel=0.1)
+    assert fit.K == pytest.approx(side[0], rel=0.1)
+    assert abs(fit.tau - tau) < 0.01
+
+
+def test_side_fit_refuses_one_harmonic():
+    side, run = _side_run(1.0, 0.02)
+    pts = harmonic_points(run.t, run.u[0], run.y[0])
+    with pytest.raises(ValueError, match="two usable"):
+        fit_side_model(pts, _t_att(pts.w), max_sd=pts.sd.min() / 2)
+
+
+@pytest.mark.parametrize("T2", [0.25, 4.0])
+def test_side_gains_near_optimal_with_noise_and_bias(T2):
+    """End to end through identify(): noisy, biased side test, gains scored on the truth."""
+    b = load_bundle(LoopKind.ATTITUDE)
+    run = simulate_mrft(ATT[0], *ATT[1:], beta=b.beta, h=b.h, duration_s=8.0, keep_s=4.0)
+    a_id = identify(LoopKind.ATTITUDE, run.t, run.u[0], run.y[0], beta=b.beta, h=b.h,
+                    setpoint=0.0)
+    rs = relay_settings(LoopKind.SIDE, inner=a_id)
+    side = (9.81 * T2, T2, 0.03)
+    clean = simulate_side_mrft(ATT, (a_id.gains.Kc, a_id.gains.Kd), side, beta=rs.beta, h=rs.h,
+                               duration_s=10 + 20 * T2, keep_s=8.0)
+    noise = 0.01 * 0.5 * np.ptp(clean.y[0])
+    srun = simulate_side_mrft(ATT, (a_id.gains.Kc, a_id.gains.Kd), side, beta=rs.beta, h=rs.h,
+                              bias=0.2 * rs.h, noise_std=noise, band=4 * noise,
+                              duration_s=10 + 20 * T2, keep_s=8.0, seed=5)
+    s_id = identify(LoopKind.SIDE, srun.t, srun.u[0], srun.y[0], beta=rs.beta, h=rs.h,
+                    inner=a_id, setpoint=0.0)
+    assert s_id.extras["method"] == "harmonic fit"
+    w = np.logspace(-3, 4, 900)
+    P = closed_inner_response(a_id.gains.Kc, a_id.gains.Kd, inner_response(*ATT, w), w)[0] * \
+        side_response(*side, w)[0]
+    best = optimal_pd(P, w)
+    Kc, Kd = s_id.gains.Kc, s_id.gains.Kd
+    assert margins((Kc + 1j * w * Kd) * P, w).stable
+    J = (ise(Kc, Kd, P, w) - best.ise) / best.ise * 100
+    assert J < 10.0
