@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mrft_gcs.identify import identify
 from mrft_gcs.identify.runtime import MODELS_DIR, _softmax, load_bundle
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.features import cycle_features
@@ -40,6 +41,16 @@ def main() -> None:
             t = np.array(t) * 1e3
             print(f"{kind.value} {what}: p50 {np.percentile(t, 50):.3f} ms, p99 "
                   f"{np.percentile(t, 99):.3f} ms")
+        # the whole identification: features, network, harmonics, model fit, optimal PD
+        t = []
+        for _ in range(30):
+            t0 = time.perf_counter()
+            identify(kind, run.t[-3000:], run.u[0, -3000:], run.y[0, -3000:], beta=b.beta,
+                     h=b.h)
+            t.append(time.perf_counter() - t0)
+        t = np.array(t) * 1e3
+        print(f"{kind.value} identify() (harmonic fit + optimal PD): p50 "
+              f"{np.percentile(t, 50):.1f} ms, max {t.max():.1f} ms")
     manifest = json.loads((Path(MODELS_DIR) / "manifest.json").read_text())
     for kind, steps in manifest.items():
         if isinstance(steps, dict) and "train" in steps:

@@ -19,13 +19,16 @@ import numpy as np
 
 from mrft_gcs.dataset import BIAS_MAX, NOISE_MAX
 from mrft_gcs.domains import domain_for
+from mrft_gcs.errors import IdentificationError
 from mrft_gcs.features import cycle_features
 from mrft_gcs.identify.runtime import (
     MODELS_DIR,
     GainScaling,
     _softmax,
     load_bundle,
+    refined_identification,
     scaled_gains,
+    steady_points,
 )
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.pd_design import frequency_grid, ise, margins, optimal_pd
@@ -102,8 +105,8 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
     J = {m: np.full(n, np.nan) for m in METHODS}
     PM = {m: np.full(n, np.nan) for m in METHODS}
     hits = 0
-    from mrft_gcs.discretize import Discretisation
     from mrft_gcs.design import load_json
+    from mrft_gcs.discretize import Discretisation
 
     disc = Discretisation.from_json(load_json(kind, "discretisation"))
     truth = disc.owner_of(params)
@@ -117,10 +120,24 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
             continue
         probs = _softmax(b.logits(f.x)[0])
         hits += int(np.argmax(probs) == truth[i])
-        for name, scaling in ((METHODS[0], GainScaling.TRUE), (METHODS[1], GainScaling.DF),
-                              (METHODS[2], GainScaling.EXACT)):
-            pd, *_ = scaled_gains(b, probs, f.period_s, f.amplitude, f.h, scaling, K_true=K[i])
-            J[name][i], PM[name][i] = _score(pd.Kc * K[i], pd.Kd * K[i], p, design, w)
+        try:
+            pts = steady_points(run.t, run.u[i], run.y[i])
+        except IdentificationError:  # not a steady oscillation: refused, as in flight
+            continue
+        pd, model, *_ = refined_identification(b, probs, f, pts)
+        if pts is None:
+            for name, scaling in ((METHODS[0], GainScaling.TRUE), (METHODS[1], GainScaling.DF),
+                                  (METHODS[2], GainScaling.EXACT)):
+                g, *_ = scaled_gains(b, probs, f.period_s, f.amplitude, f.h, scaling, K[i])
+                J[name][i], PM[name][i] = _score(g.Kc * K[i], g.Kd * K[i], p, design, w)
+        else:
+            # DF: the gain from 4/pi's estimate of |G| instead of the measured one
+            df = abs(pts.G[0]) * (4 * f.h / np.pi) / f.amplitude
+            for name, factor in ((METHODS[1], df), (METHODS[2], 1.0)):
+                J[name][i], PM[name][i] = _score(pd.Kc * factor * K[i], pd.Kd * factor * K[i],
+                                                 p, design, w)
+            g, *_ = refined_identification(b, probs, f, pts, K_true=K[i])  # gain known
+            J[METHODS[0]][i], PM[METHODS[0]][i] = _score(g.Kc * K[i], g.Kd * K[i], p, design, w)
         try:
             fb = cycle_features(base.t, base.u[i], base.y[i], setpoint=0.0)
             Ku = 4 * fb.h / (np.pi * fb.amplitude)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mrft_gcs.identify import identify, relay_settings
-from mrft_gcs.identify.harmonics import fit_side_model, harmonic_points
+from mrft_gcs.identify.harmonics import fit_inner_model, fit_side_model, harmonic_points
 from mrft_gcs.identify.runtime import load_bundle
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.pd_design import ise, margins, optimal_pd
@@ -88,3 +88,36 @@ def test_side_gains_near_optimal_with_noise_and_bias(T2):
     assert margins((Kc + 1j * w * Kd) * P, w).stable
     J = (ise(Kc, Kd, P, w) - best.ise) / best.ise * 100
     assert J < 10.0
+
+
+def test_inner_fit_recovers_a_model_near_its_start():
+    p = (3.0, 0.05, 0.6, 0.02)
+    run = simulate_mrft(*p, beta=-0.5, h=1.0, duration_s=12.0, keep_s=6.0)
+    pts = harmonic_points(run.t, run.u[0], run.y[0])
+    params, cost = fit_inner_model(pts, (2.0, 0.07, 0.5, 0.03))
+    assert np.allclose(np.log(params), np.log(p), atol=np.log(1.15))
+    assert cost < 1.0
+
+
+def test_inner_identification_keeps_its_phase_margin():
+    """Random attitude processes with noise and bias: refined gains keep PM >= 15 deg."""
+    from mrft_gcs.domains import D_ATT
+
+    b = load_bundle(LoopKind.ATTITUDE)
+    rng = np.random.default_rng(11)
+    params = D_ATT.sample_log_uniform(12, rng)
+    K = np.exp(rng.uniform(np.log(0.5), np.log(50.0), 12))
+    clean = simulate_mrft(K, *params.T, beta=b.beta, h=b.h, duration_s=30.0, keep_s=4.0)
+    noise = 0.01 * 0.5 * np.ptp(clean.y, axis=1)
+    run = simulate_mrft(K, *params.T, beta=b.beta, h=b.h, bias=0.2 * b.h, noise_std=noise,
+                        band=4 * noise, duration_s=30.0, keep_s=5.0, seed=2)
+    for i in range(12):
+        a_id = identify(LoopKind.ATTITUDE, run.t, run.u[i], run.y[i], beta=b.beta, h=b.h,
+                        setpoint=0.0)
+        assert a_id.extras["method"] == "classifier + harmonics"
+        w = np.logspace(-2, 5, 1500)
+        G = inner_response(K[i], *params[i], w)[0]
+        m = margins((a_id.gains.Kc + 1j * w * a_id.gains.Kd) * G, w)
+        best = optimal_pd(G, w)
+        J = (ise(a_id.gains.Kc, a_id.gains.Kd, G, w) - best.ise) / best.ise * 100
+        assert m.stable and m.pm_deg >= 15.0 and J < 10.0, (i, m.pm_deg, J)

@@ -27,7 +27,8 @@ from scipy.optimize import minimize
 
 from mrft_gcs.features import rising_switches
 
-__all__ = ["HarmonicPoints", "SideFit", "harmonic_points", "fit_side_model", "HARMONICS"]
+__all__ = ["HarmonicPoints", "SideFit", "harmonic_points", "fit_side_model", "fit_inner_model",
+           "class_log_likelihood", "HARMONICS"]
 
 #: Odd harmonics of the relay cycle that are measured.
 HARMONICS = (1, 3, 5, 7)
@@ -46,8 +47,12 @@ class HarmonicPoints:
     G : array (k,) complex
         ``Y_k / U_k`` averaged over the cycles.
     sd : array (k,)
-        Standard error of ``log G`` (magnitude and phase together), from the
-        cycle-to-cycle spread, floored at :data:`SD_FLOOR`.
+        Standard error of ``log G`` (magnitude and phase together): the
+        cycle-to-cycle spread, the switch timing (half a sample) and
+        :data:`SD_FLOOR` together.
+    spread : array (k,)
+        The cycle-to-cycle part alone (standard error of the mean over the cycles):
+        how steady the oscillation is.
     harmonics : tuple of int
     cycles : int
         Cycles used.
@@ -56,6 +61,7 @@ class HarmonicPoints:
     w: np.ndarray
     G: np.ndarray
     sd: np.ndarray
+    spread: np.ndarray
     harmonics: tuple[int, ...]
     cycles: int
 
@@ -85,7 +91,7 @@ def harmonic_points(t, u, y, cycles: int = 4, harmonics=HARMONICS) -> HarmonicPo
     r = r[-(cycles + 1):]
     ks = np.asarray(harmonics, float)
     per_cycle = []
-    for a, b in zip(r[:-1], r[1:]):
+    for a, b in zip(r[:-1], r[1:], strict=True):
         tt, uu, yy = t[a:b + 1], u[a:b + 1], y[a:b + 1]
         T = tt[-1] - tt[0]
         yd = yy - (yy[0] + (yy[-1] - yy[0]) * (tt - tt[0]) / T)
@@ -100,8 +106,12 @@ def harmonic_points(t, u, y, cycles: int = 4, harmonics=HARMONICS) -> HarmonicPo
     rel = np.log(Gc / G)  # log-magnitude and phase deviations per cycle
     sd = np.sqrt(np.var(rel.real, axis=0) + np.var(rel.imag, axis=0)) / np.sqrt(len(Gc))
     T = (t[r[-1]] - t[r[0]]) / (r.size - 1)
-    return HarmonicPoints(w=2 * np.pi * ks / T, G=G, sd=np.maximum(sd, SD_FLOOR),
-                          harmonics=tuple(int(k) for k in harmonics), cycles=len(Gc))
+    w = 2 * np.pi * ks / T
+    # The switch instants are known to half a sample: a phase uncertainty of w dt / 2,
+    # systematic over the cycles, so the spread above does not show it.
+    timing = w * 0.5 * float(np.median(np.diff(t)))
+    return HarmonicPoints(w=w, G=G, sd=np.sqrt(sd ** 2 + SD_FLOOR ** 2 + timing ** 2), spread=sd,
+                          harmonics=tuple(int(k) for k in ks), cycles=len(Gc))
 
 
 @dataclass(frozen=True)
@@ -169,4 +179,54 @@ def fit_side_model(points: HarmonicPoints, T_att: np.ndarray, max_sd: float = 0.
     T2, tau = np.exp(np.clip(res.x, lo, hi))
     lk, cost = _lk_and_cost(R, wk, wt, T2, tau)
     return SideFit(K=float(np.exp(lk)), T2=float(T2), tau=float(tau), cost=float(cost),
-                   used=tuple(int(k) for k, ok in zip(points.harmonics, keep) if ok))
+                   used=tuple(int(k) for k, ok in zip(points.harmonics, keep, strict=True) if ok))
+
+
+def fit_inner_model(points: HarmonicPoints, start, prior_log_sd: float = 0.5,
+                    max_sd: float = 0.5, fix_gain: bool = False) -> tuple[np.ndarray, float]:
+    """Refine an inner model ``(K, T_prop, T1, tau)`` on measured harmonics, near ``start``.
+
+    Four unknowns against the 1st and 3rd harmonics (and the 5th, 7th when they are
+    measured well) is a fit on the edge of determination, so the time constants are
+    held near ``start`` (the class the classifier and the harmonics chose) by a
+    Gaussian prior of ``prior_log_sd`` in log units; the gain is free unless
+    ``fix_gain`` (a known gain: the "normalised gain" evaluation).
+
+    Returns
+    -------
+    params : array (4,)
+        ``K, T_prop, T1, tau``.
+    cost : float
+        Weighted residual of the measured points at the optimum (prior excluded).
+    """
+    from mrft_gcs.plant import inner_response
+
+    keep = (points.sd <= max_sd) & np.isfinite(points.G)
+    keep[0] = True
+    w, G, sd = points.w[keep], points.G[keep], points.sd[keep]
+    p0 = np.log(np.asarray(start, float))
+
+    def full(x):
+        return np.r_[p0[0], x] if fix_gain else x
+
+    def misfit(lp):
+        d = np.log(G / inner_response(*np.exp(lp), w)[0])
+        return float(np.sum((d.real ** 2 + d.imag ** 2) / sd ** 2))
+
+    def cost(x):
+        lp = full(x)
+        return misfit(lp) + float(np.sum(((lp - p0)[1:] / prior_log_sd) ** 2))
+
+    res = minimize(cost, p0[1:] if fix_gain else p0, method="Nelder-Mead",
+                   options={"xatol": 1e-4, "fatol": 1e-8, "maxiter": 2000})
+    return np.exp(full(res.x)), misfit(full(res.x))
+
+
+def class_log_likelihood(points: HarmonicPoints, G_classes: np.ndarray) -> np.ndarray:
+    """Log-likelihood of each candidate model given the measured points.
+
+    ``G_classes`` has shape ``(n, k)``: each candidate's response at ``points.w``.
+    Gaussian in log-magnitude and phase with the measured standard errors.
+    """
+    d = np.log(points.G[None, :] / G_classes)
+    return -0.5 * np.sum((d.real ** 2 + d.imag ** 2) / points.sd[None, :] ** 2, axis=1)
