@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import sys
 import tempfile
@@ -56,7 +57,8 @@ def run_one(vehicle: str, seed: int, *, truth: bool = False, figure8: bool = Fal
         kw["identifier"] = lambda lp, s, i: ti(lp, s, i)
     prof = load_profile("sitl")
     af = load_airframe(vehicle)
-    rec: dict = {"vehicle": vehicle, "seed": seed, "identifier": "truth" if truth else "bundled"}
+    rec: dict = {"vehicle": vehicle, "seed": seed, "identifier": "truth" if truth else "bundled",
+                 "load_1min": os.getloadavg()[0]}
     wall = time.monotonic()
     with tempfile.TemporaryDirectory() as d, \
             SitlProcess(vehicle=vehicle, port=None, seed=seed, speedup=speedup) as sitl:
@@ -117,7 +119,10 @@ def line(rec: dict) -> str:
         f"{k} {'unstable' if v.get('stable') is False else '-'}"
         for k, v in rec["loops"].items())
     f8 = f", figure-8 {rec['figure8_mean_m']:.3f} m" if "figure8_mean_m" in rec else ""
-    return (f"{head} {rec['status']}, {rec['duration_s'] or math.nan:5.2f} s, tilt "
+    at = "/".join(f"{v['tuned_after_s']:.1f}" if v.get("tuned_after_s") is not None else "-"
+                  for v in rec["loops"].values())
+    return (f"{head} load {rec.get('load_1min', math.nan):.2f}, {rec['status']}, "
+            f"{rec['duration_s'] or math.nan:5.2f} s (loops tuned at {at} s), tilt "
             f"{rec['max_tilt_deg'] or math.nan:4.1f} deg, stream {rec.get('stream_hz', 0):.1f} Hz "
             f"p99 jitter {rec.get('jitter_p99_ms', math.nan):.2f} ms; J {js}{f8}")
 

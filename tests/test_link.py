@@ -207,3 +207,43 @@ def test_signing_gcs_signs_and_the_keyed_sitl_accepts(tmp_path):
 def test_links_speak_mavlink2():  # signing needs it
     from mrft_gcs.link.connection import mavlink_module
     assert mavlink_module().mavlink.WIRE_PROTOCOL_VERSION == "2.0"
+
+
+def test_streamer_shortens_the_switch_interval_only_while_it_runs():
+    class Sink:
+        def send_setpoint(self, target):
+            pass
+
+        def telemetry_age_s(self):
+            return 0.0
+
+        def land(self, **kw):
+            pass
+
+    import sys
+
+    before = sys.getswitchinterval()
+    a = SetpointStreamer(Sink(), lambda t: None, watchdog_s=None).start()
+    b = SetpointStreamer(Sink(), lambda t: None, watchdog_s=None).start()
+    time.sleep(0.1)
+    assert sys.getswitchinterval() == pytest.approx(min(before, 0.0005))
+    a.stop()
+    assert sys.getswitchinterval() == pytest.approx(min(before, 0.0005))  # b still streams
+    b.stop()
+    assert sys.getswitchinterval() == pytest.approx(before)
+
+
+def test_latency_hints_need_no_privilege():
+    import sys
+    import threading
+
+    from mrft_gcs.link.latency import latency_hints
+
+    got: list[str] = []
+    t = threading.Thread(target=lambda: got.extend(latency_hints()))
+    t.start()
+    t.join()
+    if sys.platform.startswith("linux"):
+        assert "timer slack 1 us" in got  # prctl works for any user
+    else:
+        assert got == []

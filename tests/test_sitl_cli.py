@@ -8,6 +8,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from mrft_gcs.cli import main
 from mrft_gcs.sitl.process import free_udp_port
 
@@ -51,3 +53,31 @@ def test_runs_prints_connection_string_and_stops_on_sigterm():
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_sitl_process_runs_in_its_own_session_and_exits_with_its_parent():
+    code = ("import time\n"
+            "from mrft_gcs.sitl import SitlProcess\n"
+            "s = SitlProcess(vehicle='qdrone', port=None).start()\n"
+            "print(s._proc.pid, flush=True)\n"
+            "time.sleep(60)\n")
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        pid = int(parent.stdout.readline())
+        assert os.getsid(pid) == pid != os.getsid(parent.pid)  # a session of its own
+    finally:
+        parent.kill()
+        parent.wait()
+    end = time.monotonic() + 10
+    while time.monotonic() < end:  # gone, or a zombie waiting for init to reap it
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                if f.read().split(")")[1].split()[0] == "Z":
+                    break
+        except FileNotFoundError:
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(pid, signal.SIGKILL)
+        raise AssertionError("the SITL outlived its parent")

@@ -9,6 +9,11 @@ than sent in a burst. Each achieved period is recorded for the jitter figures.
 Every tick also checks the link's telemetry age: past ``watchdog_s`` (0.5 s by
 SPEC 5) the stream stops, a landing is commanded and :attr:`abort_reason` says
 why; :meth:`raise_if_aborted` turns it into :class:`~mrft_gcs.errors.SafetyAbort`.
+
+Timing: the thread sleeps until ``_SPIN_S`` before each deadline and spins the rest.
+While any stream runs, the interpreter's GIL switch interval is 0.5 ms instead of 5 ms
+(restored when the last stream stops). The thread asks the OS to wake it on time
+(:func:`~mrft_gcs.link.latency.latency_hints`: unprivileged, no priority change).
 """
 
 from __future__ import annotations
@@ -23,9 +28,11 @@ from typing import Protocol
 import numpy as np
 
 from mrft_gcs.errors import SafetyAbort
+from mrft_gcs.link.latency import latency_hints
 from mrft_gcs.telemetry import ActuatorTarget, AttitudeTarget
 
-__all__ = ["SetpointStreamer", "StreamStats", "SetpointSink", "Setpoint", "period_stats"]
+__all__ = ["SetpointStreamer", "StreamStats", "SetpointSink", "Setpoint", "period_stats",
+           "latency_hints"]
 
 Setpoint = ActuatorTarget | AttitudeTarget
 #: The callback: monotonic seconds since the stream started -> setpoint, or None to skip a tick.
@@ -33,6 +40,29 @@ SetpointFn = Callable[[float], Setpoint | None]
 
 _SPIN_S = 0.0004  # sleep until this close to a deadline, then spin: sleep() overshoots ~0.1 ms
 _SWITCH_INTERVAL_S = 0.0005
+_switch_lock = threading.Lock()
+_switch_users = 0
+_switch_saved = 0.0
+
+
+def _shorten_switch_interval() -> None:
+    """A thread waiting for the GIL waits up to the switch interval (5 ms by default)
+    while another thread runs Python code: far too long for a 4 ms period."""
+    global _switch_users, _switch_saved
+    with _switch_lock:
+        if _switch_users == 0:
+            _switch_saved = sys.getswitchinterval()
+            if _switch_saved > _SWITCH_INTERVAL_S:
+                sys.setswitchinterval(_SWITCH_INTERVAL_S)
+        _switch_users += 1
+
+
+def _restore_switch_interval() -> None:
+    global _switch_users
+    with _switch_lock:
+        _switch_users = max(0, _switch_users - 1)
+        if _switch_users == 0 and _switch_saved > 0:
+            sys.setswitchinterval(_switch_saved)
 
 
 class SetpointSink(Protocol):
@@ -129,6 +159,8 @@ class SetpointStreamer:
         self._thread: threading.Thread | None = None
         self.abort_reason: str | None = None
         self.landing_commanded = False
+        #: the OS latency hints the stream thread got (:func:`latency_hints`)
+        self.hints: list[str] = []
 
     def reset(self) -> None:
         """Forget recorded periods (the stream must be stopped)."""
@@ -147,10 +179,6 @@ class SetpointStreamer:
     def start(self) -> SetpointStreamer:
         if self.running:
             return self
-        # A thread waiting for the GIL waits up to the switch interval (5 ms by default)
-        # while the reader thread parses telemetry: far too long for a 4 ms period.
-        if sys.getswitchinterval() > _SWITCH_INTERVAL_S:
-            sys.setswitchinterval(_SWITCH_INTERVAL_S)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="setpoint-streamer", daemon=True)
         self._thread.start()
@@ -192,6 +220,14 @@ class SetpointStreamer:
         self._stop.set()
 
     def _run(self) -> None:
+        _shorten_switch_interval()
+        try:
+            self.hints = latency_hints()
+            self._loop()
+        finally:
+            _restore_switch_interval()
+
+    def _loop(self) -> None:
         period = 1.0 / self.rate_hz
         t0 = time.monotonic()
         k = 0

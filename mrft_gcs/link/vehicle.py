@@ -33,6 +33,7 @@ from mrft_gcs.link.connection import (
     parse_connection_string,
     wait_vehicle_heartbeat,
 )
+from mrft_gcs.link.latency import latency_hints
 from mrft_gcs.link.modes import ARDUPILOT_COPTER_MODES, PX4_MODES, CustomMode, mode_matches
 from mrft_gcs.link.tlog import TlogSink
 from mrft_gcs.telemetry import (
@@ -297,6 +298,7 @@ class VehicleLink:
                 self._subs.remove(sub)
 
     def _read_loop(self) -> None:
+        latency_hints()  # telemetry waiting here is delay in every relay loop
         next_beat = 0.0
         while not self._stop.is_set():
             now = time.monotonic()

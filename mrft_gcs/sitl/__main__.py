@@ -1,14 +1,17 @@
 """``python -m mrft_gcs.sitl``: the SITL executable that :class:`SitlProcess` starts.
 
 Prints one line ``SITL ready: udp:127.0.0.1:PORT`` on stdout once it serves, then runs until
-SIGTERM or SIGINT. Exit code 2 for bad arguments (one line on stderr).
+SIGTERM or SIGINT (or, with ``--exit-with-parent``, until the process that started it is
+gone). Exit code 2 for bad arguments (one line on stderr).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
+import threading
 
 from mrft_gcs.errors import MrftError
 from mrft_gcs.sitl.process import DEFAULT_PORT, READY_PREFIX, SitlConfig, make_server, parse_effects
@@ -21,6 +24,20 @@ def _wind(text: str) -> tuple[float, float, float]:
     return (parts[0], parts[1], parts[2])
 
 
+def _watch_parent(stop, period_s: float = 0.25) -> None:
+    """Call ``stop`` once this process is re-parented (its parent exited or was killed)."""
+    parent = os.getppid()
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.wait(period_s):
+            if os.getppid() != parent:
+                stop()
+                return
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m mrft_gcs.sitl",
                                  description="Simulated multirotor serving MAVLink over UDP.")
@@ -31,6 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--signing-key", default=None, metavar="FILE")
     ap.add_argument("--wind", type=_wind, default=(0.0, 0.0, 0.0), metavar="N,E,D")
+    ap.add_argument("--exit-with-parent", action="store_true",
+                    help="stop when the process that started this one exits")
     args = ap.parse_args(argv)
     try:
         cfg = SitlConfig(vehicle=args.vehicle, port=args.port, speedup=args.speedup,
@@ -42,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     signal.signal(signal.SIGTERM, lambda *_: server.stop())
     signal.signal(signal.SIGINT, lambda *_: server.stop())
+    if args.exit_with_parent:
+        _watch_parent(server.stop)
     print(f"{READY_PREFIX} {cfg.connection_string}", flush=True)
     try:
         server.serve_forever()

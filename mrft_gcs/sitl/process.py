@@ -120,6 +120,12 @@ def make_server(cfg: SitlConfig):  # -> SitlServer (imported lazily: pymavlink i
 class SitlProcess:
     """The SITL as a subprocess, started on ``__enter__`` and stopped on ``__exit__``.
 
+    The subprocess runs in a session of its own, as a vehicle would on its own computer:
+    where the kernel groups processes by session for fair CPU sharing (Linux autogroup),
+    it is then not one share with the ground station that tunes it, and a Ctrl-C in the
+    terminal reaches only the ground station, which lands the vehicle before stopping
+    it. It exits by itself when its parent process goes away.
+
     Parameters
     ----------
     vehicle : str
@@ -185,7 +191,8 @@ class SitlProcess:
         """The argument vector of the subprocess."""
         cmd = [sys.executable, "-m", "mrft_gcs.sitl", "--vehicle", self.vehicle,
                "--port", str(self.port), "--speedup", repr(self.speedup),
-               "--seed", str(self.seed), "--wind", ",".join(repr(w) for w in self.wind_m_s)]
+               "--seed", str(self.seed), "--wind", ",".join(repr(w) for w in self.wind_m_s),
+               "--exit-with-parent"]
         for name, value in self.effects.items():
             cmd += ["--effect", f"{name}={value!r}"]
         return cmd
@@ -204,7 +211,8 @@ class SitlProcess:
         self._stderr_path = Path(self._tmpdir.name) / "stderr.txt"
         with self._stderr_path.open("w") as err:
             self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True,
-                                          env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                          env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                                          start_new_session=True)
         deadline = time.monotonic() + self.startup_timeout_s
         assert self._proc.stdout is not None
         import selectors

@@ -34,6 +34,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from mrft_gcs.link.latency import latency_hints
 from mrft_gcs.sitl.onboard import CommandResult, FlightMode
 from mrft_gcs.sitl.physics import quat_from_euler
 from mrft_gcs.sitl.vehicle import SimVehicle
@@ -141,6 +142,7 @@ class SitlServer:
 
     def serve_forever(self) -> None:
         """Run in (scaled) real time until :meth:`stop`."""
+        latency_hints()  # a late wake-up here is delay in the ground station's relay loops
         v = self.vehicle
         dt = v.dt
         wall0 = time.monotonic() - v.time_s / self.speedup
