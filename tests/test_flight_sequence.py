@@ -12,6 +12,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
+import numpy as np
 import pytest
 from flight_sim import ALT_RELAY, ATT_RELAY, fly, state_of
 
@@ -75,3 +76,68 @@ def test_attitude_path_leaves_attitude_loops_alone():
     assert seq.inner_done and not seq.side_waiting  # x and y wait for altitude too
     seq.loops[Loop.ALTITUDE].state = LoopState.TUNED
     assert seq.side_waiting and seq.side_ready() == [Loop.X, Loop.Y]
+
+
+def _yawed(x=0.0, y=0.0, yaw=0.0, t=0.0, vx=0.0):
+    return FlightState(t, 0, 0, yaw, 0, 0, 0, t, x, y, 0.0, vx, 0, 0)
+
+
+def test_side_axes_follow_the_take_off_heading():
+    # taking off facing east: x is forward (east), y is right (south)
+    seq = TuningSequence(SequenceConfig(), ATT_RELAY, ALT_RELAY)
+    seq.start(_yawed(yaw=math.pi / 2))
+    seq.step(_yawed(y=1.5, yaw=math.pi / 2, t=0.004))  # 1.5 m east = 1.5 m forward
+    roll_ref, pitch_ref = seq.tilt_cmd
+    assert pitch_ref == pytest.approx(0.05) and roll_ref == pytest.approx(0.0, abs=1e-12)
+
+
+def test_tilt_command_is_rotated_by_the_heading_drift():
+    # took off facing north, has since yawed 90 deg right: a command back south is a roll right
+    seq = TuningSequence(SequenceConfig(), ATT_RELAY, ALT_RELAY)
+    seq.start(_yawed())
+    seq.step(_yawed(x=1.5, yaw=math.pi / 2, t=0.004))
+    roll_ref, pitch_ref = seq.tilt_cmd
+    assert roll_ref == pytest.approx(0.05) and pitch_ref == pytest.approx(0.0, abs=1e-12)
+
+
+def test_side_axis_is_brought_to_rest_once_its_attitude_loop_is_tuned():
+    from mrft_gcs.flight.controllers import PDLoop
+
+    seq = TuningSequence(SequenceConfig(), ATT_RELAY, ALT_RELAY)
+    seq.start(_yawed())
+    seq.step(_yawed(x=0.5, vx=0.5, t=0.004))
+    assert seq.tilt_cmd[1] == 0.0  # bounding relay: idle within 1 m
+    seq.loops[Loop.PITCH].pd = PDLoop(1.0, 0.1)  # pitch tuned (altitude still testing)
+    seq.step(_yawed(x=0.5, vx=0.5, t=0.008))
+    kp, kd = seq.config.settle_pd
+    assert seq.tilt_cmd[1] == pytest.approx(kd * 0.5, rel=0.05)  # braking: pitch up
+    assert seq.loops[Loop.X].state is LoopState.WAITING  # its relay waits for altitude
+
+
+def test_altitude_and_side_identify_three_cycles_attitude_four():
+    af = load_airframe("qdrone")
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=af.hover_thrust), ATT_RELAY, ALT_RELAY)
+    fly(seq, "qdrone", seed=1, max_s=30.0, hover_s=0.0)
+    assert seq.phase is Phase.HOVER
+    for lp, n in ((Loop.ROLL, 4), (Loop.PITCH, 4), (Loop.ALTITUDE, 3), (Loop.X, 3), (Loop.Y, 3)):
+        u = seq.loops[lp].snapshot.u
+        high = u > 0.5 * (u.max() + u.min())
+        assert np.count_nonzero(high[1:] & ~high[:-1]) == n, lp  # rising switches = cycles
+
+
+def test_full_sequence_at_any_heading(monkeypatch):
+    import flight_sim
+
+    class Yawed(flight_sim.SimVehicle):
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            self.physics.reset(yaw=2.0)
+
+    monkeypatch.setattr(flight_sim, "SimVehicle", Yawed)
+    af = load_airframe("qdrone")
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=af.hover_thrust), ATT_RELAY, ALT_RELAY)
+    v, max_tilt = fly(seq, "qdrone", seed=2, max_s=40.0)
+    assert seq.yaw_ref == pytest.approx(2.0, abs=0.01)
+    assert seq.phase is Phase.HOVER and seq.duration_s < 20.0 and max_tilt < 35.0
+    s = state_of(v)
+    assert math.hypot(s.x_m, s.y_m) < 0.3 and abs(s.z_up_m - 1.0) < 0.1

@@ -12,13 +12,19 @@ turns the latest :class:`~mrft_gcs.flight.controllers.FlightState` into a setpoi
 hands the steady cycles to whoever identifies them (the tuning API, on its own
 thread) and :meth:`~TuningSequence.apply` switches a loop to its PD at once.
 
-Axes: x (north) is driven by ``-pitch``, y (east) by ``+roll`` (yaw 0, NED); the
-x and y relays and PDs output that tilt command in rad, exactly the ``u`` that the
-side-motion identification expects.
+Axes: x and y are the forward and right axes of the heading at take-off (north and
+east for a take-off facing north): positions and velocities are rotated into that
+frame as they come in. x is driven by ``-pitch``, y by ``+roll``; the x and y relays
+and PDs output that tilt command in rad, exactly the ``u`` that the side-motion
+identification expects, and it is rotated onto roll and pitch by the *measured*
+heading's departure from the take-off heading, so a yaw drift during the tests
+(measured: 5 deg on racer250 under the attitude relays) does not couple the two
+side tests.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 import threading
@@ -26,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mrft_gcs.flight.controllers import FlightState, PDLoop, YawHold
+from mrft_gcs.flight.controllers import FlightState, PDLoop, YawHold, wrap_pi
 from mrft_gcs.flight.noise import ComplementaryFilter, NoiseEstimator
 from mrft_gcs.flight.takeoff import TABLE_V, TakeoffController, TakeoffSettings
 from mrft_gcs.identify import CycleDetector, CycleStatus, Identification, RelaySettings
@@ -117,6 +123,7 @@ class LoopTest:
     switches: int = 0  # relay switches since the relay (re)started
     center: float = 0.0  # side relays: the position the relay oscillates about (m)
     settling: bool = False  # side relays: bringing the axis to rest before the relay starts
+    presettle: bool = False  # side loops: held at rest while waiting for the altitude test
     dt_s: float = _NAN  # mean telemetry interval seen by the detector
 
 
@@ -137,6 +144,12 @@ class SequenceConfig:
     airborne_m: float = 0.03
     #: cycles handed to identification (the classifier input averages up to four)
     identify_cycles: int = 4
+    #: ... except altitude and x/y, which the tune waits for (x and y start once altitude is
+    #: done): they hand over this many (altitude, side) once steady, one cycle sooner
+    #: (measured on the in-process SITL, 3 airframes x 8 seeds: take-off to all loops tuned
+    #: 11.8 s mean with 4 cycles, 10.5 s with 3; see README "Tuning a vehicle" for J).
+    #: Roll and pitch are done seconds before altitude and keep four.
+    identify_cycles_alt_side: tuple[int, int] = (3, 3)
     steady_periods: tuple[int, int, int] = (3, 2, 3)  # attitude, altitude, side
     #: periods agree within this fraction, or 2.5 telemetry intervals if that is more
     period_tol: float = 0.03
@@ -247,10 +260,21 @@ class TuningSequence:
                 t.note = ("attitude path: the autopilot keeps its own attitude loop "
                           "(SET_ATTITUDE_TARGET), so roll and pitch are not tested")
 
+    def _heading_frame(self, s: FlightState) -> FlightState:
+        """``s`` with x, y and their velocities along the take-off heading's forward/right."""
+        if self.yaw_ref == 0.0:
+            return s
+        c, n = math.cos(self.yaw_ref), math.sin(self.yaw_ref)
+        return dataclasses.replace(s, x_m=c * s.x_m + n * s.y_m, y_m=c * s.y_m - n * s.x_m,
+                                   vx_m_s=c * s.vx_m_s + n * s.vy_m_s,
+                                   vy_m_s=c * s.vy_m_s - n * s.vx_m_s)
+
     def observe(self, s: FlightState) -> None:
         """A sample on the ground before the take-off command: measures the signals' noise."""
         with self._lock:
             if self.phase is Phase.PREFLIGHT:
+                self.yaw_ref = s.yaw_rad  # the heading the side axes will follow
+                s = self._heading_frame(s)
                 self._filter_xy(s)
                 self.att_noise.update(s.t_att_s, (s.roll_rad, s.pitch_rad))
                 self.pos_noise.update(s.t_pos_s, (*self.xy_f, self.z_f))
@@ -274,8 +298,9 @@ class TuningSequence:
     def start(self, s: FlightState) -> None:
         """Take-off command: remember the take-off point and heading, enter TAKEOFF."""
         with self._lock:
-            self.origin = (s.x_m, s.y_m, s.z_up_m)
             self.yaw_ref = s.yaw_rad
+            s = self._heading_frame(s)
+            self.origin = (s.x_m, s.y_m, s.z_up_m)
             self.t_start_s = max(s.t_att_s, s.t_pos_s)
             self.state = s
             self.phase = Phase.TAKEOFF
@@ -346,7 +371,7 @@ class TuningSequence:
                         self._raise_h(t, sigma / (0.7 * self.config.max_noise_ratio
                                                   * t.status.amplitude))
                         continue
-                    ts, u, y = t.detector.last_cycles(self.config.identify_cycles)
+                    ts, u, y = t.detector.last_cycles(self._cycles(t.loop))
                     if ts.size < 8:
                         continue
                     t.state = LoopState.IDENTIFYING
@@ -356,6 +381,15 @@ class TuningSequence:
                                                sp)
                     out.append(t.snapshot)
         return out
+
+    def _cycles(self, loop: Loop) -> int:
+        """Cycles handed to identification for ``loop``."""
+        n = self.config.identify_cycles
+        if loop is Loop.ALTITUDE:
+            return min(n, self.config.identify_cycles_alt_side[0])
+        if loop in SIDE_LOOPS:
+            return min(n, self.config.identify_cycles_alt_side[1])
+        return n
 
     def _h_max(self, loop: Loop) -> float:
         if loop is Loop.ALTITUDE:
@@ -499,6 +533,7 @@ class TuningSequence:
     def step(self, s: FlightState) -> ActuatorTarget | AttitudeTarget:
         """Setpoint for the latest state (torque path: ActuatorTarget; attitude: AttitudeTarget)."""
         with self._lock:
+            s = self._heading_frame(s)
             self.state = s
             cfg = self.config
             z = s.z_up_m - self.origin[2]
@@ -511,9 +546,13 @@ class TuningSequence:
             if self.phase is Phase.TAKEOFF and self.takeoff.switched:
                 self.phase = Phase.INNER_MRFT
             ux, uy = self._side(s, new_pos)
+            # onto the body axes by the measured heading (PX4's position controller does the
+            # same): a yaw drift must not turn the x test's tilt into y motion
+            d = wrap_pi(s.yaw_rad - self.yaw_ref)
+            c, n = math.cos(d), math.sin(d)
             lim = cfg.max_tilt_cmd_rad
-            roll_ref = min(lim, max(-lim, uy))
-            pitch_ref = min(lim, max(-lim, -ux))
+            roll_ref = min(lim, max(-lim, c * uy - n * ux))
+            pitch_ref = min(lim, max(-lim, -(c * ux + n * uy)))
             self.tilt_cmd = (roll_ref, pitch_ref)
             if cfg.actuation is Actuation.ATTITUDE:
                 q = quat_from_euler(roll_ref, pitch_ref, self.yaw_ref)
@@ -570,7 +609,15 @@ class TuningSequence:
         out = []
         for t, pos, vel, o, pf, b in ((tx, s.x_m, s.vx_m_s, self.origin[0], xf, bb[0]),
                                       (ty, s.y_m, s.vy_m_s, self.origin[1], yf, bb[1])):
-            if t.state is LoopState.WAITING:
+            if t.state is LoopState.WAITING and self.loops[SIDE_INNER[t.loop]].pd is not None:
+                # its attitude loop is tuned: bring the axis to rest already (the soft settle
+                # PD about where it was then), so that its relay can start as soon as the
+                # altitude test ends instead of settling only then
+                if not t.presettle:
+                    t.presettle, t.center = True, pf
+                kp, kd = self.config.settle_pd
+                u = kp * (t.center - pf) - kd * vel
+            elif t.state is LoopState.WAITING:
                 u = b
             elif t.pd is not None:
                 # hold where the relay oscillated: a step back to the take-off point would
