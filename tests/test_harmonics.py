@@ -121,3 +121,16 @@ def test_inner_identification_keeps_its_phase_margin():
         best = optimal_pd(G, w)
         J = (ise(a_id.gains.Kc, a_id.gains.Kd, G, w) - best.ise) / best.ise * 100
         assert m.stable and m.pm_deg >= 15.0 and J < 10.0, (i, m.pm_deg, J)
+
+
+def test_unsteady_cycles_are_refused():
+    """An oscillation that grows from cycle to cycle is not a relay test to identify."""
+    from mrft_gcs.errors import IdentificationError
+
+    b = load_bundle(LoopKind.ATTITUDE)
+    t = np.arange(0, 3.0, 0.002)
+    phase = 2 * np.pi * t / 0.5
+    u = b.h * np.sign(np.sin(phase + 0.8))
+    y = 0.02 * np.exp(0.6 * t) * np.sin(phase)
+    with pytest.raises(IdentificationError, match="not steady"):
+        identify(LoopKind.ATTITUDE, t, u, y, beta=b.beta, h=b.h)
