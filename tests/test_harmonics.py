@@ -134,3 +134,15 @@ def test_unsteady_cycles_are_refused():
     y = 0.02 * np.exp(0.6 * t) * np.sin(phase)
     with pytest.raises(IdentificationError, match="not steady"):
         identify(LoopKind.ATTITUDE, t, u, y, beta=b.beta, h=b.h)
+
+
+def test_a_record_the_model_cannot_explain_keeps_the_classifier_rule():
+    """A pure sine answering a square wave has no odd harmonics, unlike any plant here: the
+    refined fit runs off and its gains are not trusted."""
+    b = load_bundle(LoopKind.ATTITUDE)
+    t = np.arange(0, 3.0, 0.002)
+    phase = 2 * np.pi * t / 0.5
+    u = b.h * np.sign(np.sin(phase + 0.8))
+    a_id = identify(LoopKind.ATTITUDE, t, u, 0.02 * np.sin(phase), beta=b.beta, h=b.h)
+    assert a_id.extras["method"] == "classifier"
+    assert a_id.gains.Kc / a_id.gains.Kd < 50

@@ -397,6 +397,8 @@ def scaled_gains(b: Bundle, probs: np.ndarray, period_s: float, amplitude: float
 STEADY_MAX_SD = 0.1
 #: Width (log units) of the prior that holds the inner-model fit near the chosen class.
 PRIOR_LOG_SD = 0.5
+#: Refined gains further than this factor from the chosen rule's are not trusted.
+MAX_REFINE_FACTOR = 3.0
 
 
 def steady_points(t, u, y):
@@ -450,7 +452,9 @@ def refined_identification(b: Bundle, probs: np.ndarray, f, pts, K_true: float |
     period, gain from exact gain scaling) is refined on the measured points
     (:func:`mrft_gcs.identify.harmonics.fit_inner_model`) and the gains are the
     optimal PD of the refined model (PM >= 20 deg on it). ``pts`` ``None``: the
-    classifier's rule alone (``fit_cost`` NaN). ``K_true``: the gain is known (the
+    classifier's rule alone (``fit_cost`` NaN); a refinement whose gains differ from the
+    rule's by more than :data:`MAX_REFINE_FACTOR` is dropped (``fit_cost`` infinite).
+    ``K_true``: the gain is known (the
     "normalised gain" evaluation) and is not fitted.
     """
     from mrft_gcs.identify.harmonics import fit_inner_model
@@ -470,8 +474,12 @@ def refined_identification(b: Bundle, probs: np.ndarray, f, pts, K_true: float |
                                    fix_gain=K_true is not None)
     w = frequency_grid(*params[1:], n=500)
     design = optimal_pd(inner_response(*params, w)[0], w)
-    if not design.margins.stable:
-        return pd, model, k, c, post, cost
+    change = np.abs(np.log([design.pd.Kc / pd.Kc, design.pd.Kd / pd.Kd]))
+    trusted = K_true is not None or np.all(change <= np.log(MAX_REFINE_FACTOR))
+    if not design.margins.stable or not trusted:
+        # the refined model is unlike any the classifier considered: a record the model
+        # structure does not explain; keep the classifier's rule
+        return pd, model, k, c, post, float("inf")
     return design.pd, InnerModel(*(float(v) for v in params)), k, c, post, cost
 
 
@@ -496,6 +504,7 @@ def identify(kind: LoopKind, t, u, y, *, beta: float, h: float, bias: float = 0.
                                             "likeliest": int(np.argmax(probs)),
                                             "probs": np.sort(probs)[::-1][:3].tolist(),
                                             "fit_cost": cost,
-                                            "method": "classifier + harmonics" if pts else
-                                            "classifier",
+                                            "method": "classifier" if pts is None or
+                                            not np.isfinite(cost) else
+                                            "classifier + harmonics",
                                             "duty": f.duty, "bias": f.bias})
