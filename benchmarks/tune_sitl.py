@@ -84,6 +84,7 @@ def run_one(vehicle: str, seed: int, *, truth: bool = False, figure8: bool = Fal
     if r is None:
         return rec
     rec["duration_s"] = _num(r.duration_s)
+    rec["notes"] = list(r.notes)  # relay raises and restarts, identification retries
     rec["max_tilt_deg"] = _num(r.max_tilt_deg)
     if r.stream is not None:
         rec["stream_hz"] = _num(r.stream.rate_hz_achieved)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import gc
 import math
 import os
 import time
@@ -374,6 +375,10 @@ class _Run:
         if self.ident_fn is bundled_identifier:
             warm_up_identification(relay_settings(LoopKind.ATTITUDE),
                                    relay_settings(LoopKind.ALTITUDE))
+        # Everything loaded so far lives as long as the process: out of the cyclic garbage
+        # collector's sight, a full collection in flight takes ~0 ms instead of 95-165 ms
+        # (measured after the warm-up), time in which no setpoint would go out.
+        gc.freeze()
         cfg = dataclasses.replace(
             self.config, actuation=self.act, z_ref_m=self.z_ref_m,
             hover_thrust_guess=self.hover if 0 < self.hover < 1 else None,

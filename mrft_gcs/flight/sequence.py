@@ -153,6 +153,9 @@ class SequenceConfig:
     steady_periods: tuple[int, int, int] = (3, 2, 3)  # attitude, altitude, side
     #: periods agree within this fraction, or 2.5 telemetry intervals if that is more
     period_tol: float = 0.03
+    #: ... x and y: their periods wobble by 2-4 % from cycle to cycle while both side relays
+    #: run (live over UDP, f550: 1.55-1.66 s), so 3 % let a steady cycle wait 2-4 periods
+    side_period_tol: float = 0.05
     #: a relay whose error passes ``runaway_factor`` x its cycle amplitude (and the floor:
     #: rad for attitude, m for altitude and side) while still pushing it out is restarted
     runaway_factor: float = 3.0
@@ -574,7 +577,9 @@ class TuningSequence:
                 # sample interval either way, so short cycles need a wider tolerance
                 dt = t_s - det.t[-1]
                 t.dt_s = dt if not math.isfinite(t.dt_s) else 0.99 * t.dt_s + 0.01 * dt
-                det.period_tol = max(self.config.period_tol, 2.5 * t.dt_s / t.status.period_s)
+                tol = self.config.side_period_tol if t.loop in SIDE_LOOPS else \
+                    self.config.period_tol
+                det.period_tol = max(tol, 2.5 * t.dt_s / t.status.period_s)
             t.status = det.update(t_s, u, y)
 
     def _altitude(self, s: FlightState, z: float, new: bool) -> float:
