@@ -108,10 +108,12 @@ def test_side_axis_is_brought_to_rest_once_its_attitude_loop_is_tuned():
     seq.step(_yawed(x=0.5, vx=0.5, t=0.004))
     assert seq.tilt_cmd[1] == 0.0  # bounding relay: idle within 1 m
     seq.loops[Loop.PITCH].pd = PDLoop(1.0, 0.1)  # pitch tuned (altitude still testing)
-    seq.step(_yawed(x=0.5, vx=0.5, t=0.008))
+    seq.step(_yawed(x=0.5, vx=0.2, t=0.008))
     kp, kd = seq.config.settle_pd
-    assert seq.tilt_cmd[1] == pytest.approx(kd * 0.5, rel=0.05)  # braking: pitch up
+    assert seq.tilt_cmd[1] == pytest.approx(kd * 0.2, rel=0.05)  # braking: pitch up
     assert seq.loops[Loop.X].state is LoopState.WAITING  # its relay waits for altitude
+    seq.step(_yawed(x=0.5, vx=1.5, t=0.012))  # fast: a gentle tilt, not a 0.6 rad step
+    assert seq.tilt_cmd[1] == pytest.approx(seq.config.settle_max_tilt_rad)
 
 
 def test_altitude_and_side_identify_three_cycles_attitude_four():

@@ -193,6 +193,11 @@ class SequenceConfig:
     settle_pd: tuple[float, float] = (0.3, 0.4)
     settle_speed_m_s: float = 0.03
     settle_max_s: float = 2.0
+    #: largest tilt command of that soft PD (rad): an axis is handed to it from the bounding
+    #: relay as soon as its attitude loop is tuned, possibly moving at 1 m/s, and an unclipped
+    #: 0.4 rad step on the freshly tuned attitude PD overshot past the 35 deg tilt limit
+    #: (3 of 15 live tunes on a loaded machine)
+    settle_max_tilt_rad: float = 0.1
 
 
 def quat_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
@@ -620,8 +625,7 @@ class TuningSequence:
                 # altitude test ends instead of settling only then
                 if not t.presettle:
                     t.presettle, t.center = True, pf
-                kp, kd = self.config.settle_pd
-                u = kp * (t.center - pf) - kd * vel
+                u = self._settle(t.center - pf, vel)
             elif t.state is LoopState.WAITING:
                 u = b
             elif t.pd is not None:
@@ -629,8 +633,7 @@ class TuningSequence:
                 # disturb the other axis while its test still runs
                 u = t.pd.step(t.center if t.identification is not None else o, pos, vel)
             elif t.relay is not None and t.settling:
-                kp, kd = self.config.settle_pd
-                u = kp * (t.center - pf) - kd * vel
+                u = self._settle(t.center - pf, vel)
                 if (abs(vel) < self.config.settle_speed_m_s or
                         s.t_pos_s - t.t_relay_start_s > self.config.settle_max_s):
                     t.settling, t.center = False, pf
@@ -644,6 +647,12 @@ class TuningSequence:
             t.u = u
             out.append(u)
         return out[0], out[1]
+
+    def _settle(self, e: float, vel: float) -> float:
+        """The soft PD that brings a side axis to rest (tilt command, rad, clipped)."""
+        kp, kd = self.config.settle_pd
+        lim = self.config.settle_max_tilt_rad
+        return min(lim, max(-lim, kp * e - kd * vel))
 
     def _attitude(self, loop: Loop, ref: float, y: float, rate: float, t_s: float, new: bool,
                   airborne: bool) -> float:
