@@ -1,34 +1,58 @@
 """Dry-run: the identification of a live tune, on logged telemetry; touches nothing.
 
-:func:`dry_run` reads a log (:func:`mrft_gcs.logs.read_log`), finds the relay
-tests in it (:func:`find_relay_segments`), and for each loop runs the same
-pipeline as a live tune (:func:`analyse_segment`): the cycle detector, the
-classifier with exact gain scaling (:func:`mrft_gcs.identify.identify`), then
-residual analysis (:func:`mrft_gcs.residual.analyse_residual`). It returns a
-:class:`DryRunResult` holding the identified models, residuals and the
-parameter values a tune would write; it never opens a link.
+:func:`dry_run` reads a log (:func:`mrft_gcs.logs.decode_log`), finds the relay
+tests in it (:func:`find_relay_segments`), and for each loop runs the pipeline of a
+live tune (:func:`analyse_segment`): the cycle detector's verdicts as the live
+sequence feeds it, the classifier with exact gain scaling
+(:func:`mrft_gcs.identify.identify`) on the cycles a tune identifies, then residual
+analysis (:func:`mrft_gcs.residual.analyse_residual`). It returns a
+:class:`DryRunResult` holding the identified models, residuals, the gains a tune
+would write (inner loops re-targeted to the onboard loop as a tune writes them,
+:func:`mrft_gcs.flight.onboard.onboard_gains`) and their parameter values; it never
+opens a link.
 
 Where relay tests come from
 ---------------------------
 - **Explicit loop tables** (the documented CSV): ``u`` is the relay output.
 - **Recorded setpoints**: torque commands (SET_ACTUATOR_CONTROL_TARGET roll and
   pitch, collective thrust for altitude) or attitude set points (x: -pitch,
-  y: +roll, from SET_ATTITUDE_TARGET) that alternate between two levels. The
-  measured output is the attitude, altitude (-z) or position, zero-order held at
-  the set-point times.
+  y: +roll, from SET_ATTITUDE_TARGET) that alternate between two levels.
+- **Tilt set points behind the GCS attitude PDs** (x, y on the torque path): a
+  live tune runs the x/y relays through its own attitude PDs, so only torques go
+  on the wire. Once pitch (x) or roll (y) is identified, the PD
+  ``torque = trim + Kc (ref - angle) - Kd rate`` is fitted to the torques and
+  inverted (:func:`_side_segment`).
 - **Relay signature in telemetry alone**: a sustained oscillation of an angle
   whose rate has a square-wave derivative (the relay's torque). The relay levels
   are not in the log, so ``h`` must then be given (CSV metadata or ``h=``).
 
+Which sample a command answered
+-------------------------------
+A ground station's command answers the telemetry it had when it computed it, and
+the live detector sees only those samples. A .tlog logs both directions in the
+order the ground station saw them (:attr:`mrft_gcs.logs.DecodedLog.file_order`);
+a sample that arrived while a command was being computed is logged before it, so
+the order alone is off by a sample now and then. mrft-tune's own commands carry
+fingerprints of the sample they answered: the yaw hold's torque on every command
+(attitude, :func:`_answer_order`) and, once altitude runs on its PD, the thrust
+(position, :func:`_answer_position`). Each sample is paired with the first command
+that answered it; samples no command answered are dropped, as the live relay never
+saw them. Without order (other formats), each sample takes the first command at or
+after its time. Position loops whose relay ran on a ground station are measured as
+the live tune measures them, through its complementary filter of position and
+velocity (:class:`mrft_gcs.flight.noise.ComplementaryFilter`).
+
 A relay stretch is a run of at least ``MIN_SWITCHES`` level changes, each level
-held for two samples or more, alternating between two values. ``h`` is half
-the level difference, the bias the mid level; ``beta`` comes from where the
-switches happen relative to the error extremes (``e_switch = -beta e_max``),
-unless metadata gives it.
+held for two samples or more, alternating between two values; the last one in
+the log is used (a tune ends each relay test by switching to the identified PD).
+``h`` is half the level difference, the bias the mid level; ``beta`` comes from
+where the switches happen relative to the error extremes (``e_switch = -beta e_max``)
+and is snapped to the classifier's beta when within 0.1, unless metadata gives it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,11 +60,13 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError, MrftError
 from mrft_gcs.identify import CycleDetector, Identification, identify
-from mrft_gcs.logs import read_csv_metadata, read_log, summarize_log
+from mrft_gcs.logs import decode_log, read_csv_metadata, summarize_log
 from mrft_gcs.logs.describe import LogSummary
+from mrft_gcs.logs.replay import to_telemetry_log
 from mrft_gcs.loops import Loop, LoopKind
-from mrft_gcs.plant import InnerModel, SideModel
+from mrft_gcs.plant import PD, InnerModel, SideModel
 from mrft_gcs.residual import RelayTest, ResidualReport, analyse_residual
+from mrft_gcs.residual.cycles import noise_std
 from mrft_gcs.telemetry import TelemetryLog
 
 __all__ = ["RelaySegment", "LoopResult", "DryRunResult", "find_relay_segments", "infer_beta",
@@ -48,6 +74,15 @@ __all__ = ["RelaySegment", "LoopResult", "DryRunResult", "find_relay_segments", 
 
 #: Level changes a relay stretch needs (three full cycles).
 MIN_SWITCHES = 6
+#: how many samples a ground-station command may lag the newest one logged before it (a
+#: stalled ground station: 64 samples are 0.26 s at 250 Hz)
+_BACK = 64
+#: relay levels recovered through a PD hold to this fraction of the span (the PD gains are
+#: known to ~1e-4; a side output taken as 0 while it was the bounding relay's 0.05 rad
+#: would be 2e-3 off)
+_LEVEL_TOL = 5e-3
+#: the attitude loop behind each side loop (x north: -pitch, y east: +roll)
+_SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 
 
 @dataclass(frozen=True)
@@ -62,10 +97,15 @@ class RelaySegment:
     beta, h, bias : float
         The relay (``beta`` may be inferred, see ``beta_from``).
     source : str
-        Where ``u`` came from (``"csv"``, ``"actuator"``, ``"attitude target"``, ``"telemetry"``).
+        Where ``u`` came from (``"csv"``, ``"actuator"``, ``"attitude target"``,
+        ``"attitude PD"``, ``"telemetry"``).
     beta_from : str
         ``"metadata"``, ``"switches"`` or ``"domain"`` (inferred, within 0.1 of the beta a
         tune uses on that loop, and snapped to it).
+    gcs_period_s : float
+        Period of the ground station's setpoint stream when the relay ran on a ground
+        station (its commands are in the log), else 0. A live tune re-targets the
+        written inner-loop gains by this delay (:func:`mrft_gcs.flight.onboard.onboard_gains`).
     """
 
     loop: Loop
@@ -77,6 +117,7 @@ class RelaySegment:
     bias: float
     source: str
     beta_from: str
+    gcs_period_s: float = 0.0
 
     @property
     def duration_s(self) -> float:
@@ -85,7 +126,13 @@ class RelaySegment:
 
 @dataclass(frozen=True)
 class LoopResult:
-    """What dry-run found for one loop: identification and residual, or why not."""
+    """What dry-run found for one loop: identification and residual, or why not.
+
+    ``cycles`` are the ``(t, u, y)`` the identification used (the first steady
+    cycles, as a live tune hands them over); ``gains`` the gains a tune would write:
+    the identified ones, re-targeted to the onboard loop for inner loops whose relay
+    ran on a ground station.
+    """
 
     loop: Loop
     segment: RelaySegment
@@ -93,6 +140,8 @@ class LoopResult:
     identification: Identification | None = None
     residual: ResidualReport | None = None
     notes: tuple[str, ...] = ()
+    cycles: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    gains: PD | None = None
 
     def as_dict(self) -> dict:
         """The loop's entry of the tuning report (SPEC 4.3), as far as dry-run knows it."""
@@ -101,10 +150,11 @@ class LoopResult:
         out: dict = {"beta": seg.beta, "h": seg.h, "bias": seg.bias, "source": seg.source,
                      "steady": self.steady, "notes": list(self.notes)}
         if ident is not None:
+            g = self.gains or ident.gains
             out.update(model=ident.model.as_dict(), **{"class": ident.class_index},
                        confidence=ident.confidence, period_s=ident.period_s,
-                       amplitude=ident.amplitude,
-                       gains={"Kc": ident.gains.Kc, "Kd": ident.gains.Kd})
+                       amplitude=ident.amplitude, gains={"Kc": g.Kc, "Kd": g.Kd},
+                       gains_identified={"Kc": ident.gains.Kc, "Kd": ident.gains.Kd})
         out["residual"] = self.residual.as_dict() if self.residual else None
         return out
 
@@ -164,78 +214,281 @@ def _runs(u: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return starts, lengths, u[starts]
 
 
-def _relay_stretch(u: np.ndarray, regular: bool = False) -> tuple[int, int, str]:
-    """Longest stretch of ``u`` alternating between two levels: (start, stop, why-not).
+def _relay_stretch(u: np.ndarray, regular: bool = False,
+                   level_tol: float = 1e-6) -> tuple[int, int, str]:
+    """Last stretch of ``u`` alternating between two levels: (start, stop, why-not).
 
     ``regular``: each level must also be held about as long as the last time (within
     35 %), as in a steady relay oscillation (used for signs reconstructed from telemetry).
+    A single sample of the other level just before the stretch belongs to it (a relay
+    may switch back at once on its first sample). A level holds while ``u`` stays within
+    ``level_tol`` of the signal's span.
     """
     if u.size < 2 * MIN_SWITCHES:
         return 0, 0, f"only {u.size} samples"
     span = float(np.ptp(u))
     if span <= 0:
         return 0, 0, "the command is constant"
-    starts, lengths, vals = _runs(u, 1e-6 * max(span, 1e-9) + 1e-7)
-    tol = 0.02 * span
-    best = (0, 0, 0)  # (switches, first run, last run)
+    starts, lengths, vals = _runs(u, level_tol * max(span, 1e-9) + 1e-7)
+    longest = 0
+    last: tuple[int, int, float] | None = None
     i = 0
     m = 4 if regular else 2  # samples a level must be held
     while i < vals.size - 1:
         j = i
         a, b = vals[i], vals[i + 1]
-        if abs(a - b) > 10 * tol and lengths[i] >= m:
+        # a switch of at least 5 % of the signal's span (a relay can be small next to the
+        # largest command of a flight); its levels repeat within 2 % of the switch
+        tol = 0.02 * abs(a - b)
+        if abs(a - b) > 0.05 * span and lengths[i] >= m:
             j = i + 1
             while (j + 1 < vals.size and lengths[j] >= m
                    and abs(vals[j + 1] - vals[j - 1]) <= tol
                    and (not regular or j < i + 2
                         or abs(lengths[j] - lengths[j - 2]) <= 0.35 * lengths[j - 2])):
                 j += 1
-            if lengths[j] < m:
+            # A short last level stays when the relay ends with it (the tune switched to
+            # the PD right after); a short level between two relay levels ends the stretch.
+            ends = j + 1 == vals.size or abs(vals[j + 1] - vals[j - 1]) > tol
+            if lengths[j] < m and (regular or not ends):
                 j -= 1
-            if j - i > best[0]:
-                best = (j - i, i, j)
+            longest = max(longest, j - i)
+            if j - i >= MIN_SWITCHES:
+                last = (i, j, tol)
         i = max(j, i + 1)
-    n, i0, i1 = best
-    if n < MIN_SWITCHES:
-        distinct = np.unique(np.round(vals / max(tol, 1e-12))).size
+    if last is None:
+        distinct = np.unique(np.round(vals / max(0.02 * span, 1e-12))).size
         return 0, 0, (f"the command is not a two-level relay signal (longest two-level stretch "
-                      f"has {n} switches, need {MIN_SWITCHES}; {distinct} distinct levels)")
+                      f"has {longest} switches, need {MIN_SWITCHES}; {distinct} distinct levels)")
+    i0, i1, tol = last
+    if not regular and i0 > 0 and abs(vals[i0 - 1] - vals[i0 + 1]) <= tol:
+        i0 -= 1
     return int(starts[i0]), int(starts[i1] + lengths[i1]), ""
 
 
 def infer_beta(u: np.ndarray, y: np.ndarray) -> float:
     """MRFT ``beta`` from where the relay switched relative to the error extremes.
 
-    With ``e = r - y`` (``r``: the oscillation's centre), the relay leaves the high
-    level when ``e <= -beta e_max`` (``e_max`` the largest error in that state), and the
-    low level when ``e >= -beta e_min``; ``beta`` is the median of these ratios.
+    With ``e = r - y`` (``r``: the relay's set point), the relay leaves the high level
+    when ``e <= -beta e_max`` (``e_max`` the largest error in that state), and the low
+    level when ``e >= -beta e_min``. The set point is not logged and need not be the
+    oscillation's centre (a torque bias moves the cycle off it): it is taken where the
+    ratios of both states agree best (least spread, searched over the middle half of
+    the range of ``y``); ``beta`` is the median ratio there.
     """
     mid = 0.5 * (u.min() + u.max())
     high = u > mid
-    e = -(y - 0.5 * (y.max() + y.min()))
     sw = np.flatnonzero(high[1:] != high[:-1]) + 1
-    ratios = []
+    y_sw, y_ext, sign = [], [], []
     for a, b in zip(sw[:-1], sw[1:], strict=False):
-        seg = e[a:b]
-        ext = seg.max() if high[a] else seg.min()
-        if abs(ext) > 0 and b < e.size:
-            # The threshold was crossed between the last two samples before the switch.
-            ratios.append(-0.5 * (e[b] + e[b - 1]) / ext)
-    if not ratios:
+        if b >= y.size:
+            continue
+        seg = y[a:b]
+        # high state: e = r - y is largest where y is smallest; the threshold was crossed
+        # between the last two samples before the switch
+        y_ext.append(seg.min() if high[a] else seg.max())
+        y_sw.append(0.5 * (y[b] + y[b - 1]))
+        sign.append(1.0 if high[a] else -1.0)
+    if not y_sw:
         raise IdentificationError("cannot infer the relay's beta: too few switches; give "
                                   "beta in the CSV metadata ('# beta=... h=...')")
-    return float(np.clip(np.median(ratios), -0.95, 0.95))
+    y_sw_a, y_ext_a = np.asarray(y_sw), np.asarray(y_ext)
+    centre, half = 0.5 * (y.max() + y.min()), 0.5 * float(np.ptp(y))
+    r = centre + np.linspace(-0.5, 0.5, 101)[:, None] * half
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratios = -(r - y_sw_a) / (r - y_ext_a)
+    ok = np.isfinite(ratios)
+    med = np.array([np.median(row[m]) if m.any() else np.nan for row, m in zip(ratios, ok,
+                                                                            strict=True)])
+    spread = np.array([np.median(np.abs(row[m] - c)) if m.any() else np.inf
+                       for row, m, c in zip(ratios, ok, med, strict=True)])
+    best = int(np.argmin(spread))
+    return float(np.clip(med[best], -0.95, 0.95))
 
 
-def _held(t_out: np.ndarray, t_in: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Command in answer to each measurement: the first one sent at or after it.
+# ------------------------------------------------------------------ commands and samples
+@dataclass(frozen=True)
+class _Commands:
+    """Commands of one log table paired with the samples of a telemetry table.
 
-    A ground station computes the relay output from a measurement and sends it after
-    that measurement arrived, so the command paired with sample ``k`` is the next one
-    (the last one, after the end of the commands).
+    ``rows``: the telemetry rows used (time order); ``cmd``: for each, the index of the
+    command that answered it; ``gcs_period_s``: the setpoint period when the commands
+    are a ground station's (logged in order with the telemetry), else 0.
     """
-    idx = np.clip(np.searchsorted(t_in, t_out, side="left"), 0, t_in.size - 1)
-    return v[idx]
+
+    rows: np.ndarray
+    cmd: np.ndarray
+    gcs_period_s: float
+
+
+def _pair(tab: np.ndarray, tab_order: np.ndarray | None, cmd_t: np.ndarray,
+          cmd_order: np.ndarray | None) -> _Commands:
+    """Which command answered which sample (see the module notes)."""
+    if tab_order is None or cmd_order is None:
+        # The command sent after measurement k is paired with sample k.
+        idx = np.clip(np.searchsorted(cmd_t, tab[:, 0], side="left"), 0, cmd_t.size - 1)
+        return _Commands(np.arange(len(tab)), idx, 0.0)
+    by_file = np.argsort(tab_order, kind="stable")
+    cmd_sorted = np.argsort(cmd_order, kind="stable")
+    k = np.searchsorted(tab_order[by_file], cmd_order[cmd_sorted], side="right") - 1
+    ok = k >= 0
+    seen, first = np.unique(k[ok], return_index=True)
+    rows = by_file[seen]
+    cmd = cmd_sorted[ok][first]
+    keep = np.argsort(rows, kind="stable")
+    return _Commands(rows[keep], cmd[keep], _setpoint_period(cmd_t))
+
+
+def _answer_order(log: TelemetryLog, order: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """File order with each torque command moved to just after the sample it answered.
+
+    A ground station logs a command when it sends it; a sample that reached it while
+    the command was being computed is logged before the command it did not take part
+    in (on a loaded machine several samples can). mrft-tune's torque path holds yaw
+    with a fixed PD (:class:`mrft_gcs.flight.controllers.YawHold`) on every command,
+    ``yaw torque = Kc wrap(yaw_ref - yaw) - Kd r``, so the yaw torque tells which of the
+    last few attitude samples a command answered: the one that gives the constant
+    ``yaw_ref`` back (to float32 rounding). Commands where it tells nothing (on the
+    ground, yaw torque at its limit, another ground station) keep their file order.
+    Orders are doubled so that a moved command fits between two samples. Position
+    samples are paired by ``"actuator/position"`` when :func:`_answer_position` could
+    tell, else by ``"actuator"``. ``"yaw_ref"`` holds the yaw hold's heading.
+    """
+    a_ord, c_ord = order.get("attitude"), order.get("actuator")
+    out = {k: 2 * np.asarray(v, dtype=np.int64) for k, v in order.items()}
+    act, att = log.actuator, log.attitude
+    if a_ord is None or c_ord is None or len(att) < 2 or not len(act):
+        return out
+    from mrft_gcs.flight.controllers import YawHold
+
+    hold = YawHold()
+    by_file = np.argsort(a_ord, kind="stable")
+    att_f, a_sorted = att[by_file], a_ord[by_file]
+    latest = np.searchsorted(a_sorted, c_ord, side="right") - 1
+    tau = act[:, 3]
+    free = (latest >= 0) & (tau != 0) & (np.abs(tau) < 0.999 * hold.hi)
+    if free.sum() < 10:
+        return out
+
+    def ref(back: int) -> np.ndarray:
+        i = np.clip(latest - back, 0, None)
+        return att_f[i, 3] + (tau + hold.Kd * att_f[i, 6]) / hold.Kc
+
+    est = ref(0)
+    centre = float(np.median(est[free]))
+
+    def off(e: np.ndarray) -> np.ndarray:
+        return np.abs((e - centre + np.pi) % (2 * np.pi) - np.pi)
+
+    if np.mean(off(est[free]) < 2e-6) < 0.5:
+        return out  # not mrft-tune's yaw hold
+    out["yaw_ref"] = np.array([centre])  # the heading the yaw hold keeps (take-off heading)
+    back = np.zeros(latest.size, dtype=np.int64)
+    undecided = free & (off(est) >= 2e-6)
+    for b in range(1, _BACK):
+        if not undecided.any():
+            break
+        hit = undecided & (latest - b >= 0) & (off(ref(b)) < 2e-6)
+        back[hit] = b
+        undecided &= ~hit
+    moved = back > 0
+    nxt = latest[moved] - back[moved] + 1  # the first sample the command did not see
+    out["actuator"] = out["actuator"].copy()
+    out["actuator"][moved] = 2 * a_sorted[nxt] - 1
+    return out
+
+
+def _robust_lstsq(A: np.ndarray, b: np.ndarray, rounds: int = 4) -> np.ndarray:
+    """Least squares that drops, round by round, rows off by more than 5 x the median."""
+    fit = np.ones(b.size, dtype=bool)
+    coef = np.zeros(A.shape[1])
+    for _ in range(rounds):
+        coef = np.linalg.lstsq(A[fit], b[fit], rcond=None)[0]
+        res = np.abs(A @ coef - b)
+        fit = res <= 5 * float(np.median(res)) + 1e-12
+    return coef
+
+
+def _answer_position(log: TelemetryLog, order: dict[str, np.ndarray], after_s: float
+                     ) -> dict[str, np.ndarray]:
+    """Which position sample each command answered, once the altitude PD runs on the GCS.
+
+    After its relay, altitude is held by a PD on the ground station:
+    ``thrust = trim + Kc (z_ref - z) - Kd vz`` (up positive), linear in the position
+    sample's ``z`` and ``vz``: ``thrust = c + Kc z + Kd vz`` in NED, fitted robustly to the
+    commands after ``after_s``, each with the one of its last 8 position samples that fits
+    best (starting from the newest; the identified gains are not needed). The thrust then
+    tells which of the last position samples a command answered. Returns ``order`` with
+    ``"actuator/position"``: those commands right after their sample, the others as in
+    ``"actuator"``.
+    """
+    p_ord, c_ord = order.get("position"), order.get("actuator")
+    act, pos = log.actuator, log.position
+    if p_ord is None or c_ord is None or len(pos) < 2:
+        return order
+    by_file = np.argsort(p_ord, kind="stable")
+    pos_f, p_sorted = pos[by_file], p_ord[by_file]
+    latest = np.searchsorted(p_sorted, c_ord, side="right") - 1
+    thrust = act[:, 4]
+    use = np.flatnonzero((act[:, 0] > after_s) & (latest >= 0) & (thrust > 0) & (thrust < 1))
+    if use.size < 20:
+        return order
+    def rows_back(b: np.ndarray | int) -> np.ndarray:
+        i = np.clip(latest[use] - b, 0, None)
+        return np.column_stack([np.ones(use.size), pos_f[i][:, [3, 6]]])
+
+    coef = _robust_lstsq(rows_back(0), thrust[use])
+    # many commands may answer an older sample: re-pick each one's best sample and refit
+    cands = [rows_back(b) for b in range(8)]
+    for _ in range(4):
+        err = np.stack([np.abs(A @ coef - thrust[use]) for A in cands])
+        pick = np.argmin(err, axis=0)
+        coef = _robust_lstsq(np.stack(cands)[pick, np.arange(use.size)], thrust[use])
+    c, Kc, Kd = coef
+    res = np.min(np.stack([np.abs(A @ coef - thrust[use]) for A in cands]), axis=0)
+    tol = 10 * float(np.median(res)) + 1e-6
+    back = np.full(use.size, -1)
+    for b in range(_BACK):
+        if (back >= 0).all():
+            break
+        i = np.clip(latest[use] - b, 0, None)
+        hit = (back < 0) & (latest[use] - b >= 0) & \
+            (np.abs(c + pos_f[i][:, [3, 6]] @ np.array([Kc, Kd]) - thrust[use]) <= tol)
+        back[hit] = b
+    known = back >= 0
+    out = dict(order)
+    cmd = order["actuator"].copy()
+    rows = use[known]
+    cmd[rows] = p_sorted[latest[rows] - back[known]] + 1  # orders are doubled already
+    out["actuator/position"] = cmd
+    return out
+
+
+def _setpoint_period(t: np.ndarray) -> float:
+    """Nominal period of a setpoint stream: the median interval, as a whole rate in Hz."""
+    d = np.diff(t)
+    d = d[d > 0]
+    if d.size == 0:
+        return 0.0
+    return 1.0 / max(1.0, round(1.0 / float(np.median(d))))
+
+
+def _smoothed(t: np.ndarray, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Position through the live tune's complementary filter (same gain, same samples).
+
+    ``x^_n = (1 - k) (x^_{n-1} + v_n dt_n) + k x_n`` from ``x^_0 = x_0``, as
+    :class:`mrft_gcs.flight.noise.ComplementaryFilter` computes it sample by sample.
+    """
+    from scipy.signal import lfilter
+
+    from mrft_gcs.flight.sequence import SequenceConfig
+
+    if x.size == 0:
+        return x
+    k = SequenceConfig().side_filter_k
+    w = (1 - k) * v[1:] * np.diff(t) + k * x[1:]
+    out, _ = lfilter([1.0], [1.0, -(1 - k)], w, zi=[(1 - k) * x[0]])
+    return np.concatenate([x[:1], out])
 
 
 def _rpy(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -245,32 +498,61 @@ def _rpy(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return roll, pitch
 
 
-def _candidates(log: TelemetryLog) -> dict[Loop, list]:
-    """Per loop, the (source, t, u, y) pairs worth searching for a relay."""
-    out: dict[Loop, list] = {lp: [] for lp in Loop}
+@dataclass(frozen=True)
+class _Candidate:
+    source: str
+    t: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    gcs_period_s: float = 0.0
+
+
+def _position_signal(pos: np.ndarray, rows: np.ndarray, col: int, filtered: bool,
+                     sign: float = 1.0) -> np.ndarray:
+    """x (col 1), y (2) or altitude (3, sign -1) at ``rows``; filtered as the live tune does."""
+    p = sign * pos[rows, col]
+    if not filtered:
+        return p
+    return _smoothed(pos[rows, 0], p, sign * pos[rows, col + 3])
+
+
+def _candidates(log: TelemetryLog, order: dict[str, np.ndarray]) -> dict[Loop, list[_Candidate]]:
+    """Per loop, the (source, t, u, y) signals worth searching for a relay."""
+    out: dict[Loop, list[_Candidate]] = {lp: [] for lp in Loop}
     for name, tab in log.loops.items():
-        out[Loop(name)].append(("csv", tab[:, 0], tab[:, 1], tab[:, 2]))
+        out[Loop(name)].append(_Candidate("csv", tab[:, 0], tab[:, 1], tab[:, 2]))
     act, att, pos, atg = log.actuator, log.attitude, log.position, log.attitude_target
     if len(act):
-        for loop, col, tab, ycol in ((Loop.ROLL, 1, att, 1), (Loop.PITCH, 2, att, 2),
-                                     (Loop.ALTITUDE, 4, pos, 3)):
-            if len(tab):
-                y = tab[:, ycol] * (-1 if loop is Loop.ALTITUDE else 1)
-                out[loop].append(("actuator", tab[:, 0], _held(tab[:, 0], act[:, 0],
-                                                               act[:, col]), y))
+        for loop, col, tab, name, ycol in ((Loop.ROLL, 1, att, "attitude", 1),
+                                           (Loop.PITCH, 2, att, "attitude", 2),
+                                           (Loop.ALTITUDE, 4, pos, "position", 3)):
+            if not len(tab):
+                continue
+            c = _pair(tab, order.get(name), act[:, 0],
+                      order.get(f"actuator/{name}", order.get("actuator")))
+            if loop is Loop.ALTITUDE:
+                y = _position_signal(tab, c.rows, 3, c.gcs_period_s > 0, -1.0)
+            else:
+                y = tab[c.rows, ycol]
+            out[loop].append(_Candidate("actuator", tab[c.rows, 0], act[c.cmd, col], y,
+                                        c.gcs_period_s))
     if len(atg) and len(pos):
         roll, pitch = _rpy(atg[:, 1:5])
-        t = pos[:, 0]
-        out[Loop.X].append(("attitude target", t, _held(t, atg[:, 0], -pitch), pos[:, 1]))
-        out[Loop.Y].append(("attitude target", t, _held(t, atg[:, 0], roll), pos[:, 2]))
-        out[Loop.ALTITUDE].append(("attitude target", t, _held(t, atg[:, 0], atg[:, 5]),
-                                   -pos[:, 3]))
+        c = _pair(pos, order.get("position"), atg[:, 0], order.get("attitude_target"))
+        t, filt = pos[c.rows, 0], c.gcs_period_s > 0
+        out[Loop.X].append(_Candidate("attitude target", t, -pitch[c.cmd],
+                                      _position_signal(pos, c.rows, 1, filt), c.gcs_period_s))
+        out[Loop.Y].append(_Candidate("attitude target", t, roll[c.cmd],
+                                      _position_signal(pos, c.rows, 2, filt), c.gcs_period_s))
+        out[Loop.ALTITUDE].append(_Candidate("attitude target", t, atg[c.cmd, 5],
+                                             _position_signal(pos, c.rows, 3, filt, -1.0),
+                                             c.gcs_period_s))
     return out
 
 
 def _signature(log: TelemetryLog) -> dict[Loop, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Relay output reconstructed from telemetry alone: the sign of the angular acceleration."""
-    out = {}
+    out: dict[Loop, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     att = log.attitude
     if len(att) < 50:
         return out
@@ -290,7 +572,8 @@ def _signature(log: TelemetryLog) -> dict[Loop, tuple[np.ndarray, np.ndarray, np
 
 
 def find_relay_segments(log: TelemetryLog, meta: dict[str, str] | None = None,
-                        loops: tuple[Loop, ...] | None = None
+                        loops: tuple[Loop, ...] | None = None,
+                        order: dict[str, np.ndarray] | None = None
                         ) -> tuple[list[RelaySegment], dict[str, str]]:
     """Relay tests in a log, and per loop searched without success, why not.
 
@@ -301,24 +584,33 @@ def find_relay_segments(log: TelemetryLog, meta: dict[str, str] | None = None,
         Metadata (``beta``, ``h``, ``bias``; CSV comments) that overrides inference.
     loops : tuple of Loop, optional
         Only these loops.
+    order : dict, optional
+        ``DecodedLog.file_order`` of the log's tables (.tlog): pairs commands with the
+        samples they answered.
+
+    x and y behind the GCS attitude PDs (torque path) need the attitude identification:
+    :func:`dry_run` finds them after roll and pitch.
     """
-    meta = meta or {}
-    want = loops or tuple(Loop)
+    return _find(log, meta or {}, loops or tuple(Loop), _answer_order(log, order or {}))
+
+
+def _find(log: TelemetryLog, meta: dict[str, str], want: tuple[Loop, ...],
+          order: dict[str, np.ndarray]) -> tuple[list[RelaySegment], dict[str, str]]:
     found: list[RelaySegment] = []
     why: dict[str, str] = {}
     sig = _signature(log)
-    for loop, cands in _candidates(log).items():
+    for loop, cands in _candidates(log, order).items():
         if loop not in want:
             continue
         reasons = []
-        for source, t, u, y in cands:
-            ok = np.isfinite(u) & np.isfinite(y)
-            t, u, y = t[ok], u[ok], y[ok]
+        for c in cands:
+            ok = np.isfinite(c.u) & np.isfinite(c.y)
+            t, u, y = c.t[ok], c.u[ok], c.y[ok]
             a, b, reason = _relay_stretch(u)
             if reason:
-                reasons.append(f"{source} command: {reason}")
+                reasons.append(f"{c.source} command: {reason}")
                 continue
-            found.append(_segment(loop, source, t[a:b], u[a:b], y[a:b], meta))
+            found.append(_segment(loop, c.source, t[a:b], u[a:b], y[a:b], meta, c.gcs_period_s))
             break
         else:
             if loop in sig and "h" in meta:
@@ -345,11 +637,15 @@ def _missing(loop: Loop, log: TelemetryLog) -> str:
     need = {Loop.ROLL: "torque commands (actuator) and attitude",
             Loop.PITCH: "torque commands (actuator) and attitude",
             Loop.ALTITUDE: "thrust commands (actuator or attitude target) and position",
-            Loop.X: "attitude set points and position", Loop.Y: "attitude set points and position"}
+            Loop.X: "attitude set points, or torque commands with pitch identified, and "
+                    "position",
+            Loop.Y: "attitude set points, or torque commands with roll identified, and "
+                    "position"}
     return f"no relay signal to look at (needs {need[loop]})"
 
 
-def _segment(loop, source, t, u, y, meta) -> RelaySegment:
+def _segment(loop, source, t, u, y, meta, gcs_period_s: float = 0.0,
+             inner: Identification | None = None) -> RelaySegment:
     lo, hi = float(u.min()), float(u.max())
     h = float(meta.get("h", 0.5 * (hi - lo)))
     bias = float(meta.get("bias", 0.5 * (hi + lo)))
@@ -360,67 +656,398 @@ def _segment(loop, source, t, u, y, meta) -> RelaySegment:
         beta, frm = float(meta["beta"]), "metadata"
     else:
         beta, frm = infer_beta(u, y), "switches"
-        dom = _domain_beta(loop)
+        dom = _domain_beta(loop, inner)
         if dom is not None and abs(dom - beta) < 0.1:
             # A tune runs the domain's beta; the inferred value is that one, blurred by sampling.
             beta, frm = dom, "domain"
-    return RelaySegment(loop, t, u, y, beta, h, bias, source, frm)
+    return RelaySegment(loop, t, u, y, beta, h, bias, source, frm, gcs_period_s)
 
 
-def _domain_beta(loop: Loop) -> float | None:
-    """The ``beta`` a live tune uses on this loop (None without bundled models or for x/y)."""
-    if loop.kind is LoopKind.SIDE:
+def _domain_beta(loop: Loop, inner: Identification | None = None) -> float | None:
+    """The ``beta`` a live tune uses on this loop (None without bundled models).
+
+    Side loops: that of the side classifier of the identified attitude loop (``inner``).
+    """
+    if loop.kind is LoopKind.SIDE and inner is None:
         return None
     try:
         from mrft_gcs.identify import relay_settings
 
-        return float(relay_settings(loop.kind).beta)
+        return float(relay_settings(loop.kind, inner).beta)
     except MrftError:
         return None
 
 
+def _levels(u: np.ndarray, tol: float) -> np.ndarray:
+    """+1 / -1 where ``u`` sits on the high / low level of its last two-level stretch
+    (within ``tol`` of the span, found with that tolerance), 0 elsewhere."""
+    a, b, reason = _relay_stretch(np.where(np.isfinite(u), u, 0.0), level_tol=tol)
+    out = np.zeros(u.size)
+    if reason:
+        return out
+    seg = u[a:b]
+    mid = 0.5 * (np.nanmax(seg) + np.nanmin(seg))
+    hi, lo = np.nanmedian(seg[seg > mid]), np.nanmedian(seg[seg <= mid])
+    near = 0.2 * (hi - lo)
+    out[a:b] = np.where(np.abs(seg - hi) < near, 1.0, np.where(np.abs(seg - lo) < near, -1.0, 0))
+    return out
+
+
+def _refit_pds(data: dict, first: dict[Loop, np.ndarray | None], d: np.ndarray
+               ) -> dict[Loop, tuple[float, float, float]]:
+    """The GCS attitude PDs fitted to the torques, given the relay levels of a first reading.
+
+    Where the first reading puts ``ux`` and ``uy`` on their levels ``+-hx``, ``+-hy``,
+    pitch torque ``= trim - Kc hx (cos d sx) - Kc hy (sin d sy) - Kc pitch - Kd q`` and
+    roll torque ``= trim + Kc hy (cos d sy) - Kc hx (sin d sx) - Kc roll - Kd p`` are
+    linear in ``trim, Kc hx, Kc hy, Kc, Kd``: a robust least-squares fit gives the gains
+    a log flown by another version ran with. Returns ``{loop: (trim, Kc, Kd)}``.
+    """
+    fx, fy = first.get(Loop.X), first.get(Loop.Y)
+    sx = None if fx is None else _levels(fx, 0.05)
+    sy = None if fy is None else _levels(fy, 0.05)
+    c, n = np.cos(d), np.sin(d)
+    out = {}
+    for lp, (ok, torque, angle, w) in data.items():
+        s_own, s_other = (sx, sy) if lp is Loop.PITCH else (sy, sx)
+        if s_own is None:
+            continue
+        use = ok & (s_own != 0)
+        cols = [np.ones(torque.size), (-c if lp is Loop.PITCH else c) * s_own]
+        if s_other is not None and np.any(n != 0):
+            use &= s_other != 0
+            cols.append(-n * s_other)
+        cols += [-angle, -w]
+        if use.sum() < 20:
+            continue
+        coef = _robust_lstsq(np.column_stack(cols)[use], torque[use])
+        if coef[-2] > 0:
+            out[lp] = (float(coef[0]), float(coef[-2]), float(coef[-1]))
+    return out
+
+
+def _side_segments(log: TelemetryLog, order: dict[str, np.ndarray],
+                   inner: Mapping[Loop, LoopResult], want: tuple[Loop, ...],
+                   meta: dict[str, str]) -> tuple[dict[Loop, RelaySegment], dict[str, str]]:
+    """x and y relays behind the GCS attitude PDs (torque path), from the torques.
+
+    The live tune turns its x/y relay outputs ``(ux, uy)`` into the set points of its
+    roll and pitch PDs: ``roll_ref = uy``, ``pitch_ref = -ux``, or, where it rotates them
+    by the heading's departure ``d`` from the take-off heading (``yaw_ref``, which the
+    yaw hold keeps), ``roll_ref = cos d uy - sin d ux``, ``pitch_ref = -(cos d ux +
+    sin d uy)``, with positions along the take-off heading's axes (while the other
+    attitude loop still runs its relay, the other side output is taken as 0: the
+    bounding relay's output near the take-off point). Both readings are tried, each with
+    the identified and the PD gains fitted to the torques (:func:`_refit_pds`);
+    the one whose relay output holds two exact levels longest is the one the log was
+    flown with. The relays run without bias:
+    their two levels are centred on zero.
+    """
+    act, att, pos = log.actuator, log.attitude, log.position
+    found: dict[Loop, RelaySegment] = {}
+    why: dict[str, str] = {}
+    if not (len(act) and len(att) and len(pos)):
+        return found, why
+    a_ord, c_ord = order.get("attitude"), order.get("actuator")
+    if a_ord is not None and c_ord is not None:
+        by_file = np.argsort(a_ord, kind="stable")
+        arow = by_file[np.clip(np.searchsorted(a_ord[by_file], c_ord, side="right") - 1, 0,
+                               None)]
+    else:
+        arow = np.clip(np.searchsorted(att[:, 0], act[:, 0], side="right") - 1, 0, None)
+    # per attitude loop: torque, angle and rate of the sample each command answered
+    data: dict[Loop, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+    pd: dict[Loop, tuple[float, float, float]] = {}
+    for lp, (col, ang, rate) in ((Loop.PITCH, (2, 2, 5)), (Loop.ROLL, (1, 1, 4))):
+        r = inner.get(lp)
+        if r is None or r.identification is None or r.cycles is None:
+            continue
+        ok = (act[:, 0] > r.segment.t[-1]) & (np.abs(act[:, col]) < 1)
+        data[lp] = (ok, act[:, col], att[arow, ang], att[arow, rate])
+        pd[lp] = (float(np.mean(r.cycles[1])), r.identification.gains.Kc,
+                  r.identification.gains.Kd)
+    # the plain frame (no rotation) is the one with d = 0
+    frames: list[tuple[str, np.ndarray, float]] = [("", np.zeros(act.shape[0]), 0.0)]
+    if len(data) == 2 and "yaw_ref" in order:
+        yaw_ref = float(order["yaw_ref"][0])
+        frames.append(("heading", (att[arow, 3] - yaw_ref + np.pi) % (2 * np.pi) - np.pi,
+                       yaw_ref))
+
+    def set_points(d: np.ndarray, gains: dict) -> dict[Loop, np.ndarray | None]:
+        ref = {}
+        for lp, (ok, torque, angle, w) in data.items():
+            trim, Kc, Kd = gains[lp]
+            ref[lp] = np.where(ok, (torque - trim + Kd * w) / Kc + angle, np.nan)
+        p, r = ref.get(Loop.PITCH), ref.get(Loop.ROLL)
+        if p is None or r is None or not np.any(d):
+            return {Loop.X: None if p is None else -p, Loop.Y: r}
+        c, n = np.cos(d), np.sin(d)
+        # while the other attitude loop still runs its relay, its side axis waits on the
+        # bounding relay, which holds it at 0 within 1 m of the take-off point
+        return {Loop.X: np.where(np.isfinite(r), -c * p - n * r, -p / c),
+                Loop.Y: np.where(np.isfinite(p), -n * p + c * r, r / c)}
+
+    readings: list[tuple[str, dict[Loop, np.ndarray | None], float]] = []
+    for frame, d, yaw_ref in frames:
+        first = set_points(d, pd)
+        readings.append((frame, first, yaw_ref))
+        refit = _refit_pds(data, first, d)
+        if refit:
+            readings.append((frame, set_points(d, {**pd, **refit}), yaw_ref))
+    pair = _pair(pos, order.get("position"), act[:, 0],
+                 order.get("actuator/position", order.get("actuator")))
+    for lp in (Loop.X, Loop.Y):
+        if lp not in want:
+            continue
+        name = f"tilt set point behind the {_SIDE_INNER[lp].value} PD"
+        best: tuple[int, str, np.ndarray, float] | None = None
+        reason = "the torques do not follow a PD"
+        for frame, cand, yaw_ref in readings:
+            u_cmd = cand[lp]
+            if u_cmd is None:
+                continue
+            u_cmd = _mend(u_cmd)
+            a, b, reason = _relay_stretch(np.where(np.isfinite(u_cmd), u_cmd, 0.0),
+                                          level_tol=_LEVEL_TOL)
+            if reason:
+                continue
+            # the reading the log was flown with puts the relay levels back exactly
+            seg = u_cmd[a:b]
+            mid = 0.5 * (np.nanmax(seg) + np.nanmin(seg))
+            hi, lo = np.nanmedian(seg[seg > mid]), np.nanmedian(seg[seg <= mid])
+            exact = int(np.sum(np.minimum(np.abs(seg - hi), np.abs(seg - lo))
+                               <= 1e-5 * (hi - lo)))
+            if best is None or exact > best[0]:
+                best = (exact, frame, u_cmd, yaw_ref)
+        if best is None:
+            why[lp.value] = f"{name}: {reason}"
+            continue
+        _, frame, u_cmd, yaw_ref = best
+        u_cmd = _hold_levels(u_cmd)
+        valid = np.isfinite(u_cmd[pair.cmd])
+        rows = pair.rows[valid]
+        xy = pos[pair.rows][:, [1, 2, 4, 5]]
+        if frame:
+            c0, n0 = np.cos(yaw_ref), np.sin(yaw_ref)
+            xy = np.column_stack([c0 * xy[:, 0] + n0 * xy[:, 1], c0 * xy[:, 1] - n0 * xy[:, 0],
+                                  c0 * xy[:, 2] + n0 * xy[:, 3], c0 * xy[:, 3] - n0 * xy[:, 2]])
+        k = 0 if lp is Loop.X else 1
+        p, v = xy[:, k], xy[:, k + 2]
+        y = (_smoothed(pos[pair.rows, 0], p, v) if pair.gcs_period_s > 0 else p)[valid]
+        u = u_cmd[pair.cmd][valid]
+        a, b, reason = _relay_stretch(u)
+        if reason:
+            why[lp.value] = f"{name}: {reason}"
+            continue
+        lo, hi = float(u[a:b].min()), float(u[a:b].max())
+        t = pos[rows, 0]
+        found[lp] = _segment(lp, "attitude PD", t[a:b], u[a:b] - 0.5 * (lo + hi), y[a:b], meta,
+                             pair.gcs_period_s, inner[_SIDE_INNER[lp]].identification)
+    return found, why
+
+
+def _mend(u: np.ndarray) -> np.ndarray:
+    """``u`` with each single value that stands apart from two equal neighbours (within
+    ``_LEVEL_TOL`` of the span) set to theirs: a command whose sample could not be told
+    in the middle of a held relay level."""
+    span = float(np.nanmax(u) - np.nanmin(u)) if np.isfinite(u).any() else 0.0
+    tol = _LEVEL_TOL * span
+    out = u.copy()
+    a, m, b = u[:-2], u[1:-1], u[2:]
+    lone = (np.abs(a - b) <= tol) & (np.abs(m - a) > tol)
+    out[1:-1][lone] = a[lone]
+    return out
+
+
+def _hold_levels(u: np.ndarray) -> np.ndarray:
+    """The relay output behind a reconstructed set point: its two levels made exact.
+
+    The set points come out of the PD to about 1e-4 of the level where the log tells
+    everything, and to about 1e-2 where the other side output had to be assumed: within
+    the last two-level stretch the levels are the medians of the values within 1e-5 of
+    the span of them (the exact ones), and each value within ``_LEVEL_TOL`` of the span
+    of a level takes it. A single value off both levels between two that are on one (a
+    command whose sample could not be told) takes their level, or at a switch the nearer
+    one: a relay holds each level for many samples.
+    """
+    a, b, reason = _relay_stretch(np.where(np.isfinite(u), u, 0.0), level_tol=_LEVEL_TOL)
+    if reason:
+        return u
+    seg = u[a:b]
+    span = np.nanmax(seg) - np.nanmin(seg)
+    mid = 0.5 * (np.nanmax(seg) + np.nanmin(seg))
+    levels = []
+    for side in (seg[seg > mid], seg[seg <= mid]):
+        level = float(np.nanmedian(side))
+        exact = side[np.abs(side - level) <= 1e-5 * span]
+        levels.append(float(np.median(exact)) if exact.size else level)
+    lv = np.array(levels)
+    out = u.copy()
+    dist = np.abs(u[:, None] - lv[None, :])
+    dist[~np.isfinite(dist)] = np.inf
+    near = dist.min(axis=1) <= _LEVEL_TOL * span
+    out[near] = lv[dist.argmin(axis=1)[near]]
+    lone = ~near[1:-1] & near[:-2] & near[2:] & np.isfinite(u[1:-1])
+    # between two of the same level: that level; at a switch: the nearer one
+    out[1:-1][lone] = lv[np.argmin(dist[1:-1][lone], axis=1)]
+    same = lone & (out[:-2] == out[2:])
+    out[1:-1][same] = out[:-2][same]
+    return out
+
+
 # ------------------------------------------------------------------ per loop
+def _steady_rises(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_periods: int,
+                  period_tol: float, amplitude_tol: float = 0.08
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The live cycle detector's verdict at each rising switch, computed on whole arrays.
+
+    Equals feeding :class:`CycleDetector` one sample at a time as the live sequence
+    does: before each sample the period tolerance becomes ``max(period_tol, 2.5 dt/P)``,
+    ``dt`` an exponential average (weight 0.01) of the sample intervals since the first
+    period was known and ``P`` the last period. Returns the sample indices of the rising
+    switches and, for each, whether the detector said "steady" there.
+    """
+    lo, hi = np.minimum.accumulate(u), np.maximum.accumulate(u)
+    known = hi > lo
+    high = known & (u > 0.5 * (lo + hi))
+    rises = np.flatnonzero(known[1:] & known[:-1] & ~high[:-1] & high[1:]) + 1
+    steady = np.zeros(rises.size, dtype=bool)
+    if rises.size < n_periods + 1:
+        return rises, steady
+    from scipy.signal import lfilter
+
+    tr = t[rises]
+    periods = np.diff(tr)  # periods[i - 1]: known from rise i on
+    # dt average, updated from the sample after the second rise on
+    k0 = int(rises[1]) + 1
+    dt_avg = np.full(t.size, np.nan)
+    if k0 < t.size:
+        d = np.diff(t)[k0 - 1:]
+        ema, _ = lfilter([0.01], [1.0, -0.99], d[1:], zi=[0.99 * d[0]])
+        dt_avg[k0:] = np.concatenate([d[:1], ema])
+    # amplitude of the cycle that ends at rise i (i >= 1): y over [rise i-1, rise i)
+    ext_hi = np.maximum.reduceat(y, rises)[:-1]
+    ext_lo = np.minimum.reduceat(y, rises)[:-1]
+    amps = 0.5 * (ext_hi - ext_lo)
+    n = n_periods
+    for i in range(n, rises.size):
+        p = periods[i - n:i]
+        a = amps[i - n:i]
+        r = int(rises[i])
+        tol = period_tol
+        if r >= k0 and periods[i - 2] > 0:
+            tol = max(period_tol, 2.5 * float(dt_avg[r]) / float(periods[i - 2]))
+        steady[i] = (np.ptp(p) / p.mean() <= tol and a.mean() > 0
+                     and np.ptp(a) / a.mean() <= amplitude_tol)
+    return rises, steady
+
+
+_Cycles = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def _live_cycles(seg: RelaySegment, inner: Identification | None
+                 ) -> tuple[Identification | None, _Cycles, bool, list[str]]:
+    """The cycles a live tune identifies, and their identification.
+
+    The live tune feeds each loop's :class:`CycleDetector` one sample per telemetry
+    sample its relay answered and identifies the last ``identify_cycles`` cycles once
+    the oscillation is steady, then switches the loop to its PD a few milliseconds
+    later; an identification error resets the detector and waits for the next steady
+    cycles. When that happens is up to the ground station's scheduling, but the relay
+    stops right after: so the identified cycles are those that end at the last rising
+    switch, before the relay stopped, at which the detector said "steady"
+    (:func:`_steady_rises`). Where identification fails there, earlier steady cycles
+    are tried (up to five, while the reason differs). Returns the identification (None
+    when none succeeded), the cycles, whether they were steady, notes.
+    """
+    from mrft_gcs.flight.sequence import SequenceConfig
+
+    cfg = SequenceConfig()
+    n_att, n_alt, n_side = cfg.steady_periods
+    n = {LoopKind.ATTITUDE: n_att, LoopKind.ALTITUDE: n_alt, LoopKind.SIDE: n_side}
+    tol = cfg.period_tol
+    if seg.loop.kind is LoopKind.SIDE:  # where the sequence allows x/y a wider tolerance
+        tol = float(getattr(cfg, "side_period_tol", tol))
+    det = CycleDetector(n_periods=n[seg.loop.kind], period_tol=tol)
+    rises, steady = _steady_rises(seg.t, seg.u, seg.y, det.n_periods, det.period_tol,
+                                  det.amplitude_tol)
+    m = cfg.identify_cycles
+    # altitude and side hand over fewer cycles where the sequence says so
+    fewer = getattr(cfg, "identify_cycles_alt_side", None)
+    if fewer is not None and seg.loop.kind is not LoopKind.ATTITUDE:
+        m = min(m, int(fewer[0 if seg.loop.kind is LoopKind.ALTITUDE else 1]))
+    notes: list[str] = []
+    windows = [(int(rises[i - m]), int(rises[i]) + 1)
+               for i in (np.flatnonzero(steady[m:])[::-1][:5] + m)]
+    failed: set[str] = set()
+    for a, b in windows:
+        cyc = (seg.t[a:b], seg.u[a:b], seg.y[a:b])
+        try:
+            return identify(seg.loop.kind, *cyc, beta=seg.beta, h=seg.h, bias=seg.bias,
+                            inner=inner), cyc, True, notes
+        except IdentificationError as err:
+            if str(err) in failed:  # the same reason for every window: no point going on
+                break
+            failed.add(str(err))
+            notes.append(f"the steady cycles up to t={seg.t[b - 1]:.2f} s were not "
+                         f"identified ({err})")
+        except MrftError as err:
+            notes.append(f"not identified: {err}")
+            break
+    if windows:
+        a, b = windows[0]
+        return None, (seg.t[a:b], seg.u[a:b], seg.y[a:b]), True, notes
+    if rises.size >= 2:
+        a, b = int(rises[max(0, rises.size - 1 - m)]), int(rises[-1]) + 1
+        cyc = (seg.t[a:b], seg.u[a:b], seg.y[a:b])
+    else:
+        cyc = (seg.t, seg.u, seg.y)
+    spread = (np.ptp(np.diff(seg.t[rises[-4:]])) / np.mean(np.diff(seg.t[rises[-4:]]))
+              if rises.size >= 3 else np.inf)
+    notes.append(f"the oscillation is not steady ({max(rises.size - 1, 0)} cycles, period "
+                 f"spread {spread:.0%}); results are doubtful")
+    try:
+        return identify(seg.loop.kind, *cyc, beta=seg.beta, h=seg.h, bias=seg.bias,
+                        inner=inner), cyc, False, notes
+    except MrftError as err:
+        notes.append(f"not identified: {err}")
+        return None, cyc, False, notes
+
+
 def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
                     model: InnerModel | None = None, hover: float = 0.5) -> LoopResult:
     """Cycle detector, identification and residual analysis of one relay test.
 
-    ``model`` replaces the identified model for the residual analysis (e.g. a known
-    model while the classifiers are not bundled).
+    The cycles identified are those a live tune identifies (:func:`_live_cycles`);
+    when the oscillation never becomes steady, the last cycles are identified with a
+    note. ``model`` replaces the identified model for the residual
+    analysis (e.g. a known model while the classifiers are not bundled).
     """
-    det = CycleDetector()
-    # The detector only needs the last cycles: feed it about ten periods (a long test
-    # would otherwise cost seconds of per-sample work for nothing).
-    rises = np.flatnonzero(np.diff((seg.u > 0.5 * (seg.u.min() + seg.u.max())).astype(int)) > 0)
-    period = float(np.median(np.diff(seg.t[rises]))) if rises.size > 2 else det.max_s
-    keep = seg.t >= seg.t[-1] - min(0.9 * det.max_s, 10 * period)
-    for ti, ui, yi in zip(seg.t[keep], seg.u[keep], seg.y[keep], strict=False):
-        status = det.update(float(ti), float(ui), float(yi))
-    notes = []
-    steady = bool(status.steady)
-    if not steady:
-        notes.append(f"the oscillation is not steady ({status.cycles} cycles, period spread "
-                     f"{status.spread:.0%}); results are doubtful")
-    ident = None
-    try:
-        t, u, y = det.last_cycles(max(1, min(status.cycles, 4)))
-        if t.size == 0:
-            t, u, y = seg.t, seg.u, seg.y
-        ident = identify(seg.loop.kind, t, u, y, beta=seg.beta, h=seg.h, bias=seg.bias,
-                         inner=inner)
-    except MrftError as err:
-        notes.append(f"not identified: {err}")
+    ident, cyc, steady, notes = _live_cycles(seg, inner)
+    gains = None
+    if ident is not None:
+        gains = ident.gains
+        if seg.gcs_period_s > 0 and isinstance(ident.model, InnerModel):
+            from mrft_gcs.flight.onboard import onboard_gains
+
+            gains = onboard_gains(ident, seg.gcs_period_s)
+            notes.append(f"gains re-targeted to the onboard loop ({seg.gcs_period_s * 1e3:.1f} ms "
+                         f"less delay than the ground-station relay), as a tune writes them; "
+                         f"identified Kc {ident.gains.Kc:.4g}, Kd {ident.gains.Kd:.4g}")
     res = None
     use = ident.model if ident is not None else model
     if isinstance(use, InnerModel):
         kind = LoopKind.ALTITUDE if seg.loop is Loop.ALTITUDE else LoopKind.ATTITUDE
+        t, u, y = cyc if steady else (seg.t, seg.u, seg.y)
+        band = 4.0 * noise_std(y) if seg.gcs_period_s > 0 else 0.0
         try:
-            res = analyse_residual(use, RelayTest(seg.beta, seg.h, seg.bias), seg.t, seg.u,
-                                   seg.y, kind=kind, hover=hover)
+            res = analyse_residual(use, RelayTest(seg.beta, seg.h, seg.bias), t, u, y,
+                                   kind=kind, hover=hover, band=band)
         except MrftError as err:
             notes.append(f"residual not analysed: {err}")
     elif isinstance(use, SideModel):
         notes.append("residual analysis covers roll, pitch and altitude only")
-    return LoopResult(seg.loop, seg, steady, ident, res, tuple(notes))
+    return LoopResult(seg.loop, seg, steady, ident, res, tuple(notes), cyc, gains)
 
 
 def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=None,
@@ -435,7 +1062,7 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
     loops : tuple of Loop, optional
         Only these loops.
     profile : AutopilotProfile, optional
-        Maps the identified gains to parameter values (``parameters``).
+        Maps the gains a tune would write to parameter values (``parameters``).
     models : dict, optional
         Known models per loop, used for residual analysis where identification fails.
     meta : dict, optional
@@ -446,7 +1073,8 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
     InputFileError
         The log cannot be read.
     """
-    log = read_log(path)
+    decoded = decode_log(path).cleaned()
+    log = to_telemetry_log(decoded)
     info: dict[str, str] = {}
     if Path(path).suffix.lower() == ".csv" or log.loops:
         try:
@@ -454,28 +1082,52 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
         except MrftError:
             pass
     info.update(meta or {})
-    segs, why = find_relay_segments(log, info, loops)
+    want = loops or tuple(Loop)
+    # x and y behind the GCS attitude PDs need the attitude loops (a heading rotation
+    # mixes both), and altitude tells which position sample a command answered
+    search = set(want)
+    if set(want) & {Loop.X, Loop.Y}:
+        search |= {Loop.ROLL, Loop.PITCH, Loop.ALTITUDE}
+    order = _answer_order(log, decoded.file_order)
+    segs, why = _find(log, info, tuple(lp for lp in Loop if lp in search), order)
     hover = _hover(log, profile)
-    results: list[LoopResult] = []
+    hover_f = hover if hover is not None else 0.5
     by_loop: dict[Loop, LoopResult] = {}
     for seg in sorted(segs, key=lambda s: s.loop.kind is LoopKind.SIDE):
         inner = None
         if seg.loop.kind is LoopKind.SIDE:
-            att = by_loop.get(Loop.PITCH if seg.loop is Loop.X else Loop.ROLL)
+            att = by_loop.get(_SIDE_INNER[seg.loop])
             inner = att.identification if att else None
-        r = analyse_segment(seg, inner=inner, model=(models or {}).get(seg.loop),
-                            hover=hover if hover is not None else 0.5)
-        results.append(r)
-        by_loop[seg.loop] = r
+            if inner is not None and "beta" not in info:
+                seg = _segment(seg.loop, seg.source, seg.t, seg.u, seg.y, info,
+                               seg.gcs_period_s, inner)
+        by_loop[seg.loop] = analyse_segment(seg, inner=inner, model=(models or {}).get(seg.loop),
+                                            hover=hover_f)
+    alt = by_loop.get(Loop.ALTITUDE)
+    if alt is not None and alt.identification is not None and alt.segment.source == "actuator":
+        order = _answer_position(log, order, float(alt.segment.t[-1]))
+    todo = tuple(lp for lp in (Loop.X, Loop.Y) if lp in want and lp not in by_loop)
+    attitude: dict[Loop, LoopResult] = {
+        lp: r for lp, r in by_loop.items()
+        if lp in (Loop.ROLL, Loop.PITCH) and r.segment.source == "actuator"}
+    if todo and attitude:
+        sides, reasons = _side_segments(log, order, attitude, todo, info)
+        for lp, side in sides.items():
+            why.pop(lp.value, None)
+            by_loop[lp] = analyse_segment(side, inner=attitude[_SIDE_INNER[lp]].identification,
+                                          hover=hover_f)
+        for k, reason in reasons.items():
+            why[k] = f"{why.get(k, '')}; {reason}".lstrip("; ")
+    results = tuple(by_loop[lp] for lp in Loop if lp in by_loop and lp in want)
+    why = {k: v for k, v in why.items() if Loop(k) in want}
     params: dict[str, float] = {}
     if profile is not None:
         from mrft_gcs.profiles import PDGains, gains_to_params
 
-        gains = {r.loop: PDGains(r.identification.gains.Kc, r.identification.gains.Kd)
-                 for r in results if r.identification is not None}
+        gains = {r.loop: PDGains(r.gains.Kc, r.gains.Kd) for r in results if r.gains is not None}
         if gains:
-            params = gains_to_params(profile, gains, hover if hover is not None else 0.5)
-    return DryRunResult(str(path), summarize_log(log), tuple(results), why, params)
+            params = gains_to_params(profile, gains, hover_f)
+    return DryRunResult(str(path), summarize_log(log), results, why, params)
 
 
 def _hover(log: TelemetryLog, profile) -> float | None:

@@ -105,3 +105,76 @@ def test_identify_wiring_once_models_exist(tmp_path):
     assert isinstance(r.identification.model, InnerModel)
     assert r.identification.gains.Kc > 0 and r.identification.gains.Kd > 0
     assert r.residual is not None
+
+
+def test_steady_verdicts_equal_the_live_detector_fed_sample_by_sample():
+    """``_steady_rises`` (whole arrays) says "steady" at exactly the rising switches where a
+    :class:`CycleDetector` fed one sample at a time, as the live sequence feeds it (period
+    tolerance widened to 2.5 sample intervals for short cycles), says so."""
+    import math
+
+    from mrft_gcs.dryrun import _steady_rises
+    from mrft_gcs.identify import CycleDetector
+
+    for loop, n, seed in (("roll", 3, 1), ("roll", 3, 4), ("altitude", 2, 2)):
+        rec = sitl_relay_record(loop, seed=seed, beta=-0.7 if loop == "roll" else -0.3, h=0.1,
+                                duration_s=8.0 if loop == "roll" else 20.0)
+        # irregular sampling, as telemetry arrives
+        t = rec.t + np.random.default_rng(seed).uniform(0, 0.002, rec.t.size).cumsum()
+        det, status, dt_avg, live = CycleDetector(n_periods=n), None, math.nan, {}
+        for k, (ti, ui, yi) in enumerate(zip(t, rec.u, rec.y, strict=True)):
+            if det.t and status is not None and math.isfinite(status.period_s):
+                dt = ti - det.t[-1]
+                dt_avg = dt if not math.isfinite(dt_avg) else 0.99 * dt_avg + 0.01 * dt
+                det.period_tol = max(0.03, 2.5 * dt_avg / status.period_s)
+            before = len(det.rise_t)
+            status = det.update(ti, ui, yi)
+            if len(det.rise_t) != before:
+                live[k] = status.steady
+        rises, steady = _steady_rises(t, rec.u, rec.y, n, 0.03)
+        assert list(rises) == list(live)
+        assert [bool(s) for s in steady] == list(live.values())
+        assert any(steady) and not all(steady)
+
+
+def test_commands_are_paired_with_the_sample_they_answered():
+    """A simulated ground station answers attitude samples 4 ms apart; on a loaded machine
+    a sample often reaches the log while a command is being computed, so the command is
+    logged after a sample it never saw (here one in four, up to three samples late). The
+    yaw hold's torque on every command tells which sample it answered: the pairing gives
+    the samples the relay saw and the relay output it gave each, where file order alone
+    would not."""
+    from mrft_gcs.dryrun import _answer_order, _pair
+    from mrft_gcs.flight.controllers import YawHold
+
+    rng = np.random.default_rng(7)
+    n = 2000
+    t = 5.0 + 0.004 * np.arange(n)
+    yaw = 0.3 + 1e-3 * rng.standard_normal(n)
+    r = 0.01 * rng.standard_normal(n)
+    att = np.column_stack([t, 0.05 * np.sin(20 * t), 0 * t, yaw, 0 * t, 0 * t, r])
+    relay = np.where(np.sin(20 * t) > 0, -0.12, 0.12)  # the output each sample gets
+    hold = YawHold()
+    rows, order_cmd, answered = [], [], []
+    k = 0
+    while k < n - 4:
+        late = int(rng.choice([0, 0, 0, 1, 2, 3]))
+        logged_after = min(k + late, n - 1)  # the newest sample logged before the command
+        tau = hold.step(0.3, yaw[k], r[k])
+        rows.append((t[logged_after] + 0.001, relay[k], 0.0, tau, 0.5))
+        order_cmd.append(2 * logged_after + 1)  # file position: after that sample
+        answered.append(k)
+        k += int(rng.choice([1, 1, 1, 2]))  # now and then a sample no command answers
+    act = np.array(rows)
+    log = TelemetryLog(attitude=att, actuator=act)
+    order = {"attitude": 2 * np.arange(n), "actuator": np.array(order_cmd)}
+    fixed = _answer_order(log, order)
+    assert float(fixed["yaw_ref"][0]) == pytest.approx(0.3, abs=1e-9)
+    c = _pair(att, fixed["attitude"], act[:, 0], fixed["actuator"])
+    first = {}
+    for j, a in enumerate(answered):
+        first.setdefault(a, j)
+    assert list(c.rows) == sorted(first)
+    np.testing.assert_array_equal(act[c.cmd, 1], relay[c.rows])
+    naive = _pair(att, 2 * order["attitude"], act[:, 0], 2 * order["actuator"])
+    assert list(naive.rows) != sorted(first)

@@ -188,3 +188,22 @@ def test_writer_closed(tmp_path):
     w.close()
     with pytest.raises(ValueError, match="closed"):
         w.write(b"\xfe" * 20, 1.0)
+
+
+def test_file_order_follows_the_rows_it_was_logged_with():
+    """``file_order``: where each ATTITUDE, LOCAL_POSITION_NED and SET_ row was logged; it
+    stays with its row when cleaning drops non-finite rows and sorts by time."""
+    from mrft_gcs.logs import decode_log
+
+    d = decode_log(SAMPLE)
+    for name in ("attitude", "position", "actuator"):
+        assert len(d.file_order[name]) == len(getattr(d, name)), name
+    clean = d.cleaned()
+    assert all(np.all(np.diff(clean.file_order[k]) > 0) for k in ("attitude", "actuator"))
+    bad = d.attitude.copy()
+    bad[3, 1] = np.nan
+    from dataclasses import replace
+
+    dropped = replace(d, attitude=bad).cleaned()
+    assert len(dropped.file_order["attitude"]) == len(dropped.attitude) == len(d.attitude) - 1
+    assert d.file_order["attitude"][3] not in dropped.file_order["attitude"]

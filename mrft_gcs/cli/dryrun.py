@@ -34,12 +34,12 @@ def render(res: DryRunResult) -> list:
                 "Kc", "Kd"):
         ident.add_column(col)
     for r in res.loops:
-        s, i = r.segment, r.identification
+        s, i, g = r.segment, r.identification, r.gains
         model = ", ".join(f"{k}={v:.3g}" for k, v in i.model.as_dict().items()) if i else "-"
         ident.add_row(r.loop.value, s.source, f"{s.beta:+.3f}", f"{s.h:.3g}", f"{s.bias:+.3g}",
                       _f(i.period_s if i else None), model, str(i.class_index) if i else "-",
-                      _f(i.confidence if i else None, ".2f"), _f(i.gains.Kc if i else None),
-                      _f(i.gains.Kd if i else None))
+                      _f(i.confidence if i else None, ".2f"), _f(g.Kc if g else None),
+                      _f(g.Kd if g else None))
     out.append(ident)
     resid = Table(title="residual (simulated model under the same relay vs measured cycle)")
     for col in ("loop", "rms before", "period err", "ampl. err", "duty err", "effect",

@@ -77,6 +77,12 @@ class DecodedLog:
     :class:`~mrft_gcs.telemetry.TelemetryLog`; ``events`` holds the discrete
     samples (:class:`StatusText`, :class:`Heartbeat`, :class:`ParamValue`) in
     file order; ``loops`` maps a loop name to a ``(N, 3)`` table t, u, y.
+
+    ``file_order`` maps a table name to the position in the file where each of its
+    rows was logged (int64, one per row), for formats that log the traffic of both
+    directions in the order the ground station saw it (.tlog): it tells which
+    telemetry sample a ground-station command answered, which the clock cannot
+    (commands carry no vehicle time). Tables without it are absent.
     """
 
     attitude: np.ndarray = field(default_factory=lambda: _empty(7))
@@ -86,21 +92,36 @@ class DecodedLog:
     events: tuple[Sample, ...] = ()
     loops: dict[str, np.ndarray] = field(default_factory=dict)
     source: str = ""
+    file_order: dict[str, np.ndarray] = field(default_factory=dict)
 
     def cleaned(self) -> DecodedLog:
-        """Drop rows and events with non-finite values; sort each by time (stable)."""
+        """Drop rows and events with non-finite values; sort each by time (stable).
 
-        def clean(a: np.ndarray, n: int) -> np.ndarray:
+        ``file_order`` follows its table's rows.
+        """
+
+        def keep(a: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
             a = np.asarray(a, dtype=float).reshape(-1, n)
-            a = a[np.isfinite(a).all(axis=1)]
-            return a[np.argsort(a[:, 0], kind="stable")]
+            idx = np.flatnonzero(np.isfinite(a).all(axis=1))
+            return a, idx[np.argsort(a[idx, 0], kind="stable")]
 
         events = [e for e in self.events if is_finite_sample(e)]
         events.sort(key=lambda e: e.t_s)
-        changes: dict[str, Any] = {
-            name: clean(getattr(self, name), n) for name, n in TABLE_COLUMNS.items()}
+        changes: dict[str, Any] = {}
+        order: dict[str, np.ndarray] = {}
+        for name, n in TABLE_COLUMNS.items():
+            a, idx = keep(getattr(self, name), n)
+            changes[name] = a[idx]
+            pos = self.file_order.get(name)
+            if pos is not None and len(pos) == len(a):
+                order[name] = np.asarray(pos, dtype=np.int64)[idx]
         changes["events"] = tuple(events)
-        changes["loops"] = {k: clean(v, 3) for k, v in self.loops.items()}
+        loops = {}
+        for k, v in self.loops.items():
+            a, idx = keep(v, 3)
+            loops[k] = a[idx]
+        changes["loops"] = loops
+        changes["file_order"] = order
         return replace(self, **changes)
 
 

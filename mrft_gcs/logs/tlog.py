@@ -39,6 +39,13 @@ PARAM_VALUE                    :class:`~mrft_gcs.telemetry.ParamValue` (integer 
                                decoded byte-wise for PX4, by value otherwise)
 =============================  ======================================================
 
+Order: ``DecodedLog.file_order`` keeps where each ATTITUDE, LOCAL_POSITION_NED
+and SET_* row was logged. A ground station logs what it receives and sends as
+it happens, so a command answered telemetry logged before it; dry-run pairs them
+by that order. The clock cannot: a command carries no vehicle time, and its
+wall-clock stamp, moved by the smallest ``wall - boot`` offset, lands after the
+next sample whenever that sample's link delay was above the smallest one.
+
 Only the vehicle's messages are read: the system and component of the first
 heartbeat from an autopilot (else the most frequent sender of ATTITUDE); SET_
 messages count when addressed to that system (or to all).
@@ -320,11 +327,13 @@ def _assemble(by_id: dict[int, _Frames], source: str) -> DecodedLog:
         clock.boot(lpn.pos, r["time_boot_ms"] * 1e-3),
         r["x"], r["y"], r["z"], r["vx"], r["vy"], r["vz"]]).astype(float)
 
+    order = {"attitude": att.pos, "position": lpn.pos}
     sact = to_vehicle(by_id[SET_ACTUATOR_CONTROL_TARGET])
     sact = _select(sact, sact.rec["group_mlx"] == 0)
     if len(sact.pos):
         t_act = clock.wall(sact.t_unix)
         controls = sact.rec["controls"]
+        order["actuator"] = sact.pos
     else:
         act = from_vehicle(by_id[ACTUATOR_CONTROL_TARGET])
         act = _select(act, act.rec["group_mlx"] == 0)
@@ -335,12 +344,16 @@ def _assemble(by_id: dict[int, _Frames], source: str) -> DecodedLog:
     satt = to_vehicle(by_id[SET_ATTITUDE_TARGET])
     if len(satt.pos):
         t_atg, target = clock.wall(satt.t_unix), satt
+        order["attitude_target"] = satt.pos
     else:
         target = from_vehicle(by_id[ATTITUDE_TARGET])
         t_atg = clock.boot(target.pos, target.rec["time_boot_ms"] * 1e-3)
     r = target.rec
     attitude_target = np.column_stack([t_atg, r["q"], r["thrust"]]).astype(float)
-    attitude_target = attitude_target[(r["type_mask"] & _ATT_TYPEMASK_IGNORE_ATTITUDE) == 0]
+    with_attitude = (r["type_mask"] & _ATT_TYPEMASK_IGNORE_ATTITUDE) == 0
+    attitude_target = attitude_target[with_attitude]
+    if "attitude_target" in order:
+        order["attitude_target"] = order["attitude_target"][with_attitude]
 
     events: list[tuple[int, Sample]] = []
     hb = from_vehicle(by_id[HEARTBEAT])
@@ -363,7 +376,7 @@ def _assemble(by_id: dict[int, _Frames], source: str) -> DecodedLog:
     events.sort(key=lambda e: e[0])
     return DecodedLog(attitude=attitude, position=position, actuator=actuator,
                       attitude_target=attitude_target, events=tuple(e for _, e in events),
-                      source=source)
+                      source=source, file_order=order)
 
 
 def _select(f: _Frames, mask: np.ndarray) -> _Frames:
