@@ -151,11 +151,12 @@ class SequenceConfig:
     #: Roll and pitch are done seconds before altitude and keep four.
     identify_cycles_alt_side: tuple[int, int] = (3, 3)
     steady_periods: tuple[int, int, int] = (3, 2, 3)  # attitude, altitude, side
-    #: periods agree within this fraction, or 2.5 telemetry intervals if that is more
-    period_tol: float = 0.03
-    #: ... x and y: their periods wobble by 2-4 % from cycle to cycle while both side relays
-    #: run (live over UDP, f550: 1.55-1.66 s), so 3 % let a steady cycle wait 2-4 periods
-    side_period_tol: float = 0.05
+    #: periods agree within this fraction, or 2.5 telemetry intervals if that is more.
+    #: Live over UDP the periods of an otherwise steady cycle wobble by 2-4 % (f550 roll
+    #: 0.496-0.52 s; x/y 1.55-1.66 s while both side relays run): with 3 % the tune waited
+    #: for attitude or x/y up to 13 s longer (f550, 5 seeds: take-off to all tuned
+    #: 12.1-22.0 s with 3 %, 12.5-13.8 s with 5 %, J within +-3 % both ways)
+    period_tol: float = 0.05
     #: a relay whose error passes ``runaway_factor`` x its cycle amplitude (and the floor:
     #: rad for attitude, m for altitude and side) while still pushing it out is restarted
     runaway_factor: float = 3.0
@@ -194,9 +195,9 @@ class SequenceConfig:
     settle_speed_m_s: float = 0.03
     settle_max_s: float = 2.0
     #: largest tilt command of that soft PD (rad): an axis is handed to it from the bounding
-    #: relay as soon as its attitude loop is tuned, possibly moving at 1 m/s, and an unclipped
-    #: 0.4 rad step on the freshly tuned attitude PD overshot past the 35 deg tilt limit
-    #: (3 of 15 live tunes on a loaded machine)
+    #: relay as soon as its attitude loop is tuned, possibly moving at 1 m/s, which unclipped
+    #: is a 0.4 rad step on the freshly tuned attitude PD while the other axis still runs
+    #: its relay (the bounding relay itself commands at most 0.1 rad)
     settle_max_tilt_rad: float = 0.1
 
 
@@ -582,9 +583,7 @@ class TuningSequence:
                 # sample interval either way, so short cycles need a wider tolerance
                 dt = t_s - det.t[-1]
                 t.dt_s = dt if not math.isfinite(t.dt_s) else 0.99 * t.dt_s + 0.01 * dt
-                tol = self.config.side_period_tol if t.loop in SIDE_LOOPS else \
-                    self.config.period_tol
-                det.period_tol = max(tol, 2.5 * t.dt_s / t.status.period_s)
+                det.period_tol = max(self.config.period_tol, 2.5 * t.dt_s / t.status.period_s)
             t.status = det.update(t_s, u, y)
 
     def _altitude(self, s: FlightState, z: float, new: bool) -> float:
