@@ -259,18 +259,9 @@ def _identify_side(t, u, y, beta: float, inner: Identification | None,
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
         raise IdentificationError("the relay record holds NaN or infinite values; drop them first")
     fitted, fit_note = _fit_side(t, u, y, beta, b, inner, c)
-    try:
-        classified, why = _classify_side(t, u, y, beta, b, k, c, setpoint), None
-    except IdentificationError as exc:
-        classified, why = None, exc
     if fitted is not None:
-        if classified is not None:
-            fitted.extras["classifier"] = {"class": classified.class_index,
-                                           "confidence": classified.confidence,
-                                           "Kc": classified.gains.Kc, "Kd": classified.gains.Kd}
         return fitted
-    if classified is None:
-        raise why
+    classified = _classify_side(t, u, y, beta, b, k, c, setpoint)
     classified.extras["fit"] = fit_note
     return classified
 
@@ -435,7 +426,7 @@ def harmonic_posterior(b: Bundle, probs: np.ndarray, f, pts) -> np.ndarray:
     c = f.period_s / b.unit_period
     K = f.amplitude / (f.h * c * b.unit_amplitude)
     sp = b.shape_params * c[:, None]
-    G = K[:, None] * np.stack([inner_response(1.0, *sp.T, [w])[:, 0] for w in pts.w], axis=1)
+    G = K[:, None] * inner_response(1.0, *sp.T, pts.w)
     ll = np.nan_to_num(class_log_likelihood(pts, G), nan=-np.inf)
     lp = np.log(np.maximum(np.asarray(probs, float), 1e-300)) + ll
     if not np.isfinite(lp.max()):
