@@ -122,6 +122,22 @@ def test_period_stats_from_send_times():
     assert s.jitter_p99_ms == pytest.approx(0.0, abs=1e-9)
 
 
+def test_spin_margin_follows_late_wakeups_within_bounds():
+    import numpy as np
+
+    from mrft_gcs.link.streamer import spin_margin_s
+
+    period = 0.004
+    assert spin_margin_s(np.full(250, np.nan), period) == pytest.approx(0.0004)  # nothing yet
+    prompt = np.full(250, 0.00005)  # a kernel that wakes within 50 us: the floor
+    assert spin_margin_s(prompt, period) == pytest.approx(0.0004)
+    late = prompt.copy()
+    late[:10] = 0.003  # 4 % of sleeps 3 ms late: the 99th percentile is 3 ms
+    assert spin_margin_s(late, period) == pytest.approx(0.0032)
+    worse = np.full(250, 0.010)  # later than a period: still sleeps 10 % of it
+    assert spin_margin_s(worse, period) == pytest.approx(0.9 * period)
+
+
 # ---------------------------------------------------------------- against the SITL
 def _tlog_frames(path):
     """(sysid, msgid) of every frame in a .tlog (8-byte stamp, then the frame)."""

@@ -10,14 +10,21 @@ Every tick also checks the link's telemetry age: past ``watchdog_s`` (0.5 s by
 SPEC 5) the stream stops, a landing is commanded and :attr:`abort_reason` says
 why; :meth:`raise_if_aborted` turns it into :class:`~mrft_gcs.errors.SafetyAbort`.
 
-Timing: the thread sleeps until ``_SPIN_S`` before each deadline and spins the rest.
-While any stream runs, the interpreter's GIL switch interval is 0.5 ms instead of 5 ms
+Timing: the thread sleeps until a margin before each deadline and spins the rest,
+yielding the CPU and the GIL on each turn (``os.sched_yield``). The margin adapts to
+how late this machine's sleeps actually wake (:func:`spin_margin_s`: the 99th
+percentile of the last second's overshoots plus 0.2 ms, between 0.4 ms and 90 % of a
+period): on a bare-metal kernel a sleep wakes within ~0.1 ms and the stream costs a
+few per cent of a core; on a virtual machine whose sleeps wake up to several
+milliseconds late it spins more (measured in ``benchmarks/streamer_jitter.py``,
+with the CPU it costs) rather than miss its deadlines. While any stream runs, the interpreter's GIL switch interval is 0.5 ms instead of 5 ms
 (restored when the last stream stops). The thread asks the OS to wake it on time
 (:func:`~mrft_gcs.link.latency.latency_hints`: unprivileged, no priority change).
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -32,13 +39,18 @@ from mrft_gcs.link.latency import latency_hints
 from mrft_gcs.telemetry import ActuatorTarget, AttitudeTarget
 
 __all__ = ["SetpointStreamer", "StreamStats", "SetpointSink", "Setpoint", "period_stats",
-           "latency_hints"]
+           "latency_hints", "spin_margin_s"]
 
 Setpoint = ActuatorTarget | AttitudeTarget
 #: The callback: monotonic seconds since the stream started -> setpoint, or None to skip a tick.
 SetpointFn = Callable[[float], Setpoint | None]
 
-_SPIN_S = 0.0004  # sleep until this close to a deadline, then spin: sleep() overshoots ~0.1 ms
+_SPIN_MIN_S = 0.0004  # never sleep closer to a deadline than this (sleep() overshoots ~0.1 ms)
+_SPIN_PAD_S = 0.0002  # added to the measured overshoot percentile
+_SPIN_MAX_FRACTION = 0.9  # of a period: always sleep a little, so the stream never takes a core
+_OVERSHOOT_WINDOW = 250  # sleeps remembered for the margin (one second at 250 Hz)
+_MARGIN_EVERY = 25  # ticks between margin updates
+_yield_cpu = getattr(os, "sched_yield", lambda: time.sleep(0))  # not every system has it
 _SWITCH_INTERVAL_S = 0.0005
 _switch_lock = threading.Lock()
 _switch_users = 0
@@ -94,6 +106,20 @@ class StreamStats:
                 f"p50 {self.period_p50_ms:.3f} ms, p99 {self.period_p99_ms:.3f} ms, max "
                 f"{self.period_max_ms:.3f} ms; jitter p50 {self.jitter_p50_ms:.3f} ms, p99 "
                 f"{self.jitter_p99_ms:.3f} ms; {self.skipped} ticks skipped")
+
+
+def spin_margin_s(overshoots_s: np.ndarray, period_s: float) -> float:
+    """How long before a deadline to stop sleeping, from recent sleep overshoots (s).
+
+    The 99th percentile of ``overshoots_s`` (how late past their request the last
+    sleeps woke) plus 0.2 ms, clipped to [0.4 ms, 0.9 period]. Empty: 0.4 ms.
+    """
+    o = np.asarray(overshoots_s, dtype=float)
+    o = o[np.isfinite(o)]
+    if not len(o):
+        return _SPIN_MIN_S
+    m = float(np.percentile(o, 99)) + _SPIN_PAD_S
+    return min(max(m, _SPIN_MIN_S), _SPIN_MAX_FRACTION * period_s)
 
 
 def period_stats(send_times_s: np.ndarray, rate_hz: float, skipped: int = 0) -> StreamStats:
@@ -161,6 +187,11 @@ class SetpointStreamer:
         self.landing_commanded = False
         #: the OS latency hints the stream thread got (:func:`latency_hints`)
         self.hints: list[str] = []
+        #: the current spin margin (s, :func:`spin_margin_s`) and the stream thread's CPU
+        #: seconds so far (what the precise pacing costs)
+        self.spin_margin_s = _SPIN_MIN_S
+        self.cpu_s = 0.0
+        self.wall_s = 0.0
 
     def reset(self) -> None:
         """Forget recorded periods (the stream must be stopped)."""
@@ -230,8 +261,14 @@ class SetpointStreamer:
     def _loop(self) -> None:
         period = 1.0 / self.rate_hz
         t0 = time.monotonic()
+        cpu0 = time.thread_time()
+        overshoots = np.full(_OVERSHOOT_WINDOW, np.nan)
+        n_sleeps = 0
         k = 0
         while not self._stop.is_set():
+            if k % _MARGIN_EVERY == 0:
+                self.spin_margin_s = spin_margin_s(overshoots, period)
+                self.cpu_s, self.wall_s = time.thread_time() - cpu0, time.monotonic() - t0
             deadline = t0 + k * period
             now = time.monotonic()
             if now - deadline > period:  # more than a whole period late: skip, do not burst
@@ -240,10 +277,13 @@ class SetpointStreamer:
                 k += missed
                 continue
             left = deadline - now
-            if left > _SPIN_S:
-                time.sleep(left - _SPIN_S)
+            if left > self.spin_margin_s:
+                asked = left - self.spin_margin_s
+                time.sleep(asked)
+                overshoots[n_sleeps % _OVERSHOOT_WINDOW] = time.monotonic() - now - asked
+                n_sleeps += 1
             while time.monotonic() < deadline:
-                pass
+                _yield_cpu()  # releases the GIL and the CPU to whoever else is ready
             now = time.monotonic()
             k += 1
             if self.watchdog_s is not None and self.link.telemetry_age_s() > self.watchdog_s:
