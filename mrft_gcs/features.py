@@ -116,8 +116,9 @@ def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 
             continue
         # Switch instants are placed midway between the samples that straddle them.
         ta, tf, tb = (0.5 * (t[i - 1] + t[i]) for i in (a, f[0], b))
-        ys.append(np.concatenate([np.interp(ta + grid * (tf - ta), t, y),
-                                  np.interp(tf + grid * (tb - tf), t, y)]))
+        ts, ys_ = t[a - 1:b + 1], y[a - 1:b + 1]  # this cycle's samples only
+        ys.append(np.concatenate([np.interp(ta + grid * (tf - ta), ts, ys_),
+                                  np.interp(tf + grid * (tb - tf), ts, ys_)]))
         fracs.append((tf - ta) / (tb - ta))
     if not ys:
         if improper:
