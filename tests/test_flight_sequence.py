@@ -143,3 +143,25 @@ def test_full_sequence_at_any_heading(monkeypatch):
     assert seq.phase is Phase.HOVER and seq.duration_s < 20.0 and max_tilt < 35.0
     s = state_of(v)
     assert math.hypot(s.x_m, s.y_m) < 0.3 and abs(s.z_up_m - 1.0) < 0.1
+
+
+def test_side_axis_not_requested_is_held_and_never_relay_tested(monkeypatch):
+    import flight_sim
+
+    class Windy(flight_sim.SimVehicle):  # a steady push along x: an axis nobody holds drifts
+        def __init__(self, *a, **kw):
+            super().__init__(*a, wind_m_s=(0.2, 0.0, 0.0), **kw)
+
+    monkeypatch.setattr(flight_sim, "SimVehicle", Windy)
+    af = load_airframe("qdrone")
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=af.hover_thrust), ATT_RELAY, ALT_RELAY)
+    seq.leave_alone(Loop.X, "not requested")
+    v, max_tilt = fly(seq, "qdrone", seed=1, max_s=30.0, hover_s=3.0)
+    assert seq.phase is Phase.HOVER and max_tilt < 35.0
+    x, y = seq.loops[Loop.X], seq.loops[Loop.Y]
+    assert x.state is LoopState.LEFT_ALONE and x.snapshot is None and x.relay is None
+    assert x.note == "not requested"
+    assert y.state is LoopState.TUNED
+    s = state_of(v)
+    # held by the soft settle PD about where it stood when pitch was tuned, not drifting off
+    assert abs(s.x_m - x.center) < 0.3 and abs(s.vx_m_s) < 0.05

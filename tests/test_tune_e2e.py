@@ -82,6 +82,30 @@ def test_tune_over_udp_report_and_readback(tuned):
     assert png.read_bytes()[:4] == b"\x89PNG"
 
 
+def test_tune_only_the_requested_loops(tmp_path):
+    """x/y not requested: not relay-tested; roll is flown and identified but not written."""
+    with SitlProcess(vehicle="qdrone", port=None, seed=7) as sitl:
+        with VehicleLink.connect(sitl.connection_string) as link:
+            before = ParamClient(link).read_many(["MC_ROLL_P", "MPC_XY_P"])
+        result = tune(sitl.connection_string, "sitl", backup_dir=tmp_path, relay=RELAY,
+                      identifier=_truth("qdrone"), hover_check_s=1.0,
+                      loops=["altitude", "pitch"], residuals=False)
+        with VehicleLink.connect(sitl.connection_string) as link:
+            after = ParamClient(link).read_many(["MC_ROLL_P", "MPC_XY_P", "MC_PITCH_P"])
+    assert result.status == "ok" and result.hover_error_m < 0.3
+    names = {c.name for c in result.parameters}
+    assert {"MC_PITCH_P", "MC_PITCHRATE_P", "MPC_Z_P"} <= names
+    assert not names & {"MC_ROLL_P", "MC_ROLLRATE_P", "MPC_XY_P", "MPC_XY_VEL_P_ACC"}
+    for name in ("MC_ROLL_P", "MPC_XY_P"):
+        assert after[name].value == before[name].value
+    assert after["MC_PITCH_P"].value != before["MC_ROLL_P"].value  # written (was the default)
+    loops = report_dict(result)["loops"]
+    for lp in ("x", "y"):
+        assert loops[lp]["state"] == "left alone" and "not requested" in loops[lp]["note"]
+        assert result.loops[Loop(lp)].cycles is None  # never relay-tested
+    assert loops["roll"]["state"] == "tuned" and "not written" in loops["roll"]["note"]
+
+
 def test_telemetry_cut_mid_test_lands_with_exit_code_5(tmp_path):
     with SitlProcess(vehicle="qdrone", port=None, seed=4) as sitl:
         def cut():

@@ -13,6 +13,7 @@ from rich.table import Table
 from mrft_gcs.cli import app, console, err_console
 from mrft_gcs.errors import MrftError
 from mrft_gcs.flight import TuneResult, tune
+from mrft_gcs.flight.api import parse_actuation, requested_loops
 from mrft_gcs.flight.report import write_report
 from mrft_gcs.profiles import load_profile
 
@@ -69,6 +70,13 @@ def tune_command(
     actuation: Annotated[str | None, typer.Option(
         "--actuation", help="torque (SET_ACTUATOR_CONTROL_TARGET, PX4 <= 1.13, SITL) or "
         "attitude (SET_ATTITUDE_TARGET); default from the profile")] = None,
+    loops: Annotated[str | None, typer.Option(
+        "--loops", help="comma-separated loops to tune (altitude, roll, pitch, x, y); default "
+        "all the path can tune. Loops not named are never written; x/y not named are not "
+        "relay-tested (held in place, left alone: 'not requested'); roll, pitch (torque path) "
+        "and altitude are still flown and identified, since the ground station flies the "
+        "vehicle with them, but written only if named. Roll/pitch on the attitude path is an "
+        "error")] = None,
     yes: Annotated[bool, typer.Option("--yes", "-y", help="do not ask before take-off")] = False,
     report: Annotated[Path | None, typer.Option("--report", help="write the JSON report")] = None,
     plot: Annotated[Path | None, typer.Option("--plot", help="PNG of each loop's relay cycles")]
@@ -95,8 +103,13 @@ def tune_command(
     """Take off, run the relay tests, identify every loop, write the PD gains, hover.
 
     Example:  mrft-tune tune --connect udp:127.0.0.1:14540 --profile px4 --report tune.json
+
+    Some loops only:  mrft-tune tune -c udp:127.0.0.1:14540 -p sitl --loops altitude,roll,pitch
     """
     prof = load_profile(profile)
+    # checked before anything connects: a typo must not cost a take-off
+    wanted = requested_loops(loops, parse_actuation(actuation) if actuation else prof.actuation) \
+        if loops is not None else None
     limits = prof.safety.with_overrides(max_tilt_deg=max_tilt, max_altitude_m=max_altitude,
                                         max_distance_m=max_distance,
                                         max_test_duration_s=max_duration)
@@ -112,7 +125,7 @@ def tune_command(
         with Live(console=console, refresh_per_second=8, transient=True) as live:
             result = tune(connect, prof, actuation=actuation, limits=limits, z_ref_m=altitude,
                           dry_link=dry_link, baud=baud, signing_key=signing_key,
-                          backup_dir=backup_dir, heartbeat_timeout_s=timeout,
+                          backup_dir=backup_dir, heartbeat_timeout_s=timeout, loops=wanted,
                           on_progress=lambda snap: live.update(progress_table(snap)))
     except MrftError as err:
         partial = getattr(err, "partial_result", None)

@@ -25,13 +25,13 @@ import gc
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort
+from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.flight.onboard import onboard_gains
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
@@ -70,13 +70,51 @@ from mrft_gcs.profiles import (
 )
 from mrft_gcs.telemetry import ActuatorTarget, Attitude, AttitudeTarget, LocalPosition
 
-__all__ = ["tune", "TuneResult", "LoopResult", "Identifier", "YAW_NOTE", "SCHEMA"]
+__all__ = ["tune", "TuneResult", "LoopResult", "Identifier", "YAW_NOTE", "SCHEMA",
+           "requested_loops", "parse_actuation", "NOT_REQUESTED"]
 
 SCHEMA = "mrft-gcs/tune-report/1"
 YAW_NOTE = ("yaw is not tuned: it is held by a conservative GCS-side PD during the tests "
             "(Kc 0.2 /rad, Kd 0.08 s/rad on normalised yaw torque) and keeps the autopilot's "
             "own yaw gains afterwards")
 _SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
+NOT_REQUESTED = "not requested"
+_ATTITUDE_LOOPS = (Loop.ROLL, Loop.PITCH)
+
+
+def requested_loops(loops: Collection[str | Loop] | None, actuation: Actuation) -> frozenset[Loop]:
+    """The loops a tune writes: ``loops`` checked against the actuation path.
+
+    ``None`` is every loop the path can tune (torque: all five; attitude: altitude, x
+    and y, the autopilot keeping its own roll and pitch loops).
+
+    >>> sorted(lp.value for lp in requested_loops(["x", "altitude"], Actuation.TORQUE))
+    ['altitude', 'x']
+    >>> sorted(lp.value for lp in requested_loops(None, Actuation.ATTITUDE))
+    ['altitude', 'x', 'y']
+    """
+    names = ", ".join(lp.value for lp in Loop)
+    if loops is None:
+        out = frozenset(Loop)
+        return out - frozenset(_ATTITUDE_LOOPS) if actuation is Actuation.ATTITUDE else out
+    if isinstance(loops, Loop):
+        loops = [loops]
+    elif isinstance(loops, str):
+        loops = [n for n in loops.split(",") if n.strip()]
+    chosen = set()
+    for item in loops:
+        try:
+            chosen.add(item if isinstance(item, Loop) else Loop(str(item).strip().lower()))
+        except ValueError:
+            raise UsageError(f"unknown loop {item!r}: choose from {names}") from None
+    if not chosen:
+        raise UsageError(f"no loop requested: name at least one of {names}")
+    att = sorted(lp.value for lp in chosen & set(_ATTITUDE_LOOPS))
+    if att and actuation is Actuation.ATTITUDE:
+        raise UsageError(f"{' and '.join(att)} cannot be tuned on the attitude path (the "
+                         f"autopilot keeps its own attitude loop): drop them from the loops or "
+                         f"use the torque path (--actuation torque)")
+    return frozenset(chosen)
 
 #: ``f(loop, snapshot, inner_identification) -> Identification``
 Identifier = Callable[[Loop, CycleSnapshot, Identification | None], Identification]
@@ -211,7 +249,8 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
          identifier: Identifier | None = None,
          relay: dict[LoopKind, RelaySettings] | None = None,
          gcs_delay_s: float | None = None,
-         config: SequenceConfig | None = None, residuals: bool = True) -> TuneResult:
+         config: SequenceConfig | None = None, residuals: bool = True,
+         loops: Collection[str] | None = None) -> TuneResult:
     """Tune the vehicle at ``connection`` from take-off; returns what was done.
 
     Parameters
@@ -252,6 +291,15 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
         After the flight, compare each identified inner model with its measured cycles
         (:func:`mrft_gcs.identify.attach_residual`, about a second per loop): the report's
         ``residual`` fields.
+    loops : collection of str, optional
+        The loops to tune (:class:`~mrft_gcs.loops.Loop` values: ``altitude``, ``roll``,
+        ``pitch``, ``x``, ``y``); default every loop the actuation path can tune. Loops not
+        requested are never written. x and y not requested are not relay-tested (held
+        where they are, left alone with the note "not requested"). Roll, pitch and
+        altitude are flown and identified anyway where the ground station flies the
+        vehicle with them (torque path: all three; attitude path: altitude), but only
+        the requested ones are written. Roll or pitch on the attitude path, or an
+        unknown name, is a :class:`~mrft_gcs.errors.UsageError`.
 
     Raises
     ------
@@ -259,7 +307,8 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
         With ``partial_result`` (a :class:`TuneResult`) when the flight had started.
     """
     prof = load_profile(profile) if isinstance(profile, str | os.PathLike) else profile
-    act = Actuation(actuation) if actuation is not None else prof.actuation
+    act = parse_actuation(actuation) if actuation is not None else prof.actuation
+    wanted = requested_loops(loops, act)
     lim = limits or prof.safety
     ident_fn = identifier or bundled_identifier
     started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
@@ -277,6 +326,7 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
     run.gcs_delay_s = 1.0 / rate_hz if gcs_delay_s is None else gcs_delay_s
     run.config = config or SequenceConfig()
     run.residuals = residuals
+    run.requested = wanted
     try:
         return run.execute(dry_link)
     except MrftError as err:
@@ -284,6 +334,14 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
         raise
     finally:
         link.close()
+
+
+def parse_actuation(value: Actuation | str) -> Actuation:
+    """``torque`` or ``attitude`` as an :class:`Actuation`; anything else is a UsageError."""
+    try:
+        return Actuation(value)
+    except ValueError:
+        raise UsageError(f"unknown actuation {value!r}: use torque or attitude") from None
 
 
 def _status(err: MrftError) -> str:
@@ -323,6 +381,7 @@ class _Run:
         self.config = SequenceConfig()
         self.written: dict[Loop, PD] = {}
         self.residuals = True
+        self.requested: frozenset[Loop] = frozenset(Loop)
 
     # ------------------------------------------------------------------ result
     def result(self, status: str, error: str | None = None) -> TuneResult:
@@ -384,6 +443,10 @@ class _Run:
             hover_thrust_guess=self.hover if 0 < self.hover < 1 else None,
             max_tilt_cmd_rad=0.6 * math.radians(self.lim.max_tilt_deg))
         self.seq = TuningSequence(cfg, att, alt)
+        for lp in _SIDE_INNER:
+            if lp not in self.requested:
+                self.seq.leave_alone(lp, f"{NOT_REQUESTED}: not relay-tested; held where it "
+                                         f"was and its parameters left as they were")
         try:
             self._fly(client)
         except KeyboardInterrupt:
@@ -544,14 +607,27 @@ class _Run:
         assert seq is not None
         identified = {}
         for lp, t in seq.loops.items():
-            if t.state is LoopState.TUNED and t.identification is not None:
-                identified[lp] = t.identification.gains
-                self.written[lp] = onboard_gains(t.identification, self.gcs_delay_s)
-        if any(self.written[lp] != g for lp, g in identified.items()):
+            if t.state is not LoopState.TUNED or t.identification is None:
+                continue
+            if lp not in self.requested:
+                t.note = (f"{NOT_REQUESTED}: identified (the ground station flew the tests on "
+                          f"it) but not written; the report's gains are the identified ones")
+                continue
+            identified[lp] = t.identification.gains
+            self.written[lp] = onboard_gains(t.identification, self.gcs_delay_s)
+        moved = [lp.value for lp, g in identified.items() if self.written[lp] != g]
+        if moved:
             self.notes.append(
-                f"written roll, pitch and altitude gains are re-targeted from the GCS-side loop "
+                f"written {', '.join(moved)} gains are re-targeted from the GCS-side loop "
                 f"to the onboard loop ({self.gcs_delay_s * 1e3:.1f} ms less delay); the report's "
                 f"gains are the written ones")
+        for lp, inner_lp in _SIDE_INNER.items():
+            if (lp in self.written and inner_lp not in self.requested
+                    and seq.loops[inner_lp].state is LoopState.TUNED):
+                self.notes.append(
+                    f"{lp.value} was identified behind the GCS's {inner_lp.value} PD, which is "
+                    f"not written ({NOT_REQUESTED}): on the autopilot's own {inner_lp.value} "
+                    f"gains the written {lp.value} gains hold only as far as the two agree")
         gains = {lp: PDGains(g.Kc, g.Kd) for lp, g in self.written.items()}
         values = gains_to_params(self.prof, gains, self.hover)
         if not values:

@@ -611,21 +611,23 @@ class TuningSequence:
         tx, ty = self.loops[Loop.X], self.loops[Loop.Y]
         xf, yf = self.xy_f
         bb = (0.0, 0.0)
-        if tx.state is LoopState.WAITING or ty.state is LoopState.WAITING:
+        held = (LoopState.WAITING, LoopState.LEFT_ALONE)  # no test of their own (yet)
+        if tx.state in held or ty.state in held:
             # the bounding relay keeps an axis near the take-off point until its test starts
             b2 = self.bounding.step(np.array([ex, ey]))
             bb = (float(b2[0]), float(b2[1]))
         out = []
         for t, pos, vel, o, pf, b in ((tx, s.x_m, s.vx_m_s, self.origin[0], xf, bb[0]),
                                       (ty, s.y_m, s.vy_m_s, self.origin[1], yf, bb[1])):
-            if t.state is LoopState.WAITING and self.loops[SIDE_INNER[t.loop]].pd is not None:
+            if t.state in held and self._attitude_ready(t.loop):
                 # its attitude loop is tuned: bring the axis to rest already (the soft settle
                 # PD about where it was then), so that its relay can start as soon as the
-                # altitude test ends instead of settling only then
+                # altitude test ends instead of settling only then; an axis left alone
+                # (not requested) is held there for the rest of the tune
                 if not t.presettle:
                     t.presettle, t.center = True, pf
                 u = self._settle(t.center - pf, vel)
-            elif t.state is LoopState.WAITING:
+            elif t.state in held:
                 u = b
             elif t.pd is not None:
                 # hold where the relay oscillated: a step back to the take-off point would
@@ -646,6 +648,17 @@ class TuningSequence:
             t.u = u
             out.append(u)
         return out[0], out[1]
+
+    def _attitude_ready(self, loop: Loop) -> bool:
+        """The attitude loop behind side ``loop`` can take a position PD's tilt commands.
+
+        Torque path: once the GCS runs its identified PD. Attitude path: the autopilot's
+        own loop is there from the start, but the bounding relay (eq. 22) keeps the axis
+        until the altitude test is over, as on the torque path.
+        """
+        if self.config.actuation is Actuation.ATTITUDE:
+            return self.loops[Loop.ALTITUDE].state in (LoopState.TUNED, LoopState.LEFT_ALONE)
+        return self.loops[SIDE_INNER[loop]].pd is not None
 
     def _settle(self, e: float, vel: float) -> float:
         """The soft PD that brings a side axis to rest (tilt command, rad, clipped)."""
