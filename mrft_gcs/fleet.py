@@ -12,7 +12,11 @@ A fleet file is TOML::
     connect = "udp:127.0.0.1:14540"
     profile = "sitl"                # autopilot profile
     actuation = "torque"            # optional: torque | attitude
+    loops = ["altitude", "roll", "pitch"]   # optional: default all the path can tune
     max_tilt_deg = 30.0             # optional safety overrides (SafetyLimits fields)
+    baud = 57600                    # optional, serial links only
+    signing_key = "alpha.key"       # optional MAVLink 2 signing key file
+    heartbeat_timeout_s = 5.0       # optional
     dry_link = false                # connect and check only, do not fly
 
 Each vehicle runs :func:`mrft_gcs.flight.api.tune` on its own link. A failure (no heartbeat,
@@ -36,19 +40,25 @@ from pathlib import Path
 from typing import Any
 
 from mrft_gcs.errors import MrftError, UsageError
-from mrft_gcs.profiles import SafetyLimits, load_profile
+from mrft_gcs.loops import Loop
+from mrft_gcs.profiles import Actuation, SafetyLimits, load_profile
 
-__all__ = ["VehicleSpec", "FleetSpec", "VehicleOutcome", "FleetResult", "load_fleet",
-           "parse_fleet", "tune_fleet"]
+__all__ = ["VehicleSpec", "FleetSpec", "VehicleOutcome", "FleetResult", "StatusFn",
+           "load_fleet", "parse_fleet", "tune_fleet"]
 
 _LIMIT_KEYS = tuple(vars(SafetyLimits()))
 _KEYS = {"name", "connect", "profile", "actuation", "altitude_m", "backup_dir", "dry_link",
-         *_LIMIT_KEYS}
+         "loops", "baud", "signing_key", "heartbeat_timeout_s", *_LIMIT_KEYS}
+_LOOP_NAMES = tuple(lp.value for lp in Loop)
 
 
 @dataclass(frozen=True)
 class VehicleSpec:
-    """One vehicle of a fleet file."""
+    """One vehicle of a fleet file (units in the names; ``None``: the tune's default).
+
+    ``loops`` are :class:`~mrft_gcs.loops.Loop` values; ``None`` tunes every loop the
+    actuation path can tune.
+    """
 
     name: str
     connect: str
@@ -58,12 +68,68 @@ class VehicleSpec:
     backup_dir: str = "."
     dry_link: bool = False
     limits: Mapping[str, float] = field(default_factory=dict)
+    loops: tuple[str, ...] | None = None
+    baud: int | None = None
+    signing_key: str | None = None
+    heartbeat_timeout_s: float = 5.0
 
 
 @dataclass(frozen=True)
 class FleetSpec:
     vehicles: tuple[VehicleSpec, ...]
     source: str = "<fleet>"
+
+
+def _positive(where: str, key: str, val: Any) -> float:
+    if isinstance(val, bool) or not isinstance(val, int | float) or not (
+            math.isfinite(val) and val > 0):
+        raise UsageError(f"{where}: '{key}' must be a positive number, got {val!r}")
+    return float(val)
+
+
+def _loops(where: str, val: Any, actuation: Actuation) -> tuple[str, ...]:
+    """Loop names checked as :func:`mrft_gcs.flight.api.tune` checks them (in Loop order)."""
+    from mrft_gcs.flight.api import requested_loops
+
+    if not isinstance(val, list) or not val or not all(isinstance(n, str) for n in val):
+        raise UsageError(f"{where}: 'loops' must be a non-empty list of loop names "
+                         f"({', '.join(_LOOP_NAMES)})")
+    try:
+        chosen = requested_loops(val, actuation)
+    except UsageError as err:
+        raise UsageError(f"{where}: 'loops': {err}") from None
+    return tuple(lp.value for lp in Loop if lp in chosen)
+
+
+def _vehicle(merged: Mapping[str, Any], where: str, default_name: str) -> VehicleSpec:
+    unknown = set(merged) - _KEYS
+    if unknown:
+        raise UsageError(f"{where}: unknown key(s) {sorted(unknown)}; allowed {sorted(_KEYS)}")
+    connect = merged.get("connect")
+    if not isinstance(connect, str) or not connect:
+        raise UsageError(f"{where}: 'connect' (a connection string) is required")
+    limits = {k: _positive(where, k, merged[k]) for k in _LIMIT_KEYS if k in merged}
+    profile = str(merged.get("profile", "px4"))
+    prof = load_profile(profile)  # fail on a bad profile before anything flies
+    actuation = merged.get("actuation")
+    if actuation is not None and actuation not in [a.value for a in Actuation]:
+        raise UsageError(f"{where}: 'actuation' must be torque or attitude, got {actuation!r}")
+    act = Actuation(actuation) if actuation is not None else prof.actuation
+    loops = _loops(where, merged["loops"], act) if "loops" in merged else None
+    baud = merged.get("baud")
+    if baud is not None and (isinstance(baud, bool) or not isinstance(baud, int) or baud <= 0):
+        raise UsageError(f"{where}: 'baud' must be a positive integer, got {baud!r}")
+    key = merged.get("signing_key")
+    if key is not None and not isinstance(key, str):
+        raise UsageError(f"{where}: 'signing_key' must be a path to the key file")
+    dry = merged.get("dry_link", False)
+    if not isinstance(dry, bool):
+        raise UsageError(f"{where}: 'dry_link' must be true or false")
+    return VehicleSpec(
+        str(merged.get("name", default_name)), connect, profile, actuation,
+        _positive(where, "altitude_m", merged.get("altitude_m", 1.0)),
+        str(merged.get("backup_dir", ".")), dry, limits, loops, baud, key,
+        _positive(where, "heartbeat_timeout_s", merged.get("heartbeat_timeout_s", 5.0)))
 
 
 def parse_fleet(data: Mapping[str, Any], source: str = "<fleet>") -> FleetSpec:
@@ -77,27 +143,8 @@ def parse_fleet(data: Mapping[str, Any], source: str = "<fleet>") -> FleetSpec:
         if not isinstance(v, dict):
             raise UsageError(f"{source}: vehicle {i + 1} is not a table")
         merged = {**defaults, **v}
-        where = f"{source}: vehicle {merged.get('name', i + 1)}"
-        unknown = set(merged) - _KEYS
-        if unknown:
-            raise UsageError(f"{where}: unknown key(s) {sorted(unknown)}; allowed {sorted(_KEYS)}")
-        name, connect = merged.get("name", f"vehicle{i + 1}"), merged.get("connect")
-        if not isinstance(connect, str) or not connect:
-            raise UsageError(f"{where}: 'connect' (a connection string) is required")
-        limits = {}
-        for k in _LIMIT_KEYS:
-            if k in merged:
-                val = merged[k]
-                if isinstance(val, bool) or not isinstance(val, int | float) or not (
-                        math.isfinite(val) and val > 0):
-                    raise UsageError(f"{where}: '{k}' must be a positive number")
-                limits[k] = float(val)
-        profile = str(merged.get("profile", "px4"))
-        load_profile(profile)  # fail on a bad profile before anything flies
-        out.append(VehicleSpec(str(name), connect, profile, merged.get("actuation"),
-                               float(merged.get("altitude_m", 1.0)),
-                               str(merged.get("backup_dir", ".")),
-                               bool(merged.get("dry_link", False)), limits))
+        out.append(_vehicle(merged, f"{source}: vehicle {merged.get('name', i + 1)}",
+                            f"vehicle{i + 1}"))
     names = [v.name for v in out]
     if len(set(names)) != len(names):
         raise UsageError(f"{source}: vehicle names must be unique, got {names}")
@@ -141,7 +188,11 @@ class FleetResult:
         return tuple(v for v in self.vehicles if not v.ok)
 
     def as_dict(self) -> dict[str, Any]:
-        """One JSON for the fleet: a summary per vehicle and each vehicle's tune report."""
+        """One JSON for the fleet: a summary per vehicle and each vehicle's tune report.
+
+        ``report`` is the vehicle's tune report (SPEC 4.3, partial for a failed flight) or
+        null where nothing was flown (no heartbeat, a bad argument).
+        """
         from mrft_gcs.flight.report import report_dict
 
         return {
@@ -155,8 +206,26 @@ class FleetResult:
         }
 
 
-#: ``f(vehicle_name, event)``: event is "started", "done" or a tune progress snapshot (dict)
+#: ``f(vehicle_name, event)``: event is "started", then tune progress snapshots (dicts, see
+#: :meth:`mrft_gcs.flight.sequence.TuningSequence.snapshot`), then the vehicle's
+#: :class:`VehicleOutcome`.
 StatusFn = Callable[[str, Any], None]
+
+
+def _tune_kwargs(spec: VehicleSpec) -> dict[str, Any]:
+    """Keyword arguments of :func:`mrft_gcs.flight.api.tune` set by the fleet file."""
+    prof = load_profile(spec.profile)
+    kw: dict[str, Any] = dict(
+        actuation=spec.actuation, limits=prof.safety.with_overrides(**spec.limits),
+        z_ref_m=spec.altitude_m, dry_link=spec.dry_link,
+        heartbeat_timeout_s=spec.heartbeat_timeout_s)
+    if spec.loops is not None:
+        kw["loops"] = spec.loops
+    if spec.baud is not None:
+        kw["baud"] = spec.baud
+    if spec.signing_key is not None:
+        kw["signing_key"] = spec.signing_key
+    return kw
 
 
 def _tune_one(spec: VehicleSpec, tuner: Callable[..., Any],
@@ -164,14 +233,12 @@ def _tune_one(spec: VehicleSpec, tuner: Callable[..., Any],
     t0 = time.monotonic()
     if on_status is not None:
         on_status(spec.name, "started")
-    prof = load_profile(spec.profile)
-    limits = prof.safety.with_overrides(**spec.limits)
     backup = Path(spec.backup_dir) / spec.name
     try:
         backup.mkdir(parents=True, exist_ok=True)
-        res = tuner(spec.connect, prof, actuation=spec.actuation, limits=limits,
-                    z_ref_m=spec.altitude_m, dry_link=spec.dry_link, backup_dir=backup,
-                    on_progress=(lambda snap: on_status(spec.name, snap)) if on_status else None)
+        res = tuner(spec.connect, load_profile(spec.profile), backup_dir=backup,
+                    on_progress=(lambda snap: on_status(spec.name, snap)) if on_status else None,
+                    **_tune_kwargs(spec))
         status = getattr(res, "status", "ok")
         code = 0 if status in ("ok", "dry-link") else 1
         out = VehicleOutcome(spec.name, spec.connect, status, getattr(res, "error", None), code,
@@ -184,30 +251,61 @@ def _tune_one(spec: VehicleSpec, tuner: Callable[..., Any],
         out = VehicleOutcome(spec.name, spec.connect, "error:1:internal",
                              f"{type(err).__name__}: {err}", 1, time.monotonic() - t0)
     if on_status is not None:
-        on_status(spec.name, "done")
+        on_status(spec.name, out)
     return out
 
 
-def tune_fleet(fleet: FleetSpec | str | os.PathLike[str], *, serial: bool = False,
-               tuner: Callable[..., Any] | None = None,
+def tune_fleet(fleet: FleetSpec | Mapping[str, Any] | str | os.PathLike[str], *,
+               serial: bool = False, tuner: Callable[..., Any] | None = None,
                on_status: StatusFn | None = None) -> FleetResult:
-    """Tune every vehicle of ``fleet`` (a FleetSpec or a path to a fleet TOML).
+    """Tune every vehicle of ``fleet``.
 
     Parameters
     ----------
+    fleet : FleetSpec, mapping or path
+        A :class:`FleetSpec`, a table shaped like the fleet file (``{"defaults": {...},
+        "vehicle": [{...}, ...]}``), or a path to a fleet TOML.
     serial : bool
-        One after the other instead of concurrently (one thread per vehicle).
+        One after the other instead of concurrently (one thread and one link per vehicle).
+        A live tune is a real-time job (a 250 Hz setpoint stream, relay cycles of 0.2 s):
+        concurrent tunes need about half a CPU core each, plus a SITL's (README "Fleet").
     tuner : callable, optional
         Replaces :func:`mrft_gcs.flight.api.tune` (same signature): for tests.
     on_status : callable, optional
-        ``f(name, event)`` from the vehicles' threads: keep it short and thread-safe.
+        ``f(name, event)`` (see :data:`StatusFn`), from the vehicles' threads, one call at
+        a time: keep it short (it runs in the tune's thread).
 
     Returns
     -------
     FleetResult
         In the file's order. Failed vehicles are in :attr:`FleetResult.failed`.
+
+    Raises
+    ------
+    UsageError
+        A bad fleet file, before anything connects. A vehicle's own failure never raises.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from mrft_gcs.fleet import tune_fleet
+    >>> def fake(connection, profile, **kw):   # stands in for a live tune
+    ...     return type("R", (), {"status": "ok", "error": None, "kw": kw})()
+    >>> with tempfile.TemporaryDirectory() as runs:
+    ...     r = tune_fleet({"defaults": {"profile": "sitl", "backup_dir": runs},
+    ...                     "vehicle": [{"name": "a", "connect": "udp:127.0.0.1:14540",
+    ...                                  "loops": ["altitude", "roll"]}]}, tuner=fake)
+    >>> [(v.name, v.status) for v in r.vehicles], r.failed
+    ([('a', 'ok')], ())
+    >>> r.vehicles[0].result.kw["loops"]
+    ('roll', 'altitude')
     """
-    spec = fleet if isinstance(fleet, FleetSpec) else load_fleet(fleet)
+    if isinstance(fleet, FleetSpec):
+        spec = fleet
+    elif isinstance(fleet, Mapping):
+        spec = parse_fleet(fleet)
+    else:
+        spec = load_fleet(fleet)
     if tuner is None:
         from mrft_gcs.flight.api import tune as tuner
     assert tuner is not None
