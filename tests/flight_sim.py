@@ -11,6 +11,8 @@ import math
 
 import numpy as np
 
+from mrft_gcs.errors import IdentificationError
+from mrft_gcs.flight.api import measured_attitude_loop
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.flight.scoring import true_response
 from mrft_gcs.flight.sequence import Phase, TuningSequence
@@ -18,8 +20,10 @@ from mrft_gcs.identify import Identification, RelaySettings
 from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.pd_design import optimal_pd
 from mrft_gcs.plant import InnerModel, SideModel
+from mrft_gcs.profiles import Actuation
 from mrft_gcs.sitl import SimVehicle, load_airframe
 from mrft_gcs.sitl.onboard import FlightMode
+from mrft_gcs.telemetry import AttitudeTarget
 
 #: Relay settings of the tests (the truth identifier ignores the cycle): the bundled
 #: classifiers' beta, so the tests fly the cycles a real tune flies.
@@ -74,16 +78,29 @@ def fly(seq: TuningSequence, vehicle: str = "qdrone", seed: int = 0, max_s: floa
     seq.start(state_of(v))
     max_tilt = 0.0
     t_done = math.inf
+    retries = getattr(seq, "retries", None)
+    if retries is None:
+        retries = seq.retries = []  # (loop, error) of identifications that were retried
     while v.time_s < max_s:
         s = state_of(v)
         sp = seq.step(s)
         max_tilt = max(max_tilt, math.degrees(s.tilt_rad))
-        ap.set_actuator_controls(sp.roll, sp.pitch, sp.yaw, sp.thrust)
+        if isinstance(sp, AttitudeTarget):  # attitude path: the autopilot's attitude loop
+            ap.set_attitude_target(sp.q_wxyz, sp.thrust)
+        else:
+            ap.set_actuator_controls(sp.roll, sp.pitch, sp.yaw, sp.thrust)
         for snap in seq.ready():
             inner = None
-            if snap.loop in (Loop.X, Loop.Y):
-                inner = seq.loops[Loop.PITCH if snap.loop is Loop.X else Loop.ROLL].identification
-            seq.apply(snap.loop, ident(snap.loop, snap, inner))
+            try:
+                if snap.loop in (Loop.X, Loop.Y):
+                    inner = seq.loops[Loop.PITCH if snap.loop is Loop.X else
+                                      Loop.ROLL].identification
+                    if inner is None and seq.config.actuation is Actuation.ATTITUDE:
+                        inner = measured_attitude_loop(snap)
+                seq.apply(snap.loop, ident(snap.loop, snap, inner))
+            except IdentificationError as err:  # as the tune does: wait for the next cycles
+                retries.append((snap.loop, str(err)))
+                seq.retry(snap.loop, restart="set point" in str(err))
         if seq.side_waiting:
             seq.start_side({Loop.X: SIDE_RELAY, Loop.Y: SIDE_RELAY})
         if seq.phase is Phase.HOVER and not math.isfinite(t_done):

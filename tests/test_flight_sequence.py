@@ -165,3 +165,43 @@ def test_side_axis_not_requested_is_held_and_never_relay_tested(monkeypatch):
     s = state_of(v)
     # held by the soft settle PD about where it stood when pitch was tuned, not drifting off
     assert abs(s.x_m - x.center) < 0.3 and abs(s.vx_m_s) < 0.05
+
+
+def test_attitude_path_tunes_x_and_y_behind_the_measured_attitude_loop():
+    """Attitude path, in-process: altitude, x and y tuned with the bundled identification;
+    x and y behind the autopilot's closed attitude loop measured from their own relays."""
+    from mrft_gcs.flight.api import bundled_identifier
+    from mrft_gcs.flight.scoring import onboard_attitude_response, score_gains
+    from mrft_gcs.identify import relay_settings
+    from mrft_gcs.loops import LoopKind
+    from mrft_gcs.sitl.onboard import PARAM_SPECS
+
+    af = load_airframe("qdrone")
+    models, px4 = af.linear_models(), {k: s.default for k, s in PARAM_SPECS.items()}
+    inners = {}
+
+    def ident(loop, snap, inner=None):
+        if inner is not None:
+            inners[loop] = inner
+        return bundled_identifier(loop, snap, inner)
+
+    seq = TuningSequence(SequenceConfig(actuation=Actuation.ATTITUDE,
+                                        hover_thrust_guess=af.hover_thrust),
+                         relay_settings(LoopKind.ATTITUDE), relay_settings(LoopKind.ALTITUDE))
+    v, max_tilt = fly(seq, "qdrone", seed=0, max_s=40.0, identifier=ident, hover_s=1.0)
+    assert seq.phase is Phase.HOVER and max_tilt < 35.0 and seq.duration_s < 20.0
+    assert [seq.loops[lp].state for lp in Loop] == [
+        LoopState.LEFT_ALONE, LoopState.LEFT_ALONE, LoopState.TUNED, LoopState.TUNED,
+        LoopState.TUNED]
+    for lp, axis in ((Loop.X, "pitch"), (Loop.Y, "roll")):
+        inner = inners[lp]
+        assert inner.extras["method"] == "closed attitude loop"
+        w = np.asarray(inner.extras["w"][:3])  # measured: harmonics 1, 3, 5
+        T = np.asarray(inner.extras["T_re"][:3]) + 1j * np.asarray(inner.extras["T_im"][:3])
+        true = onboard_attitude_response(models[axis], px4, axis.upper(), w)
+        assert np.all(np.abs(np.log(T / true)) < 0.06), (lp, np.log(T / true))
+    gains = {lp: seq.loops[lp].identification.gains for lp in (Loop.ALTITUDE, Loop.X, Loop.Y)}
+    for lp, sc in score_gains(models, gains, attitude_params=px4).items():
+        assert sc.stable and abs(sc.J_pct) < 10.0, (lp, sc)
+    s = state_of(v)
+    assert abs(s.z_up_m - 1.0) < 0.1

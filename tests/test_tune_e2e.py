@@ -285,3 +285,52 @@ def test_dry_run_replays_the_live_tlog(bundled):
             tol = getattr(cfg, "side_period_tol", cfg.period_tol) if inner else cfg.period_tol
             rises, steady = _steady_rises(seg.t, seg.u, seg.y, n_steady[lp.kind], tol)
             assert np.isclose(seg.t[rises[steady]], lt[-1], atol=1e-6).any(), lp
+
+
+def test_attitude_path_tunes_altitude_x_and_y(tmp_path):
+    """SET_ATTITUDE_TARGET: the SITL keeps its own attitude loop (PX4 v1.13 defaults); x and
+    y are tuned behind it, measured from their own relays; only MPC_* parameters change."""
+    why = _bundled_ready()
+    if why:
+        pytest.skip(why)
+    from mrft_gcs.flight.scoring import score_gains
+    from mrft_gcs.plant import PD
+    from mrft_gcs.profiles import load_profile, params_to_gains
+    from mrft_gcs.sitl import load_airframe
+    from mrft_gcs.sitl.onboard import PARAM_SPECS
+
+    prof = load_profile("sitl")
+    with SitlProcess(vehicle="qdrone", port=None, seed=2) as sitl:
+        result = tune(sitl.connection_string, prof, actuation="attitude", backup_dir=tmp_path,
+                      hover_check_s=2.0)
+        with VehicleLink.connect(sitl.connection_string) as link:
+            values = {n: p.value for n, p in
+                      ParamClient(link).read_many(prof.parameter_names()).items()}
+            mode = link.heartbeat.custom_mode
+    assert result.status == "ok" and result.actuation == "attitude"
+    assert result.hover_error_m < 0.3 and (mode >> 16) & 0xFF == 3  # POSCTL on the gains
+    assert result.max_tilt_deg < 35
+    rep = report_dict(result)
+    json.dumps(rep, allow_nan=False)
+    for lp in ("roll", "pitch"):
+        loop = rep["loops"][lp]
+        assert loop["state"] == "left alone" and loop["gains"] is None
+        assert "autopilot keeps its own attitude loop" in loop["note"]
+        assert "closed loop was measured" in loop["note"]
+    for lp in ("altitude", "x", "y"):
+        assert rep["loops"][lp]["state"] == "tuned" and rep["loops"][lp]["gains"]["Kc"] > 0
+    assert set(rep["loops"]["x"]["model"]) == {"K", "T2", "tau"}
+    names = {c.name for c in result.parameters}
+    assert {"MPC_XY_P", "MPC_XY_VEL_P_ACC", "MPC_Z_P", "MPC_Z_VEL_P_ACC"} <= names
+    assert not any(n.startswith("MC_") for n in names)  # the autopilot's attitude loop
+    for c in result.parameters:
+        assert values[c.name] == pytest.approx(c.new, rel=1e-6, abs=1e-9)
+    # J of the written x/y gains on the true cascade: the SITL's own attitude loop
+    px4 = {k: s.default for k, s in PARAM_SPECS.items()} | {
+        k: v for k, v in values.items() if k.startswith("MC_")}
+    written = params_to_gains(prof, values)
+    scores = score_gains(load_airframe("qdrone").linear_models(),
+                         {lp: PD(written[lp].Kc, written[lp].Kd) for lp in (Loop.X, Loop.Y)},
+                         attitude_params=px4)
+    for lp in (Loop.X, Loop.Y):
+        assert scores[lp].stable and scores[lp].J_pct < 10.0, (lp, scores[lp])

@@ -35,6 +35,7 @@ from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbo
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.flight.onboard import onboard_gains
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
+from mrft_gcs.flight.sequence import AUTOPILOT_ATTITUDE as _AUTOPILOT_ATTITUDE
 from mrft_gcs.flight.sequence import (
     CycleSnapshot,
     LoopState,
@@ -48,6 +49,11 @@ from mrft_gcs.identify import (
     attach_residual,
     identify,
     relay_settings,
+)
+from mrft_gcs.identify.closed_loop import (
+    CLOSED_LOOP_METHOD,
+    closed_attitude_identification,
+    side_relay_settings,
 )
 from mrft_gcs.link import (
     SetpointStreamer,
@@ -71,7 +77,8 @@ from mrft_gcs.profiles import (
 from mrft_gcs.telemetry import ActuatorTarget, Attitude, AttitudeTarget, LocalPosition
 
 __all__ = ["tune", "TuneResult", "LoopResult", "Identifier", "YAW_NOTE", "SCHEMA",
-           "requested_loops", "parse_actuation", "NOT_REQUESTED"]
+           "requested_loops", "parse_actuation", "NOT_REQUESTED", "measured_attitude_loop",
+           "closed_loop_summary"]
 
 SCHEMA = "mrft-gcs/tune-report/1"
 YAW_NOTE = ("yaw is not tuned: it is held by a conservative GCS-side PD during the tests "
@@ -118,6 +125,46 @@ def requested_loops(loops: Collection[str | Loop] | None, actuation: Actuation) 
 
 #: ``f(loop, snapshot, inner_identification) -> Identification``
 Identifier = Callable[[Loop, CycleSnapshot, Identification | None], Identification]
+
+
+def measured_attitude_loop(snap: CycleSnapshot) -> Identification:
+    """The autopilot's closed attitude loop behind a side relay (attitude path).
+
+    Measured from the snapshot's commanded and measured tilt at the relay's odd
+    harmonics and expressed as an equivalent attitude model and PD
+    (:func:`mrft_gcs.identify.closed_loop.closed_attitude_identification`), the
+    ``inner`` the side identification takes.
+
+    Raises
+    ------
+    IdentificationError
+        No tilt record in the snapshot, or no equivalent loop follows the points.
+    """
+    if snap.tilt is None:
+        raise IdentificationError(
+            f"{snap.loop.value}: no measured tilt over the side relay cycles (ATTITUDE "
+            f"must stream with LOCAL_POSITION_NED); cannot measure the attitude loop")
+    return closed_attitude_identification(snap.t_s, snap.u, snap.tilt, beta=snap.beta,
+                                          h=snap.h)
+
+
+def closed_loop_summary(inner: Identification, side: Loop) -> str:
+    """One line on a measured closed attitude loop: bandwidth, response at the test."""
+    from mrft_gcs.plant import closed_inner_response, inner_response
+
+    m, g = inner.model, inner.gains
+    w = np.logspace(-1, 3, 400)
+    T = closed_inner_response(g.Kc, g.Kd, inner_response(m.K, m.T_prop, m.T1, m.tau, w),
+                              w)[0]
+    below = np.flatnonzero(np.abs(T) < 1 / math.sqrt(2))
+    bw = f"{w[below[0]]:.3g} rad/s" if below.size else "above 1000 rad/s"
+    x = inner.extras
+    w0 = float(x["w"][0])
+    t0 = complex(x["T_re"][0], x["T_im"][0])
+    return (f"its closed loop was measured during the {side.value} relay at {len(x['w'])} "
+            f"harmonics: gain {abs(t0):.3f} and phase {math.degrees(np.angle(t0)):.1f} deg at "
+            f"{w0:.3g} rad/s, bandwidth (-3 dB) {bw}, fit within {x['rms_sd']:.2g} "
+            f"standard errors")
 
 
 def bundled_identifier(loop: Loop, snap: CycleSnapshot,
@@ -570,14 +617,22 @@ class _Run:
         seq = self.seq
         assert seq is not None
         inner = None
-        if snap.loop in _SIDE_INNER:
-            inner = seq.loops[_SIDE_INNER[snap.loop]].identification
         try:
+            if snap.loop in _SIDE_INNER:
+                inner = seq.loops[_SIDE_INNER[snap.loop]].identification
+                if inner is None and self.act is Actuation.ATTITUDE:
+                    inner = measured_attitude_loop(snap)
             ident = self.ident_fn(snap.loop, snap, inner)
         except IdentificationError as err:
             self.notes.append(f"{snap.loop.value}: identification retried ({err})")
             seq.retry(snap.loop, restart="set point" in str(err))
             return
+        if inner is not None and inner.extras.get("method") == CLOSED_LOOP_METHOD:
+            att = seq.loops[_SIDE_INNER[snap.loop]]
+            att.note = f"{_AUTOPILOT_ATTITUDE}; {closed_loop_summary(inner, snap.loop)}"
+            ident = dataclasses.replace(ident, extras={**ident.extras, "inner": "measured "
+                                                       "closed attitude loop",
+                                                       "inner_identification": inner})
         seq.apply(snap.loop, ident)
 
     def _start_side(self) -> None:
@@ -587,11 +642,13 @@ class _Run:
         for lp in seq.side_ready():
             inner_lp = _SIDE_INNER[lp]
             inner = seq.loops[inner_lp].identification
+            if inner is None and self.act is Actuation.ATTITUDE:
+                # the autopilot's attitude loop is measured from this very relay's cycles
+                settings[lp] = self.relay.get(LoopKind.SIDE) or side_relay_settings()
+                continue
             if inner is None:
                 seq.leave_alone(lp, f"{lp.value} needs the identified {inner_lp.value} loop for "
-                                f"the side-motion classifier; on the {self.act.value} path "
-                                f"the autopilot keeps its attitude loop, so {lp.value} was "
-                                f"left alone")
+                                f"the side-motion identification, and it was not identified")
                 continue
             settings[lp] = self.relay.get(LoopKind.SIDE) or relay_settings(LoopKind.SIDE, inner)
         seq.start_side(settings)

@@ -28,6 +28,7 @@ import dataclasses
 import enum
 import math
 import threading
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,9 +50,14 @@ __all__ = [
     "SequenceConfig",
     "TuningSequence",
     "quat_from_euler",
+    "AUTOPILOT_ATTITUDE",
 ]
 
 _NAN = float("nan")
+#: why roll and pitch are left alone on the attitude path (the report's note)
+AUTOPILOT_ATTITUDE = ("attitude path: the autopilot keeps its own attitude loop "
+                      "(SET_ATTITUDE_TARGET), so roll and pitch are not tested or written")
+_TILT_SAMPLES = 30_000  # 30 s of ATTITUDE at 1 kHz: as long as the cycle detector keeps
 #: the attitude loop behind each side loop (x north: -pitch, y east: +roll)
 SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 
@@ -95,6 +101,10 @@ class CycleSnapshot:
     #: oscillates about); None for roll and pitch, whose set point moves with the bounding
     #: relay. Identification refuses cycles that do not cross it every half-cycle.
     setpoint: float | None = None
+    #: x and y: the measured tilt along the axis (rad, the sign of ``u``: x ``-pitch``, y
+    #: ``+roll`` in the take-off heading frame) from ATTITUDE, interpolated onto ``t_s``:
+    #: with ``u`` it measures the closed attitude loop the side relay drove (attitude path)
+    tilt: np.ndarray | None = None
 
 
 @dataclass
@@ -125,6 +135,8 @@ class LoopTest:
     settling: bool = False  # side relays: bringing the axis to rest before the relay starts
     presettle: bool = False  # side loops: held at rest while waiting for the altitude test
     dt_s: float = _NAN  # mean telemetry interval seen by the detector
+    #: side relays: (t_att_s, measured tilt along the axis) while the relay runs
+    tilt: deque = field(default_factory=lambda: deque(maxlen=_TILT_SAMPLES))
 
 
 @dataclass(frozen=True)
@@ -266,8 +278,7 @@ class TuningSequence:
             t.beta, t.h = self.attitude_relay.beta, max(self.attitude_relay.h, cfg.h_att_min)
             if cfg.actuation is Actuation.ATTITUDE:
                 t.state = LoopState.LEFT_ALONE
-                t.note = ("attitude path: the autopilot keeps its own attitude loop "
-                          "(SET_ATTITUDE_TARGET), so roll and pitch are not tested")
+                t.note = AUTOPILOT_ATTITUDE
 
     def _heading_frame(self, s: FlightState) -> FlightState:
         """``s`` with x, y and their velocities along the take-off heading's forward/right."""
@@ -387,9 +398,19 @@ class TuningSequence:
                     sp = (t.center if t.loop in SIDE_LOOPS else self.takeoff.z_relay_m
                           if t.loop is Loop.ALTITUDE else None)
                     t.snapshot = CycleSnapshot(t.loop, ts, u, y, t.beta, t.h, t.bias, t.status,
-                                               sp)
+                                               sp, self._tilt_on(t, ts))
                     out.append(t.snapshot)
         return out
+
+    @staticmethod
+    def _tilt_on(t: LoopTest, ts: np.ndarray) -> np.ndarray | None:
+        """The side axis' measured tilt at the times ``ts`` (None if it does not cover them)."""
+        if t.loop not in SIDE_LOOPS or len(t.tilt) < 2:
+            return None
+        tt, tv = np.array(t.tilt).T
+        if tt[0] > ts[0] + 0.02 or tt[-1] < ts[-1] - 0.02:  # ATTITUDE and LOCAL_POSITION_NED
+            return None  # samples need not coincide, but must cover the cycles
+        return np.interp(ts, tt, tv)
 
     def _cycles(self, loop: Loop) -> int:
         """Cycles handed to identification for ``loop``."""
@@ -559,6 +580,12 @@ class TuningSequence:
             # same): a yaw drift must not turn the x test's tilt into y motion
             d = wrap_pi(s.yaw_rad - self.yaw_ref)
             c, n = math.cos(d), math.sin(d)
+            if new_att:  # the measured tilt along each axis, back through the same rotation
+                for lp, tilt in ((Loop.X, c * -s.pitch_rad - n * s.roll_rad),
+                                 (Loop.Y, c * s.roll_rad - n * s.pitch_rad)):
+                    t = self.loops[lp]
+                    if t.relay is not None and not t.settling:
+                        t.tilt.append((s.t_att_s, tilt))
             lim = cfg.max_tilt_cmd_rad
             roll_ref = min(lim, max(-lim, c * uy - n * ux))
             pitch_ref = min(lim, max(-lim, -(c * ux + n * uy)))
