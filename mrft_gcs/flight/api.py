@@ -297,7 +297,7 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
          relay: dict[LoopKind, RelaySettings] | None = None,
          gcs_delay_s: float | None = None,
          config: SequenceConfig | None = None, residuals: bool = True,
-         loops: Collection[str] | None = None) -> TuneResult:
+         loops: Collection[str | Loop] | None = None) -> TuneResult:
     """Tune the vehicle at ``connection`` from take-off; returns what was done.
 
     Parameters
