@@ -61,8 +61,14 @@ def state_of(v: SimVehicle) -> FlightState:
 
 
 def fly(seq: TuningSequence, vehicle: str = "qdrone", seed: int = 0, max_s: float = 40.0,
-        identifier=None, hover_s: float = 2.0, effects=None):
-    """Run the sequence at 250 Hz on the in-process vehicle; returns (vehicle, max tilt deg)."""
+        identifier=None, hover_s: float = 2.0, effects=None, stalls=None):
+    """Run the sequence at 250 Hz on the in-process vehicle; returns (vehicle, max tilt deg).
+
+    ``stalls=(ms, every_s)``: the ground station stalls now and then (a busy machine, a
+    Wi-Fi hiccup) for up to ``ms`` (uniform 50-100 % of it) about every ``every_s``
+    (50-150 % of it); the vehicle keeps the last setpoint meanwhile, as an autopilot
+    does. Drawn from ``seed``.
+    """
     af = load_airframe(vehicle)
     if effects:
         af = af.with_effects(effects)
@@ -78,6 +84,8 @@ def fly(seq: TuningSequence, vehicle: str = "qdrone", seed: int = 0, max_s: floa
     seq.start(state_of(v))
     max_tilt = 0.0
     t_done = math.inf
+    rng = np.random.default_rng(seed)
+    next_stall = stalls[1] if stalls else math.inf
     retries = getattr(seq, "retries", None)
     if retries is None:
         retries = seq.retries = []  # (loop, error) of identifications that were retried
@@ -107,7 +115,11 @@ def fly(seq: TuningSequence, vehicle: str = "qdrone", seed: int = 0, max_s: floa
             t_done = v.time_s
         if v.time_s > t_done + hover_s:
             break
-        for _ in range(4):
+        ticks = 4
+        if v.time_s > next_stall:
+            ticks = 4 * max(1, int(stalls[0] / 4 * rng.uniform(0.5, 1.0)))
+            next_stall = v.time_s + stalls[1] * rng.uniform(0.5, 1.5)
+        for _ in range(ticks):
             v.step()
     return v, max_tilt
 

@@ -205,3 +205,32 @@ def test_attitude_path_tunes_x_and_y_behind_the_measured_attitude_loop():
         assert sc.stable and abs(sc.J_pct) < 10.0, (lp, sc)
     s = state_of(v)
     assert abs(s.z_up_m - 1.0) < 0.1
+
+
+def test_roll_relay_survives_ground_station_stalls():
+    """50-100 ms stalls of the GCS (the vehicle holds the last relay level) while roll's
+    relay runs on for 12 s beside the altitude and x tests: a relay restarted after such a
+    swing had grown it test by test past 35 deg (seeds 0 and 1 here, 35.5 and 35.3 deg);
+    the damping PD built from the relay's own cycle catches it and the relay resumes."""
+    from flight_sim import truth_identifier
+
+    from mrft_gcs.errors import IdentificationError
+
+    truth = truth_identifier("racer250")
+
+    def late_roll(loop, snap, inner=None):
+        if loop is Loop.ROLL and snap.t_s[-1] < 12.0:
+            raise IdentificationError("held back by the test")
+        return truth(loop, snap, inner)
+
+    af = load_airframe("racer250")
+    caught = 0
+    for seed in (0, 1):
+        seq = TuningSequence(SequenceConfig(hover_thrust_guess=af.hover_thrust), ATT_RELAY,
+                             ALT_RELAY)
+        _, max_tilt = fly(seq, "racer250", seed=seed, max_s=30.0, identifier=late_roll,
+                          stalls=(50.0, 1.0), hover_s=1.0)
+        assert max_tilt < 35.0, (seed, seq.events)
+        assert seq.phase is Phase.HOVER, (seed, seq.events)
+        caught += sum("caught the run-away" in e for e in seq.events)
+    assert caught >= 1  # the stalls did push a relay out: the catch is what held it

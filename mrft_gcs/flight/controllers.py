@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["FlightState", "PDLoop", "YawHold", "wrap_pi"]
+__all__ = ["FlightState", "PDLoop", "YawHold", "wrap_pi", "catch_pd"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,6 +48,26 @@ class FlightState:
         """Angle between body z and vertical."""
         c = math.cos(self.roll_rad) * math.cos(self.pitch_rad)
         return math.acos(max(-1.0, min(1.0, c)))
+
+
+def catch_pd(h: float, period_s: float, amplitude: float) -> tuple[float, float]:
+    """A damping PD ``(Kc, Kd)`` that brings a relay loop back to its set point.
+
+    From the relay's own steady cycle (amplitude ``h``, period, amplitude of the
+    measured variable): by the describing function the plant's gain at the cycle
+    frequency ``w0`` is ``pi a / (4 h)``; the derivative term is sized for half of
+    unit loop gain there (``Kd = 0.5 * 4h / (pi a w0)``) and the proportional term
+    puts the PD's corner at a quarter of the period (``Kc = 4 Kd / T``), so the loop
+    crosses over well below the cycle frequency with the PD's lead. About half the
+    optimal gains on the bundled airframes: meant to damp, not to perform.
+
+    >>> kc, kd = catch_pd(0.12, 0.22, 0.05)
+    >>> round(kc, 2), round(kd, 3)
+    (0.97, 0.053)
+    """
+    w0 = 2 * math.pi / period_s
+    kd = 0.5 * 4 * h / (math.pi * amplitude * w0)
+    return 4 * kd / period_s, kd
 
 
 def wrap_pi(a: float) -> float:

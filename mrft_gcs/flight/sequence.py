@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mrft_gcs.flight.controllers import FlightState, PDLoop, YawHold, wrap_pi
+from mrft_gcs.flight.controllers import FlightState, PDLoop, YawHold, catch_pd, wrap_pi
 from mrft_gcs.flight.noise import ComplementaryFilter, NoiseEstimator
 from mrft_gcs.flight.takeoff import TABLE_V, TakeoffController, TakeoffSettings
 from mrft_gcs.identify import CycleDetector, CycleStatus, Identification, RelaySettings
@@ -137,6 +137,10 @@ class LoopTest:
     dt_s: float = _NAN  # mean telemetry interval seen by the detector
     #: side relays: (t_att_s, measured tilt along the axis) while the relay runs
     tilt: deque = field(default_factory=lambda: deque(maxlen=_TILT_SAMPLES))
+    #: roll/pitch: the last steady-looking cycle's (period s, amplitude rad), and the
+    #: damping PD (Kc, Kd) that holds the axis while a run-away is caught (None: relay)
+    cycle: tuple[float, float] = (_NAN, _NAN)
+    catch: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -459,6 +463,20 @@ class TuningSequence:
                                           1 if t.loop is Loop.ALTITUDE else 2]
         limit = max(floor, self.config.runaway_factor * amp) if math.isfinite(amp) else floor
         if abs(e) > limit and st * e < 0:  # u pushes y away: e grows
+            if t.loop in (Loop.ROLL, Loop.PITCH) and math.isfinite(t.cycle[0]):
+                # A relay is no stabilising controller: restarted after a disturbance (a
+                # GCS stall holding one relay level for 50-100 ms) it had fed each swing
+                # into a larger one (racer250, in-process with stalls: 8 restarts, 36 deg).
+                # A damping PD from the relay's own cycle brings the axis back first.
+                t.catch = catch_pd(t.h, *t.cycle)
+                relay.reset()
+                self.events.append(f"{t.loop.value}: relay paused, a damping PD caught the "
+                                   f"run-away (error {e:+.3g})")
+                t.unarmed = t.switches = 0
+                t.ext = 0.0
+                t.detector.reset()
+                t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
+                return
             relay.reset()
             relay.step(e)
             self.events.append(f"{t.loop.value}: relay restarted (error {e:+.3g} ran away)")
@@ -706,10 +724,24 @@ class TuningSequence:
                 t.relay = MRFT(t.beta, t.h, band=t.band)
                 t.state, t.t_relay_start_s = LoopState.RELAY, t_s
             assert t.relay is not None
+            if t.catch is not None:
+                # back to the relay once inside its own cycle's envelope (angle and rate)
+                period, amp = t.cycle
+                e = ref - y
+                if abs(e) < amp and abs(rate) < 2 * math.pi * amp / period:
+                    t.catch = None
+                else:
+                    kc, kd = t.catch
+                    u = min(t.h, max(-t.h, kc * e - kd * rate))
+                    t.u = u
+                    return u
             before = float(t.relay.state[0])
             u = float(t.relay.step(ref - y)[0])
             self._watch(t, t.relay, ref - y, before)
             self._feed(t, t_s, u, y, new)
+            st = t.status
+            if st.cycles >= 2 and st.spread < 0.15 and math.isfinite(st.period_s) and st.amplitude > 0:
+                t.cycle = (st.period_s, st.amplitude)
         t.u = u
         return u
 
