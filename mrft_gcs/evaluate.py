@@ -35,7 +35,7 @@ from mrft_gcs.pd_design import frequency_grid, ise, margins, optimal_pd
 from mrft_gcs.plant import inner_response
 from mrft_gcs.simulate import simulate_mrft
 
-__all__ = ["MethodScore", "Evaluation", "evaluate", "evaluate_side"]
+__all__ = ["MethodScore", "Trial", "Evaluation", "evaluate", "evaluate_side"]
 
 METHODS = ("normalised gain", "DF gain", "exact gain", "classic relay + DF (baseline)")
 
@@ -65,15 +65,58 @@ class MethodScore:
 
 
 @dataclass(frozen=True)
+class Trial:
+    """One identified loop of the evaluation, exact gain scaling: what to look at when J is off.
+
+    Attributes
+    ----------
+    index : int
+        Trial number (same draws for the same seed).
+    true : dict
+        The process: gain and time constants (s); side trials also the attitude process.
+    fitted : dict
+        The identified model, same keys.
+    J : float
+        Deterioration (%) of the identified gains on the true process.
+    pm_deg : float
+        Their phase margin on the true process.
+    method : str
+        The identification path (``extras["method"]``).
+    noise, bias : float
+        Measurement noise (fraction of the clean cycle's amplitude) and relay bias
+        (fraction of ``h``).
+    """
+
+    index: int
+    true: dict
+    fitted: dict
+    J: float
+    pm_deg: float
+    method: str
+    noise: float
+    bias: float
+
+    def as_dict(self) -> dict:
+        return {"index": self.index, "J": self.J, "PM": self.pm_deg, "true": self.true,
+                "fitted": self.fitted, "method": self.method, "noise": self.noise,
+                "bias": self.bias}
+
+
+@dataclass(frozen=True)
 class Evaluation:
     kind: str
     n: int
     seed: int
     scores: tuple[MethodScore, ...]
     accuracy: float
+    trials: tuple[Trial, ...] = ()
 
     def table(self) -> list[dict]:
         return [{"method": s.name, **s.summary()} for s in self.scores]
+
+    def worst(self, count: int = 10) -> list[Trial]:
+        """The ``count`` identified loops with the largest J (unstable first), exact gain."""
+        return sorted(self.trials, key=lambda t: -t.J)[:count]
 
 
 def _score(Kc: float, Kd: float, p, design, w) -> tuple[float, float]:
@@ -104,6 +147,7 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
                          duration_s=dur, keep_s=5.0, seed=seed + 7)
     J = {m: np.full(n, np.nan) for m in METHODS}
     PM = {m: np.full(n, np.nan) for m in METHODS}
+    trials = []
     hits = 0
     from mrft_gcs.design import load_json
     from mrft_gcs.discretize import Discretisation
@@ -124,7 +168,7 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
             pts = steady_points(run.t, run.u[i], run.y[i])
         except IdentificationError:  # not a steady oscillation: refused, as in flight
             continue
-        pd, model, *_ = refined_identification(b, probs, f, pts)
+        pd, model, _, _, _, cost = refined_identification(b, probs, f, pts)
         if pts is None:
             for name, scaling in ((METHODS[0], GainScaling.TRUE), (METHODS[1], GainScaling.DF),
                                   (METHODS[2], GainScaling.EXACT)):
@@ -138,6 +182,13 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
                                                  p, design, w)
             g, *_ = refined_identification(b, probs, f, pts, K_true=K[i])  # gain known
             J[METHODS[0]][i], PM[METHODS[0]][i] = _score(g.Kc * K[i], g.Kd * K[i], p, design, w)
+        names = ("K", "T_prop", "T1", "tau")
+        trials.append(Trial(
+            i, dict(zip(names, (float(K[i]), *map(float, p)), strict=True)),
+            {k: float(getattr(model, k)) for k in names}, float(J[METHODS[2]][i]),
+            float(PM[METHODS[2]][i]),
+            "classifier" if pts is None or not np.isfinite(cost) else "classifier + harmonics",
+            float(noise[i] / amp0[i]) if amp0[i] > 0 else 0.0, float(bias[i] / h)))
         try:
             fb = cycle_features(base.t, base.u[i], base.y[i], setpoint=0.0)
             Ku = 4 * fb.h / (np.pi * fb.amplitude)
@@ -149,7 +200,7 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
         if progress:
             progress(i + 1, n)
     scores = tuple(MethodScore(m, J[m], PM[m]) for m in METHODS)
-    return Evaluation(kind.value, n, seed, scores, hits / n)
+    return Evaluation(kind.value, n, seed, scores, hits / n, tuple(trials))
 
 
 def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
@@ -176,6 +227,7 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
     names = ("exact gain", "DF gain", "classic relay + DF (baseline)")
     J = {m: np.full(n, np.nan) for m in names}
     PM = {m: np.full(n, np.nan) for m in names}
+    trials = []
     run = simulate_mrft(Ka, *att.T, beta=b.beta, h=b.h, duration_s=1.0 + 14 * att[:, 1].max(),
                         keep_s=5.0, seed=seed)
     for i in range(n):
@@ -222,6 +274,15 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
             m = margins((Kc + Kd * 1j * w) * P, w)
             J[name][i] = (ise(Kc, Kd, P, w) - design.ise) / design.ise * 100 if m.stable else np.inf
             PM[name][i] = m.pm_deg
+        am = a_id.model
+        trials.append(Trial(
+            i, {"K": float(Ks[i]), "T2": float(side[i, 0]), "tau": float(side[i, 1]),
+                "attitude": [float(Ka[i]), *map(float, att[i])]},
+            {"K": float(s_id.model.K), "T2": float(s_id.model.T2), "tau": float(s_id.model.tau),
+             "attitude": [float(am.K), float(am.T_prop), float(am.T1), float(am.tau)]},
+            float(J["exact gain"][i]), float(PM["exact gain"][i]), str(s_id.extras["method"]),
+            float(noise / (0.5 * np.ptp(clean.y[0]))) if np.ptp(clean.y[0]) > 0 else 0.0,
+            float(bias / rs.h)))
         brun = simulate_side_mrft((Ka[i], *att[i]), (pd.Kc, pd.Kd), (Ks[i], *side[i]), beta=0.0,
                                   h=rs.h, bias=bias, noise_std=noise, band=4 * noise,
                                   duration_s=4.0 + 40 * side[i, 0], keep_s=30.0, seed=seed + i)
@@ -237,4 +298,5 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
             pass
         if progress:
             progress(i + 1, n)
-    return Evaluation("side", n, seed, tuple(MethodScore(m, J[m], PM[m]) for m in names), np.nan)
+    return Evaluation("side", n, seed, tuple(MethodScore(m, J[m], PM[m]) for m in names), np.nan,
+                      tuple(trials))

@@ -89,7 +89,7 @@ def test_side_loop_identified_after_attitude():
 def test_cycle_detector_reports_steady_oscillation():
     run = simulate_mrft(1.0, 0.05, 0.5, 0.01, beta=-0.5, h=1.0, duration_s=6.0)
     det = CycleDetector()
-    statuses = [det.update(t, u, y) for t, u, y in zip(run.t, run.u[0], run.y[0])]
+    statuses = [det.update(t, u, y) for t, u, y in zip(run.t, run.u[0], run.y[0], strict=True)]
     assert not statuses[300].steady and statuses[-1].steady
     t, u, y = det.last_cycles(2)
     assert t.size > 100 and u.size == y.size == t.size
@@ -102,3 +102,19 @@ def test_incomplete_class_table_is_an_identification_error(tmp_path):
     (d / "classifier.onnx").write_bytes((MODELS_DIR / "attitude" / "classifier.onnx").read_bytes())
     with pytest.raises(IdentificationError, match="incomplete"):
         load_bundle(LoopKind.ATTITUDE, tmp_path)
+
+
+def test_evaluation_lists_its_worst_trials():
+    """Each identified loop is kept with its true and fitted model; the worst come first and
+    their J is the exact-gain column's."""
+    from mrft_gcs.evaluate import evaluate
+
+    ev = evaluate(LoopKind.ATTITUDE, n=6, seed=5)
+    exact = next(s for s in ev.scores if s.name == "exact gain")
+    assert len(ev.trials) == int(np.sum(~np.isnan(exact.J)))
+    worst = ev.worst(3)
+    assert [t.J for t in worst] == sorted((t.J for t in ev.trials), reverse=True)[:3]
+    for t in ev.trials:
+        assert t.J == exact.J[t.index] and t.pm_deg == exact.pm[t.index]
+        assert set(t.true) == set(t.fitted) == {"K", "T_prop", "T1", "tau"}
+        assert 0 <= t.noise <= 0.01 and abs(t.bias) <= 0.3

@@ -187,10 +187,12 @@ def evaluate_cmd(
     n: Annotated[int, typer.Option("--n", help="random processes")] = 500,
     seed: int = 1,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the table as JSON")] = None,
+    worst: Annotated[int, typer.Option(
+        help="also list this many worst trials (exact gain): true and fitted model, J, PM")] = 0,
 ) -> None:
     """Table VI: J and phase margin over random processes, for each gain scaling and the baseline.
 
-    Example:  mrft-tune evaluate --loop attitude --n 500
+    Example:  mrft-tune evaluate --loop attitude --n 500 --worst 10
     """
     from mrft_gcs.evaluate import evaluate, evaluate_side
 
@@ -209,9 +211,27 @@ def evaluate_cmd(
                   f"{row['J_max']:.2f}", f"{row['PM_avg']:.1f}", f"{row['PM_min']:.1f}",
                   str(row["unstable"]), str(row["no_cycle"]))
     console.print(t)
+    if worst > 0:
+        w = Table(title=f"{ev.kind}: worst {worst} trials, exact gain")
+        for col in ("trial", "J %", "PM", "true", "fitted", "noise", "bias / h"):
+            w.add_column(col)
+        for tr in ev.worst(worst):
+            w.add_row(str(tr.index), f"{tr.J:.2f}", f"{tr.pm_deg:.1f}", _model_text(tr.true),
+                      _model_text(tr.fitted), f"{tr.noise:.2%}", f"{tr.bias:+.2f}")
+        console.print(w)
     if json_out:
-        json_out.write_text(json.dumps({"loop": ev.kind, "n": n, "seed": seed,
-                                        "accuracy": ev.accuracy, "table": ev.table()}, indent=2))
+        out = {"loop": ev.kind, "n": n, "seed": seed, "accuracy": ev.accuracy,
+               "table": ev.table()}
+        if worst > 0:
+            out["worst"] = [tr.as_dict() for tr in ev.worst(worst)]
+        json_out.write_text(json.dumps(out, indent=2))
+
+
+def _model_text(m: dict) -> str:
+    """``K 1.2 T_prop 0.031 ...`` with the attitude model of a side trial in brackets."""
+    main = " ".join(f"{k} {v:.3g}" for k, v in m.items() if k != "attitude")
+    return main + (f" [att {' '.join(f'{v:.3g}' for v in m['attitude'])}]" if "attitude" in m
+                   else "")
 
 
 @design_app.command("side")
