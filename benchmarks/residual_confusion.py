@@ -7,7 +7,8 @@ linear model. The model is the airframe's linear model with its delay calibrated
 a clean noise-free run (the SITL's discrete physics lags its nominal linear model by about
 1 ms; see README), i.e. the model of the clean vehicle. Prints the confusion table,
 attribution accuracy over effect runs, false alarms on clean runs and the median residual
-reduction when the effect is named.
+reduction when the effect is named. Then, apart from those figures: the dead zone (which an
+unbiased relay cannot tell from a saturation) and clean runs under a relay with a bias.
 
 Speed part: writes a 10-minute .tlog at 250 Hz holding a roll relay test and times
 ``dry_run`` (read + find relay segments + residual analysis; identification when the
@@ -51,6 +52,10 @@ MATRIX = [
 RELAY = {"roll": dict(beta=-0.5, h=0.08, duration_s=8.0),
          "altitude": dict(beta=-0.2, h=0.08, duration_s=20.0)}
 
+#: Runs under a biased relay (roll, relay bias 0.02): (SITL effect, strengths); None = clean.
+BIASED = [("motor_deadzone", (0.01, 0.02, 0.04)), (None, (0.0,))]
+RELAY_BIAS = 0.02
+
 
 class _SignedDelay(ExtraDelay):
     def bounds(self, ctx):
@@ -69,12 +74,19 @@ def reference_models() -> dict:
     return out
 
 
-def run_one(models, loop, effect, value, seed):
+def run_one(models, loop, effect, value, seed, relay_bias=0.0):
     rec = sitl_relay_record(loop, effects={effect: value} if effect else None, seed=seed,
-                            **RELAY[loop])
+                            relay_bias=relay_bias, **RELAY[loop])
     kind = LoopKind.ALTITUDE if loop == "altitude" else LoopKind.ATTITUDE
-    return analyse_residual(models[loop], RelayTest(rec.beta, rec.h), rec.t, rec.u, rec.y,
-                            kind=kind, hover=rec.hover, band=rec.band, redesign=False)
+    return analyse_residual(models[loop], RelayTest(rec.beta, rec.h, rec.bias), rec.t, rec.u,
+                            rec.y, kind=kind, hover=rec.hover, band=rec.band, redesign=False)
+
+
+def _line(rep) -> str:
+    driven = " ".join(f"{f.name}={f.rms:.4f}" for f in rep.open_loop)
+    return (f"{rep.effect or 'none':20s} rms {rep.rms_before:.3f} -> {rep.rms_after:.3f} "
+            f"{rep.effect_params} alt={list(rep.alternatives)}"
+            + (f" | input-driven: {driven}" if driven else ""))
 
 
 def confusion(seeds: int, clean: int) -> None:
@@ -95,9 +107,7 @@ def confusion(seeds: int, clean: int) -> None:
                 correct += ok
                 if rep.effect:
                     reductions.append(rep.reduction)
-                print(f"  {loop:8s} {effect:18s} {v:<7g} seed {s}: {got:20s} "
-                      f"rms {rep.rms_before:.3f} -> {rep.rms_after:.3f} "
-                      f"{rep.effect_params} alt={list(rep.alternatives)}", flush=True)
+                print(f"  {loop:8s} {effect:18s} {v:<7g} seed {s}: {_line(rep)}", flush=True)
     alarms, n_clean = 0, 0
     for loop in RELAY:
         for s in range(clean):
@@ -117,6 +127,21 @@ def confusion(seeds: int, clean: int) -> None:
     if reductions:
         print(f"median residual reduction when an effect is named: "
               f"{np.median(reductions):.0%} (n={len(reductions)})")
+    named, runs, alarms, n_clean = 0, 0, 0, 0
+    print(f"\nroll under a relay with bias {RELAY_BIAS} (not in the figures above)")
+    for effect, values in BIASED:
+        for v in values:
+            for s in range(seeds):
+                rep = run_one(models, "roll", effect, v, 300 + s, relay_bias=RELAY_BIAS)
+                if effect is None:
+                    n_clean += 1
+                    alarms += rep.effect is not None
+                else:
+                    runs += 1
+                    named += rep.effect == EXPECTED[effect]
+                print(f"  roll     {effect or 'clean':18s} {v:<7g} seed {s}: {_line(rep)}",
+                      flush=True)
+    print(f"biased relay: dead zone named {named}/{runs}, false alarms {alarms}/{n_clean}")
     print(f"benchmark time {time.perf_counter() - t0:.0f} s")
 
 

@@ -11,7 +11,7 @@ from mrft_gcs.loops import LoopKind
 from mrft_gcs.plant import InnerModel
 from mrft_gcs.residual import RelayTest, analyse_residual
 from mrft_gcs.residual.effects import EFFECTS, ExtraDelay, Knobs, candidate_effects
-from mrft_gcs.residual.simulate import simulate_effects
+from mrft_gcs.residual.simulate import simulate_effects, simulate_input
 from mrft_gcs.residual.synth import sitl_relay_record
 from mrft_gcs.simulate import simulate_mrft
 
@@ -43,6 +43,19 @@ def test_neutral_knobs_reproduce_the_reference_simulator():
                             dt=0.004, duration_s=3.0, engine="numpy")
         np.testing.assert_allclose(run.y[i], ref.y[0], atol=1e-12)
         np.testing.assert_array_equal(run.u[i], ref.u[0])
+
+
+def test_driving_the_model_with_a_runs_commands_gives_its_output_back():
+    k = Knobs.neutral(6)
+    k.delay_s[1] = 0.0063
+    k.lpf_tau_s[2] = 0.01
+    k.rate[3] = 3.0
+    k.deadzone[4] = 0.01
+    k.drag[5], k.bias[5] = 2.0, 0.01
+    run = simulate_effects(MODEL, -0.4, 0.05, k, dt=0.004, duration_s=3.0)
+    for i in range(k.n):
+        y = simulate_input(MODEL, run.u[i], k, 0.004)[i]
+        np.testing.assert_allclose(y, run.y[i], rtol=0, atol=1e-12)
 
 
 def test_every_effect_changes_the_cycle_of_its_loop():
@@ -99,3 +112,29 @@ def test_no_cycle_is_an_identification_error():
     t = np.arange(0, 2, 0.004)
     with pytest.raises(IdentificationError, match="relay cycle"):
         analyse_residual(MODEL, RelayTest(-0.5, 0.08), t, np.full(t.size, 0.08), t)
+
+
+def test_undeclared_rate_limit_is_told_from_a_delay(roll_model):
+    # Closed loop, a rate limit and a delay both lengthen the period; the response to
+    # each recorded switch (a ramp of the input against a shift) tells them apart.
+    rec = sitl_relay_record("roll", effects={"torque_rate_limit": 3.0}, seed=7, **ROLL)
+    rep = analyse_residual(roll_model, RelayTest(rec.beta, rec.h), rec.t, rec.u, rec.y,
+                           band=rec.band, redesign=False)
+    assert rep.effect == "actuator_rate_limit"
+    assert rep.effect_params["rate"] == pytest.approx(3.0, rel=0.15)
+    assert rep.open_loop[0].name == "actuator_rate_limit"
+    assert rep.open_loop[1].rms > 1.1 * rep.open_loop[0].rms
+    assert rep.rms_after < 0.2 * rep.rms_before
+
+
+def test_a_biased_relay_tells_a_dead_zone_from_saturation(roll_model):
+    # Without a relay bias both only shrink the two levels alike; with one, a dead zone
+    # shrinks both levels by the same amount, a saturation clips the larger one only.
+    rec = sitl_relay_record("roll", effects={"motor_deadzone": 0.02}, seed=2,
+                            relay_bias=0.02, **ROLL)
+    rep = analyse_residual(roll_model, RelayTest(rec.beta, rec.h, rec.bias), rec.t, rec.u,
+                           rec.y, band=rec.band, redesign=False)
+    assert rep.effect == "motor_deadzone"
+    assert rep.effect_params["deadband"] == pytest.approx(0.02, rel=0.25)
+    sat = next(f for f in rep.fits if f.name == "actuator_saturation")
+    assert sat.rms > 3 * rep.rms_after

@@ -17,6 +17,11 @@ that ran (``beta``, ``h``, ``bias``) and the measured ``(t, u, y)``. It
    simulated together in one batch per round), and names the effect that
    explains the residual best, provided it removes at least ``min_reduction`` of
    it (the penalty that keeps noise and small model errors from naming an effect);
+   when that best effect changes the dynamics (not only the relay's two input
+   levels), the effect is chosen among those that do by driving the model with the
+   recorded commands instead (:mod:`~mrft_gcs.residual.openloop`): the closed-loop
+   cycle mixes lag effects up through the period, the response to each measured
+   switch does not;
 4. re-designs the PD with the effect where it changes the small-signal dynamics
    (extra delay, sensor filter, rate limit via its describing function, drag
    linearised at the test's rate, thrust-curve gain at hover) and reports the
@@ -45,16 +50,22 @@ from mrft_gcs.residual.effects import (
     RelayContext,
     candidate_effects,
 )
+from mrft_gcs.residual.openloop import InputWindow, input_rms, input_window
 from mrft_gcs.residual.simulate import simulate_effects
 
 __all__ = ["RelayTest", "EffectFit", "CycleErrors", "ResidualReport", "analyse_residual",
-           "RMS_FLOOR", "MIN_REDUCTION"]
+           "RMS_FLOOR", "MIN_REDUCTION", "LIKELIHOOD_GAP", "DRIVEN_MARGIN"]
 
 #: Normalised RMS below which a residual is never significant (model and sampling
 #: mismatch of clean SITL runs stays below it; see benchmarks/residual_confusion.py).
 RMS_FLOOR = 0.06
 #: Fraction of the residual an effect must remove to be named.
 MIN_REDUCTION = 0.4
+#: Input-driven fits whose squared residuals differ by less than this many times the
+#: white noise's (summed over the samples compared) are listed as alternatives.
+LIKELIHOOD_GAP = 10.0
+#: ... or whose RMS differ by less than this fraction.
+DRIVEN_MARGIN = 0.03
 
 
 @dataclass(frozen=True)
@@ -136,6 +147,10 @@ class ResidualReport:
         Optimal PD of the model, and re-designed with the effect (set when an effect is named).
     design_note : str
         What the re-design did with the effect.
+    open_loop : tuple of EffectFit
+        Input-driven fits of the effects that change the dynamics, best first (``rms``:
+        normalised residual of the model driven by the recorded commands); empty unless
+        the closed-loop comparison pointed at the dynamics.
     """
 
     rms_before: float
@@ -153,6 +168,7 @@ class ResidualReport:
     gains_model: PD | None = None
     gains_with_effect: PD | None = None
     design_note: str = ""
+    open_loop: tuple[EffectFit, ...] = ()
 
     @property
     def reduction(self) -> float:
@@ -173,6 +189,8 @@ class ResidualReport:
             before=self.before.as_dict(), after=self.after.as_dict(),
             fits=[{"effect": f.name, f.param: _num(f.value), "rms": _num(f.rms)}
                   for f in self.fits],
+            open_loop=[{"effect": f.name, f.param: _num(f.value), "rms": _num(f.rms)}
+                       for f in self.open_loop],
             alternatives=list(self.alternatives), design_note=self.design_note,
             gains_model=_pd(self.gains_model), gains_with_effect=_pd(self.gains_with_effect),
         )
@@ -210,16 +228,17 @@ class _Batch:
 def _compare(meas: CycleWave, u: np.ndarray, y: np.ndarray, dt: float) -> CycleErrors:
     """Errors of one simulated record against the measured cycle (inf when it does not cycle)."""
     bad = CycleErrors(np.inf, np.inf, np.inf, np.inf, np.inf)
-    sim = cycle_wave(u, y, dt, max_cycles=2)
+    sim = cycle_wave(u, y, dt, max_cycles=meas.cycles)
     if sim is None or sim.amplitude <= 0:
         return bad
     n = meas.y.size
     r = rising_switches(u)
-    r = r[r + max(n, sim.y.size) <= y.size]
+    r = r[r + max(n, sim.y.size) <= y.size][-sim.cycles:]
     if r.size == 0:
         return bad
-    s = int(r[-1])
-    seg = y[s:s + n] - y[s:s + sim.y.size].mean()
+    # Averaged over as many cycles as the measured one, from each rising switch: a cycle
+    # that alternates (a biased relay's does, by a sample or two) compares like for like.
+    seg = np.mean([y[s:s + n] - y[s:s + sim.y.size].mean() for s in r], axis=0)
     rms = float(np.sqrt(np.mean((seg - meas.y) ** 2)) / meas.amplitude)
     return CycleErrors(rms=rms, period=sim.period_s / meas.period_s - 1,
                        amplitude=sim.amplitude / meas.amplitude - 1, duty=sim.duty - meas.duty,
@@ -230,8 +249,8 @@ def _run(model: InnerModel, relay: RelayTest, batch: _Batch, meas: CycleWave, ho
          band: float, cycles: float) -> list[CycleErrors]:
     P = meas.period_s
     run = simulate_effects(model, relay.beta, relay.h, batch.knobs(hover), bias=relay.bias,
-                           dt=meas.dt, duration_s=cycles * P, keep_s=min(cycles, 5.0) * P,
-                           band=band)
+                           dt=meas.dt, duration_s=cycles * P,
+                           keep_s=min(cycles, meas.cycles + 3.0) * P, band=band)
     return [_compare(meas, run.u[i], run.y[i], meas.dt) for i in range(len(batch.values))]
 
 
@@ -307,40 +326,22 @@ def analyse_residual(model: InnerModel | SideModel, relay: Any, t, u, y, *,
     ctx = RelayContext(relay.h, relay.bias, meas.period_s, meas.amplitude, dt, hover)
     cands = candidate_effects(kind) if effects is None else tuple(effects)
 
-    batch = _Batch()
-    batch.add(None, 0.0)
-    for e in cands:
-        batch.add(e, e.grid(ctx, grid))
-    errs = _run(model, relay, batch, meas, hover, band, sim_cycles)
-    before = errs[0]
+    cl_errs: dict[tuple[str, float], CycleErrors] = {}  # (effect name, value) -> errors
+
+    def closed(batch: _Batch) -> list[float]:
+        errs = _run(model, relay, batch, meas, hover, band, sim_cycles)
+        keys = zip(map(_name, batch.effects), batch.values, strict=False)
+        cl_errs.update(zip(keys, errs, strict=False))
+        return [e.rms for e in errs]
+
+    best = _search(cands, ctx, closed, grid, rounds, head=True)
+    before = cl_errs[("", 0.0)]
     if not np.isfinite(before.rms):
         raise IdentificationError("the model does not oscillate under this relay: check the "
                                   "model, beta and h")
-    best: dict[str, tuple[float, CycleErrors]] = {}
-    for e, v, err in zip(batch.effects[1:], batch.values[1:], errs[1:], strict=False):
-        assert e is not None
-        if e.name not in best or err.rms < best[e.name][1].rms:
-            best[e.name] = (v, err)
-    # Refine: a finer grid around each effect's best point, all effects in one batch.
-    for r in range(rounds):
-        batch = _Batch()
-        for e in cands:
-            lo, hi = e.bounds(ctx)
-            v0 = best[e.name][0]
-            step = (_grid_step(e, ctx, grid) / (4 ** r))
-            if e.log_grid:
-                vals = v0 * np.geomspace(1 / step, step, 7)
-            else:
-                vals = v0 + np.linspace(-step, step, 7)
-            batch.add(e, np.clip(vals, lo, hi))
-        errs = _run(model, relay, batch, meas, hover, band, sim_cycles)
-        for e, v, err in zip(batch.effects, batch.values, errs, strict=False):
-            assert e is not None
-            if err.rms < best[e.name][1].rms:
-                best[e.name] = (v, err)
     by_name = {e.name: e for e in cands}
-    fits = sorted((EffectFit(n, by_name[n].param, by_name[n].units, v, err.rms)
-                   for n, (v, err) in best.items()), key=lambda f: f.rms)
+    fits = sorted((EffectFit(n, by_name[n].param, by_name[n].units, v, r)
+                   for n, (v, r) in best.items()), key=lambda f: f.rms)
     significant = before.rms > threshold
     top = fits[0] if fits else None
     named = (top is not None and significant and top.rms <= (1 - min_reduction) * before.rms)
@@ -348,14 +349,99 @@ def analyse_residual(model: InnerModel | SideModel, relay: Any, t, u, y, *,
         return ResidualReport(before.rms, before.rms, None, {}, before, before, significant,
                               threshold, noise, meas, tuple(fits))
     alts = tuple(f.name for f in fits[1:] if f.rms <= 1.15 * top.rms + 0.1 * threshold)
-    effect = by_name[top.name]
+    name, value, after = top.name, top.value, cl_errs[(top.name, top.value)]
+    driven: tuple[EffectFit, ...] = ()
+    dynamic = tuple(e for e in cands if not e.static_map)
+    win = input_window(uu, yy, dt) if not by_name[name].static_map else None
+    if win is not None and dynamic:
+        # The residual is in the dynamics: choose among the effects that change them by
+        # the response to the recorded commands (see openloop.py), fit there.
+        driven, alts = _input_driven(model, win, dynamic, ctx, hover, grid, rounds)
+        name, value = driven[0].name, driven[0].value
+        check = _Batch()
+        check.add(by_name[name], [value, best[name][0]])
+        # The input-driven value (the closer estimate), unless its relay cycle does not
+        # explain the residual where the closed-loop fit's does (the closed-loop cycle can
+        # lock to another whole number of samples).
+        errs = _run(model, relay, check, meas, hover, band, sim_cycles)
+        value, after = check.values[0], errs[0]
+        if after.rms > (1 - min_reduction) * before.rms and errs[1].rms < after.rms:
+            value, after = check.values[1], errs[1]
+        if not after.rms <= (1 - min_reduction) * before.rms:
+            return ResidualReport(before.rms, before.rms, None, {}, before, before, significant,
+                                  threshold, noise, meas, tuple(fits), open_loop=driven)
+    effect = by_name[name]
     gm = ge = None
-    note = effect.design_note(top.value, ctx)
+    note = effect.design_note(value, ctx)
     if redesign:
-        gm, ge = _redesign(model, effect, top.value, ctx)
-    return ResidualReport(before.rms, top.rms, top.name, {top.param: top.value}, before,
-                          best[top.name][1], significant, threshold, noise, meas, tuple(fits),
-                          alts, gm, ge, note)
+        gm, ge = _redesign(model, effect, value, ctx)
+    return ResidualReport(before.rms, after.rms, name, {effect.param: value}, before, after,
+                          significant, threshold, noise, meas, tuple(fits), alts, gm, ge, note,
+                          driven)
+
+
+def _name(e: Effect | None) -> str:
+    return "" if e is None else e.name
+
+
+def _search(cands: tuple[Effect, ...], ctx: RelayContext, score, grid: int, rounds: int,
+            head: bool = False) -> dict[str, tuple[float, float]]:
+    """Best ``(value, score)`` of each effect: a bounded grid, then ``rounds`` finer grids
+    around the best point, all effects in one batch per round.
+
+    ``score(batch) -> list of float`` rates every candidate of a batch (lower is better);
+    with ``head`` the first batch starts with the model without effects.
+    """
+    batch = _Batch()
+    if head:
+        batch.add(None, 0.0)
+    for e in cands:
+        batch.add(e, e.grid(ctx, grid))
+    best: dict[str, tuple[float, float]] = {}
+
+    def keep(batch: _Batch, scores: list[float]) -> None:
+        for e, v, r in zip(batch.effects, batch.values, scores, strict=False):
+            r = float(r) if np.isfinite(r) else np.inf
+            if e is not None and (e.name not in best or r < best[e.name][1]):
+                best[e.name] = (v, r)
+
+    keep(batch, score(batch))
+    for r in range(rounds):
+        batch = _Batch()
+        for e in cands:
+            lo, hi = e.bounds(ctx)
+            v0 = best[e.name][0]
+            # +- one step of the previous grid, a quarter as wide each round
+            if e.log_grid:
+                step = _grid_step(e, ctx, grid) ** (0.25 ** r)
+                vals = v0 * np.geomspace(1 / step, step, 7)
+            else:
+                step = _grid_step(e, ctx, grid) * 0.25 ** r
+                vals = v0 + np.linspace(-step, step, 7)
+            batch.add(e, np.clip(vals, lo, hi))
+        keep(batch, score(batch))
+    return best
+
+
+def _input_driven(model: InnerModel, win: InputWindow, cands: tuple[Effect, ...],
+                  ctx: RelayContext, hover: float, grid: int, rounds: int
+                  ) -> tuple[tuple[EffectFit, ...], tuple[str, ...]]:
+    """Input-driven fits of ``cands`` (best first) and those the data cannot tell from the best.
+
+    Two fits are told apart when their squared residuals differ by more than
+    ``LIKELIHOOD_GAP`` times the white noise's (a likelihood ratio of ``e^(gap/2)``) and
+    their RMS by more than ``DRIVEN_MARGIN`` (the model's own error, which is not white:
+    a clean noise-free SITL record leaves 0.0014 against the model that made it cycle).
+    """
+    best = _search(cands, ctx, lambda b: input_rms(model, win, b.knobs(hover)), 2 * grid,
+                   rounds + 2)
+    by_name = {e.name: e for e in cands}
+    fits = tuple(sorted((EffectFit(n, by_name[n].param, by_name[n].units, v, r)
+                         for n, (v, r) in best.items()), key=lambda f: f.rms))
+    gap = LIKELIHOOD_GAP * win.noise ** 2 / win.samples
+    alts = tuple(f.name for f in fits[1:] if f.rms ** 2 - fits[0].rms ** 2 < gap
+                 or f.rms <= (1 + DRIVEN_MARGIN) * fits[0].rms)
+    return fits, alts
 
 
 def _grid_step(e: Effect, ctx: RelayContext, grid: int) -> float:

@@ -13,7 +13,10 @@ Under a relay every static input nonlinearity (saturation, dead zone, thrust
 curve, bias) turns the two relay levels into two other levels, so from one
 relay amplitude such effects are only told apart by how they move the two
 levels (both shrink, one shrinks, both shift). The report lists the effects
-that explain the data equally well (``alternatives``).
+that explain the data equally well (``alternatives``). Effects that change the
+dynamics instead (delay, sensor filter, rate limit, drag) are told apart by the
+response to each switch (:mod:`~mrft_gcs.residual.openloop`); ``Effect.static_map``
+says which family an effect is in.
 """
 
 from __future__ import annotations
@@ -121,12 +124,17 @@ class Effect:
         Search the parameter on a logarithmic grid.
     loops : tuple of LoopKind
         Loop families where the effect is physically possible.
+    static_map : bool
+        A static map of the input: under a two-level relay it only moves the two
+        levels (bias, saturation, dead zone, thrust curve), so it leaves no trace in
+        the shape of the response to a switch.
     """
 
     name: str = ""
     param: str = ""
     units: str = ""
     log_grid: bool = False
+    static_map: bool = False
     loops: tuple[LoopKind, ...] = field(default=(LoopKind.ATTITUDE, LoopKind.ALTITUDE))
 
     def bounds(self, ctx: RelayContext) -> tuple[float, float]:
@@ -157,6 +165,7 @@ class InputBias(Effect):
     name: str = "input_bias"
     param: str = "bias"
     units: str = "input units"
+    static_map: bool = True
 
     def bounds(self, ctx: RelayContext) -> tuple[float, float]:
         return -0.8 * ctx.h, 0.8 * ctx.h
@@ -224,6 +233,7 @@ class ActuatorSaturation(Effect):
     name: str = "actuator_saturation"
     param: str = "u_max"
     units: str = "input units"
+    static_map: bool = True
     symmetric: bool = True
 
     def bounds(self, ctx):
@@ -299,6 +309,7 @@ class MotorDeadzone(Effect):
     name: str = "motor_deadzone"
     param: str = "deadband"
     units: str = "input units"
+    static_map: bool = True
     loops: tuple[LoopKind, ...] = (LoopKind.ATTITUDE,)
 
     def bounds(self, ctx):
@@ -322,6 +333,7 @@ class ThrustCurve(Effect):
     name: str = "thrust_curve"
     param: str = "a"
     units: str = "1"
+    static_map: bool = True
     loops: tuple[LoopKind, ...] = (LoopKind.ALTITUDE,)
 
     def bounds(self, ctx):

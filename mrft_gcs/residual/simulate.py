@@ -14,6 +14,11 @@ step the delayed input is the older sample for the first ``eps`` seconds and the
 newer one for the rest. Static input maps (bias, dead zone, saturation, thrust
 curve) and the rate limit act on the held input, once per step; quadratic drag
 is added to the rate state explicitly (it is small over one step).
+
+:func:`simulate_input` steps the same plant open loop, driven by a recorded
+relay output instead of the relay: the input-driven comparison of
+:mod:`~mrft_gcs.residual.openloop`. Fed the commands a closed-loop run recorded,
+it gives that run's output back exactly (test).
 """
 
 from __future__ import annotations
@@ -26,21 +31,23 @@ from mrft_gcs.relay import MRFT
 from mrft_gcs.residual.effects import Knobs
 from mrft_gcs.simulate import RelayRun
 
-__all__ = ["simulate_effects", "effective_input"]
+__all__ = ["simulate_effects", "simulate_input", "effective_input", "input_sequence"]
 
 
 def effective_input(u: np.ndarray, knobs: Knobs) -> np.ndarray:
     """The static input maps of ``knobs`` applied to commands ``u`` (shape ``(n,)``).
 
     Order: bias, dead zone, saturation, thrust curve (as the SITL applies them).
+    ``u`` may also be ``(n, m)``: ``m`` commands of each candidate.
     """
-    w = u + knobs.bias
-    dz = knobs.deadzone
+    col = (slice(None),) + (None,) * (np.ndim(u) - 1)
+    w = u + knobs.bias[col]
+    dz = knobs.deadzone[col]
     w = np.where(dz > 0, np.sign(w) * np.maximum(np.abs(w) - dz, 0.0), w)
-    w = np.clip(w, knobs.u_min, knobs.u_max)
-    a = knobs.curve_a
+    w = np.clip(w, knobs.u_min[col], knobs.u_max[col])
+    a = knobs.curve_a[col]
     if np.any(a > 0):
-        F = knobs.curve_hover
+        F = knobs.curve_hover[col]
         safe = np.where(a > 0, a, 1.0)
         c_h = np.where(a > 0, (-(1 - a) + np.sqrt((1 - a) ** 2 + 4 * a * F)) / (2 * safe), F)
         c = c_h + w
@@ -62,6 +69,54 @@ def _slew(w0: np.ndarray, target: np.ndarray, rate: np.ndarray, dt: float) -> np
     # ramp part (mean of w0 .. ramp_end over tr) then held at ramp_end for the rest
     held = ((w0 + ramp_end) / 2 * tr + ramp_end * (dt - tr)) / dt
     return np.where(np.isfinite(rate), held, target)
+
+
+def input_sequence(u: np.ndarray, knobs: Knobs, dt: float) -> np.ndarray:
+    """What the plant receives, ``(n, m)``, when commands ``u`` ``(m,)`` are sent to each candidate.
+
+    The static maps of :func:`effective_input`, then the rate limit (held ramp means,
+    as :func:`simulate_effects` steps it); no delay (the plant applies it).
+    """
+    u = np.asarray(u, dtype=float)
+    w = effective_input(np.broadcast_to(u, (knobs.n, u.size)), knobs)
+    if not np.any(np.isfinite(knobs.rate)):
+        return w
+    out = np.empty_like(w)
+    max_step = knobs.rate * dt
+    prev = np.zeros(knobs.n)
+    for k in range(u.size):
+        out[:, k] = _slew(prev, w[:, k], knobs.rate, dt)
+        prev = prev + np.clip(w[:, k] - prev, -max_step, max_step)
+    return out
+
+
+def simulate_input(model: InnerModel, u: np.ndarray, knobs: Knobs, dt: float) -> np.ndarray:
+    """Output ``(n, m)`` of ``model`` with each candidate's effects, driven by commands ``u``.
+
+    Open loop from rest (zero state, empty delay line): ``u[k]`` is held over step
+    ``k`` and ``y[:, k]`` is the (filtered) output sampled at its start, as a relay
+    record pairs them.
+    """
+    n = knobs.n
+    Ad, b_new, b_old, d, out = _matrices(model, knobs, dt)
+    w = input_sequence(u, knobs, dt)
+    m = w.shape[1]
+    pad = np.concatenate([np.zeros((n, int(d.max()) + 1)), w], axis=1)
+    k = np.arange(m)[None, :] + int(d.max()) + 1 - d[:, None]
+    w0 = np.take_along_axis(pad, k, axis=1)
+    w1 = np.take_along_axis(pad, k - 1, axis=1)
+    forced = b_new[:, :, None] * w0[:, None, :] + b_old[:, :, None] * w1[:, None, :]
+    rows = np.arange(n)
+    drag_on = bool(np.any(knobs.drag > 0))
+    x = np.zeros((n, 4))
+    Y = np.empty((n, m))
+    for j in range(m):
+        Y[:, j] = x[rows, out]
+        x = np.einsum("nij,nj->ni", Ad, x) + forced[:, :, j]
+        if drag_on:
+            v = x[:, 1]
+            x[:, 1] = v - dt * knobs.drag * np.abs(v) * v
+    return Y
 
 
 def _matrices(model: InnerModel, knobs: Knobs, dt: float):

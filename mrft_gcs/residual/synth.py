@@ -40,7 +40,8 @@ class RelayRecord:
 def sitl_relay_record(loop: str = "roll", *, vehicle: str | Airframe = "qdrone",
                       effects: dict[str, float] | None = None, beta: float = -0.5,
                       h: float = 0.08, duration_s: float = 8.0, rate_hz: float = 250.0,
-                      seed: int = 0, noise: bool = True, band: float | None = None) -> RelayRecord:
+                      seed: int = 0, noise: bool = True, band: float | None = None,
+                      relay_bias: float = 0.0) -> RelayRecord:
     """Fly an MRFT on ``loop`` (``roll``, ``pitch`` or ``altitude``) of the SITL physics.
 
     ``effects`` maps SITL effect names (:data:`mrft_gcs.sitl.EFFECT_NAMES`) to values;
@@ -50,7 +51,8 @@ def sitl_relay_record(loop: str = "roll", *, vehicle: str | Airframe = "qdrone",
 
     Attitude loops drive the normalised torque at hover thrust; the altitude loop drives
     the collective command's deviation from the hover command, from 5 m up. ``band``
-    defaults to four times the sensor noise.
+    defaults to four times the sensor noise; ``relay_bias`` is the relay's own (declared)
+    bias, its output is ``relay_bias +- h``.
     """
     af = load_airframe(vehicle) if isinstance(vehicle, str) else vehicle
     if not noise:
@@ -64,7 +66,7 @@ def sitl_relay_record(loop: str = "roll", *, vehicle: str | Airframe = "qdrone",
         axis = 0 if loop == "roll" else 1
         tb = list(af.torque_bias)
         tb[axis] += in_bias
-        af = dataclasses.replace(af, torque_bias=tuple(tb))
+        af = dataclasses.replace(af, torque_bias=(tb[0], tb[1], tb[2]))
     # ``extra_delay``: measurement delay the linear model does not have (s).
     extra = float(effects.pop("extra_delay", 0.0))
     if extra:
@@ -77,7 +79,7 @@ def sitl_relay_record(loop: str = "roll", *, vehicle: str | Airframe = "qdrone",
     hover_cmd = phys._thrust_to_cmd(af.hover_thrust) + (in_bias if loop == "altitude" else 0.0)
     sigma = af.position_noise_m if loop == "altitude" else af.attitude_noise_rad
     band = 4.0 * sigma if band is None else band
-    relay = MRFT(beta, h, 0.0, band)
+    relay = MRFT(beta, h, relay_bias, band)
     sub = max(1, int(round(1.0 / (rate_hz * phys.dt))))
     n = int(round(duration_s * rate_hz))
     t, u, y = np.empty(n), np.empty(n), np.empty(n)
@@ -101,7 +103,7 @@ def sitl_relay_record(loop: str = "roll", *, vehicle: str | Airframe = "qdrone",
                 phys.step(cmd, 0.0, 0.0, hover_cmd)
             else:
                 phys.step(0.0, cmd, 0.0, hover_cmd)
-    return RelayRecord(t, u, y, beta, h, 0.0, band, model, af.hover_thrust)
+    return RelayRecord(t, u, y, beta, h, relay_bias, band, model, af.hover_thrust)
 
 
 def write_relay_tlog(path, loop: str, t: np.ndarray, u: np.ndarray, y: np.ndarray,
