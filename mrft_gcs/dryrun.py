@@ -105,7 +105,7 @@ class RelaySegment:
     gcs_period_s : float
         Period of the ground station's setpoint stream when the relay ran on a ground
         station (its commands are in the log), else 0. A live tune re-targets the
-        written inner-loop gains by this delay (:func:`mrft_gcs.flight.onboard.onboard_gains`).
+        written inner-loop gains by half of it (:func:`mrft_gcs.flight.onboard.gcs_delay_s`).
     """
 
     loop: Loop
@@ -1028,10 +1028,11 @@ def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
     if ident is not None:
         gains = ident.gains
         if seg.gcs_period_s > 0 and isinstance(ident.model, InnerModel):
-            from mrft_gcs.flight.onboard import onboard_gains
+            from mrft_gcs.flight.onboard import gcs_delay_s, onboard_gains
 
-            gains = onboard_gains(ident, seg.gcs_period_s)
-            notes.append(f"gains re-targeted to the onboard loop ({seg.gcs_period_s * 1e3:.1f} ms "
+            delay = gcs_delay_s(seg.gcs_period_s)
+            gains = onboard_gains(ident, delay)
+            notes.append(f"gains re-targeted to the onboard loop ({delay * 1e3:.1f} ms "
                          f"less delay than the ground-station relay), as a tune writes them; "
                          f"identified Kc {ident.gains.Kc:.4g}, Kd {ident.gains.Kd:.4g}")
     res = None

@@ -33,6 +33,7 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.onboard import gcs_delay_s as _gcs_delay_s
 from mrft_gcs.flight.onboard import onboard_gains
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
 from mrft_gcs.flight.sequence import AUTOPILOT_ATTITUDE as _AUTOPILOT_ATTITUDE
@@ -330,7 +331,8 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
     gcs_delay_s : float, optional
         Delay the GCS-side relay adds to the identified inner loops (s); the written
         gains are re-targeted to the onboard loop without it
-        (:func:`mrft_gcs.flight.onboard.onboard_gains`). Default: one setpoint period.
+        (:func:`mrft_gcs.flight.onboard.onboard_gains`). Default: half a setpoint
+        period (:func:`mrft_gcs.flight.onboard.gcs_delay_s`).
     config : SequenceConfig, optional
         Sequence settings (relay noise bands, amplitudes...); actuation, altitude,
         hover guess and tilt command limit are always taken from the tune's arguments.
@@ -370,7 +372,7 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
                                tlog_path=tlog_path, signing_key=signing_key)
     run = _Run(link, prof, act, lim, z_ref_m, connection, started, backup_dir, rate_hz,
                max_relay_s, hover_check_s, on_progress, ident_fn, relay or {})
-    run.gcs_delay_s = 1.0 / rate_hz if gcs_delay_s is None else gcs_delay_s
+    run.gcs_delay_s = _gcs_delay_s(1.0 / rate_hz) if gcs_delay_s is None else gcs_delay_s
     run.config = config or SequenceConfig()
     run.residuals = residuals
     run.requested = wanted
