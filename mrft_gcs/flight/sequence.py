@@ -349,13 +349,18 @@ class TuningSequence:
         return all(t.state in (LoopState.TUNED, LoopState.LEFT_ALONE) for t in self.loops.values())
 
     def side_ready(self) -> list[Loop]:
-        """Side loops not started whose attitude loop (x: pitch, y: roll) is done.
+        """Side loops not started, once both attitude loops are done.
 
         Altitude must be done too: its relay swings the thrust by +-h (about a quarter of
         hover), which modulates the horizontal force of a tilt and breaks the side cycles.
         """
         done = (LoopState.TUNED, LoopState.LEFT_ALONE)
         if self.loops[Loop.ALTITUDE].state not in done:
+            return []
+        if not self.inner_done:
+            # both attitude loops first: a side relay tilts its axis +-0.2 rad, which broke
+            # the other attitude loop's relay when it was still running (live qdrone: pitch's
+            # 0.29 s cycle fell into a 0.57 s one under y's test and drifted to 35 deg)
             return []
         return [lp for lp, inner in SIDE_INNER.items()
                 if self.loops[lp].state is LoopState.WAITING and self.loops[inner].state in done]
@@ -462,6 +467,10 @@ class TuningSequence:
         floor = self.config.runaway_floor[0 if t.loop in (Loop.ROLL, Loop.PITCH) else
                                           1 if t.loop is Loop.ALTITUDE else 2]
         limit = max(floor, self.config.runaway_factor * amp) if math.isfinite(amp) else floor
+        if t.loop in (Loop.ROLL, Loop.PITCH):
+            # a disturbed cycle inflates its own amplitude: never let the limit pass the
+            # largest tilt the tests command (20 deg), well inside the 35 deg safety limit
+            limit = min(limit, self.config.max_tilt_cmd_rad)
         if abs(e) > limit and st * e < 0:  # u pushes y away: e grows
             if t.loop in (Loop.ROLL, Loop.PITCH) and math.isfinite(t.cycle[0]):
                 # A relay is no stabilising controller: restarted after a disturbance (a
