@@ -362,8 +362,7 @@ class TuningSequence:
             # the other attitude loop's relay when it was still running (live qdrone: pitch's
             # 0.29 s cycle fell into a 0.57 s one under y's test and drifted to 35 deg)
             return []
-        return [lp for lp, inner in SIDE_INNER.items()
-                if self.loops[lp].state is LoopState.WAITING and self.loops[inner].state in done]
+        return [lp for lp in SIDE_INNER if self.loops[lp].state is LoopState.WAITING]
 
     @property
     def side_waiting(self) -> bool:
@@ -472,23 +471,18 @@ class TuningSequence:
             # largest tilt the tests command (20 deg), well inside the 35 deg safety limit
             limit = min(limit, self.config.max_tilt_cmd_rad)
         if abs(e) > limit and st * e < 0:  # u pushes y away: e grows
+            relay.reset()
             if t.loop in (Loop.ROLL, Loop.PITCH) and math.isfinite(t.cycle[0]):
                 # A relay is no stabilising controller: restarted after a disturbance (a
                 # GCS stall holding one relay level for 50-100 ms) it had fed each swing
                 # into a larger one (racer250, in-process with stalls: 8 restarts, 36 deg).
                 # A damping PD from the relay's own cycle brings the axis back first.
                 t.catch = catch_pd(t.h, *t.cycle)
-                relay.reset()
                 self.events.append(f"{t.loop.value}: relay paused, a damping PD caught the "
                                    f"run-away (error {e:+.3g})")
-                t.unarmed = t.switches = 0
-                t.ext = 0.0
-                t.detector.reset()
-                t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
-                return
-            relay.reset()
-            relay.step(e)
-            self.events.append(f"{t.loop.value}: relay restarted (error {e:+.3g} ran away)")
+            else:
+                relay.step(e)
+                self.events.append(f"{t.loop.value}: relay restarted (error {e:+.3g} ran away)")
             t.unarmed = t.switches = 0
             t.ext = 0.0
             t.detector.reset()
