@@ -54,7 +54,7 @@ def test_tune_over_udp_report_and_readback(tuned):
     assert result.status == "ok"
     assert 0 < result.duration_s < 25
     assert result.max_tilt_deg < 35
-    assert result.hover_error_m < 0.3  # stable POSCTL hover on the written gains
+    assert result.hover_error_m < 0.2  # still in POSCTL (about where it was entered) on the written gains
     assert (mode >> 16) & 0xFF == 3  # POSCTL
     assert result.stream.rate_hz_achieved > 200
     names = {c.name for c in result.parameters}
