@@ -234,3 +234,22 @@ def test_roll_relay_survives_ground_station_stalls():
         assert seq.phase is Phase.HOVER, (seed, seq.events)
         caught += sum("caught the run-away" in e for e in seq.events)
     assert caught >= 1  # the stalls did push a relay out: the catch is what held it
+
+
+def test_restarted_attitude_relay_keeps_its_runaway_limit():
+    """After a catch the detector starts over (no amplitude yet): the run-away limit is
+    still sized by the cycle seen before, so the relay's own start-up swing (racer250
+    pitch, 0.10-0.20 rad against a 0.06 rad cycle) is not taken for another run-away;
+    a swing past three cycle amplitudes still is."""
+    from mrft_gcs.relay import MRFT
+
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.5), ATT_RELAY, ALT_RELAY)
+    t = seq.loops[Loop.PITCH]
+    t.h, t.cycle = 0.12, (0.25, 0.06)
+    assert not math.isfinite(t.status.amplitude)  # as right after a reset
+    relay = MRFT(-0.5, t.h)
+    relay.step(0.01)  # a positive output: pushes a negative error further out
+    seq._watch(t, relay, -0.15, float(relay.state[0]))
+    assert t.catch is None and not seq.events
+    seq._watch(t, relay, -0.2, float(relay.state[0]))
+    assert t.catch is not None and "caught the run-away" in seq.events[-1]

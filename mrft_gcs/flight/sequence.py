@@ -463,6 +463,11 @@ class TuningSequence:
         """
         st = float(relay.state[0])
         amp = t.status.amplitude
+        if not math.isfinite(amp) and t.loop in (Loop.ROLL, Loop.PITCH):
+            # just restarted (detector reset): the cycle seen before the run-away still
+            # sizes the limit; the bare floor made a relay's own start-up swing on racer250
+            # pitch (0.10-0.20 rad) a run-away again, 70 catches in a row
+            amp = t.cycle[1]
         floor = self.config.runaway_floor[0 if t.loop in (Loop.ROLL, Loop.PITCH) else
                                           1 if t.loop is Loop.ALTITUDE else 2]
         limit = max(floor, self.config.runaway_factor * amp) if math.isfinite(amp) else floor
