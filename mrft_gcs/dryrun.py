@@ -53,7 +53,7 @@ and is snapped to the classifier's beta when within 0.1, unless metadata gives i
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -1063,7 +1063,8 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
     loops : tuple of Loop, optional
         Only these loops.
     profile : AutopilotProfile, optional
-        Maps the gains a tune would write to parameter values (``parameters``).
+        Maps the gains a tune would write to parameter values (``parameters``), clamped
+        into its ``[param_ranges]`` as a tune writes them (a note on the loop per clamp).
     models : dict, optional
         Known models per loop, used for residual analysis where identification fails.
     meta : dict, optional
@@ -1123,11 +1124,15 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
     why = {k: v for k, v in why.items() if Loop(k) in want}
     params: dict[str, float] = {}
     if profile is not None:
-        from mrft_gcs.profiles import PDGains, gains_to_params
+        from mrft_gcs.profiles import PDGains, params_in_range
 
         gains = {r.loop: PDGains(r.gains.Kc, r.gains.Kd) for r in results if r.gains is not None}
         if gains:
-            params = gains_to_params(profile, gains, hover_f)
+            ranged = params_in_range(profile, gains, hover_f)  # clamped as a tune writes them
+            params = ranged.values
+            results = tuple(replace(r, notes=r.notes + tuple(
+                n for c, n in zip(ranged.clamps, ranged.notes, strict=True) if r.loop in c.loops))
+                for r in results)
     return DryRunResult(str(path), summarize_log(log), results, why, params)
 
 

@@ -38,7 +38,7 @@ import math
 import os
 import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +61,11 @@ __all__ = [
     "parse_profile",
     "gains_to_params",
     "params_to_gains",
+    "Clamp",
+    "ClampedParams",
+    "clamp_to_ranges",
+    "clamp_note",
+    "params_in_range",
 ]
 
 G_M_S2 = 9.80665
@@ -145,6 +150,8 @@ class AutopilotProfile:
     side: CascadeParams
     altitude: AltitudeParams
     source: str = ""
+    #: ``name -> (min, max)`` of the values a tune may write (``[param_ranges]``)
+    param_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
     def parameter_names(self) -> list[str]:
         """Every parameter a full tune writes or needs (hover thrust), in write order."""
@@ -176,6 +183,28 @@ def _pname(table: Mapping[str, Any], key: str, where: str, optional: bool = Fals
     if not (1 <= len(name) <= 16 and name.isascii() and name.replace("_", "").isalnum()):
         raise UsageError(f"{where}: '{name}' is not a parameter name (1-16 letters, digits, _)")
     return name
+
+
+def _ranges(data: Mapping[str, Any], source: str,
+            names: list[str]) -> dict[str, tuple[float, float]]:
+    """``[param_ranges]``: ``NAME = [min, max]`` for parameters the profile maps."""
+    where = f"{source} [param_ranges]"
+    table = data.get("param_ranges", {})
+    if not isinstance(table, dict):
+        raise UsageError(f"{where}: must be a table of NAME = [min, max]")
+    out: dict[str, tuple[float, float]] = {}
+    for name, pair in table.items():
+        if name not in names:
+            raise UsageError(f"{where}: '{name}' is not a parameter of this profile (one of "
+                             f"{', '.join(names)})")
+        ok = (isinstance(pair, list) and len(pair) == 2
+              and all(isinstance(v, int | float) and not isinstance(v, bool)
+                      and math.isfinite(v) for v in pair))
+        if not ok or not pair[0] < pair[1]:
+            raise UsageError(f"{where}: '{name}' must be [min, max], two finite numbers with "
+                             f"min < max, got {pair!r}")
+        out[name] = (float(pair[0]), float(pair[1]))
+    return out
 
 
 def _positive(table: Mapping[str, Any], key: str, where: str, default: float) -> float:
@@ -228,11 +257,12 @@ def parse_profile(data: Mapping[str, Any], source: str = "<profile>") -> Autopil
                                           "hover_thrust")),
         accel_p=_pname(alt_t, "accel_p", wal, optional=True),
         accel_p_value=_positive(alt_t, "accel_p_value", wal, 0.5))
-    return AutopilotProfile(
+    prof = AutopilotProfile(
         name=str(ap.get("name", Path(source).stem)), family=family,
         description=str(ap.get("description", "")), actuation=actuation, modes=modes,
         safety=safety, roll=angle("roll"), pitch=angle("pitch"), side=side,
         altitude=altitude, source=source)
+    return replace(prof, param_ranges=_ranges(data, source, prof.parameter_names()))
 
 
 def load_profile(name_or_path: str | os.PathLike[str]) -> AutopilotProfile:
@@ -344,3 +374,127 @@ def params_to_gains(profile: AutopilotProfile, values: Mapping[str, float]) -> d
         kd = values[side.vel_p] / G_M_S2
         out[Loop.X] = out[Loop.Y] = PDGains(Kc=values[side.pos_p] * kd, Kd=kd)
     return out
+
+
+# ---------------------------------------------------------------------- ranges
+#: what each profile key is, in words; I and D terms the design sets to zero
+_STAGES = {"angle_p": "angle", "rate_p": "rate", "rate_k": "rate", "pos_p": "position",
+           "vel_p": "velocity", "accel_p": "acceleration", "hover_thrust": "hover thrust",
+           "rate_i": "rate I", "rate_d": "rate D", "vel_i": "velocity I", "vel_d": "velocity D"}
+
+
+def _roles(profile: AutopilotProfile) -> dict[str, tuple[tuple[Loop, ...], str]]:
+    """``name -> (loops it acts on, profile key)``."""
+    out: dict[str, tuple[tuple[Loop, ...], str]] = {}
+    for group, loops in ((profile.roll, (Loop.ROLL,)), (profile.pitch, (Loop.PITCH,)),
+                         (profile.altitude, (Loop.ALTITUDE,)), (profile.side, (Loop.X, Loop.Y))):
+        for key, name in vars(group).items():
+            if key in _STAGES and isinstance(name, str):
+                out.setdefault(name, (loops, key))
+    return out
+
+
+@dataclass(frozen=True)
+class Clamp:
+    """A computed value moved into the profile's range ``[lo, hi]``."""
+
+    name: str
+    wanted: float
+    written: float
+    lo: float
+    hi: float
+    loops: tuple[Loop, ...] = ()  # the loops the parameter acts on
+
+
+@dataclass(frozen=True)
+class ClampedParams:
+    """Parameter values to write, inside the profile's ranges (:func:`params_in_range`).
+
+    ``notes[i]`` explains ``clamps[i]``; ``gains`` are the PD gains the written values
+    amount to (:func:`params_to_gains`), per loop written.
+    """
+
+    values: dict[str, float]
+    clamps: tuple[Clamp, ...]
+    notes: tuple[str, ...]
+    gains: dict[Loop, PDGains]
+
+
+def clamp_to_ranges(profile: AutopilotProfile,
+                    values: Mapping[str, float]) -> tuple[dict[str, float], list[Clamp]]:
+    """``values`` with each one that has a range in the profile put inside it.
+
+    Names without a range pass unchanged; the order of ``values`` is kept.
+
+    Examples
+    --------
+    >>> p = replace(load_profile("px4"), param_ranges={"MPC_Z_P": (0.1, 1.5)})
+    >>> out, clamps = clamp_to_ranges(p, {"MPC_Z_P": 2.0, "MPC_XY_P": 3.0})
+    >>> out, clamps[0].wanted
+    ({'MPC_Z_P': 1.5, 'MPC_XY_P': 3.0}, 2.0)
+    """
+    roles = _roles(profile)
+    out = dict(values)
+    clamps: list[Clamp] = []
+    for name, value in values.items():
+        if name not in profile.param_ranges:
+            continue
+        lo, hi = profile.param_ranges[name]
+        written = min(max(value, lo), hi)
+        if written != value:
+            out[name] = written
+            clamps.append(Clamp(name, value, written, lo, hi, roles.get(name, ((), ""))[0]))
+    return out, clamps
+
+
+def clamp_note(profile: AutopilotProfile, clamp: Clamp, designed: Mapping[Loop, PDGains],
+               in_effect: Mapping[Loop, PDGains]) -> str:
+    """One line on a clamped value: the range, what was written, what it does to the loop.
+
+    ``designed`` and ``in_effect`` are the PD gains of the unclamped and the written
+    values (:func:`params_to_gains`); the first of ``clamp.loops`` found in both is quoted.
+    """
+    loops, key = _roles(profile).get(clamp.name, (clamp.loops, ""))
+    where = " and ".join(lp.value for lp in loops)
+    stage = _STAGES.get(key, "")
+    if key.endswith(("_i", "_d")):
+        effect = f"{where} {stage} term {clamp.written:g} where the PD design has {clamp.wanted:g}"
+    elif clamp.written < clamp.wanted:
+        effect = f"{where} {stage} loop slower than designed"
+    else:
+        effect = f"{where} {stage} loop faster than designed, with less phase margin"
+    for lp in loops:
+        d, e = designed.get(lp), in_effect.get(lp)
+        if d is not None and e is not None and d != e:
+            effect += (f"; in effect Kc {e.Kc:.4g}, Kd {e.Kd:.4g} instead of Kc {d.Kc:.4g}, "
+                       f"Kd {d.Kd:.4g}")
+            break
+    side = "above" if clamp.wanted > clamp.hi else "below"
+    return (f"{clamp.name}: the tuned {clamp.wanted:.4g} is {side} the profile's range "
+            f"{clamp.lo:g} to {clamp.hi:g}; {clamp.written:g} written ({' '.join(effect.split())})")
+
+
+def params_in_range(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
+                    hover_thrust: float) -> ClampedParams:
+    """:func:`gains_to_params`, clamped into the profile's ranges, with a note per clamp.
+
+    What a tune writes (and dry-run reports): a value outside its range is replaced by
+    the nearer bound instead of failing the write on a vehicle that refuses it.
+
+    Examples
+    --------
+    >>> p = replace(load_profile("px4"), param_ranges={"MC_ROLL_P": (0.0, 3.0)})
+    >>> r = params_in_range(p, {Loop.ROLL: PDGains(Kc=1.0, Kd=0.25)}, 0.5)
+    >>> r.values["MC_ROLL_P"], r.gains[Loop.ROLL]
+    (3.0, PDGains(Kc=0.75, Kd=0.25))
+    >>> r.notes[0].split(";")[0]
+    "MC_ROLL_P: the tuned 4 is above the profile's range 0 to 3"
+    """
+    wanted = gains_to_params(profile, gains, hover_thrust)
+    values, clamps = clamp_to_ranges(profile, wanted)
+    hover = {profile.altitude.hover_thrust: hover_thrust}
+    designed = params_to_gains(profile, {**wanted, **hover})
+    in_effect = params_to_gains(profile, {**values, **hover})
+    notes = tuple(clamp_note(profile, c, designed, in_effect) for c in clamps)
+    return ClampedParams(values, tuple(clamps), notes,
+                         {lp: g for lp, g in in_effect.items() if lp in gains})

@@ -178,3 +178,34 @@ def test_commands_are_paired_with_the_sample_they_answered():
     np.testing.assert_array_equal(act[c.cmd, 1], relay[c.rows])
     naive = _pair(att, 2 * order["attitude"], act[:, 0], 2 * order["actuator"])
     assert list(naive.rows) != sorted(first)
+
+
+def test_dry_run_clamps_parameters_into_the_profile_range(tmp_path):
+    """A profile whose range the tuned roll angle P exceeds: clamped, with the loop's note."""
+    if not MODELS.exists() or not list((MODELS.parent / "attitude").glob("*.onnx")):
+        pytest.skip("the attitude classifier is not bundled yet (models/)")
+    from mrft_gcs.identify import relay_settings
+    from mrft_gcs.loops import LoopKind
+    from mrft_gcs.profiles import PROFILE_DIR
+
+    rec = sitl_relay_record("roll", seed=4, beta=relay_settings(LoopKind.ATTITUDE).beta,
+                            h=0.08, duration_s=6.0)
+    log = tmp_path / "tune.tlog"
+    write_relay_tlog(log, "roll", rec.t, rec.u, rec.y)
+    text = (PROFILE_DIR / "sitl.toml").read_text()
+    assert "MC_ROLL_P = [0.0, 50.0]" in text
+    tight = tmp_path / "tight.toml"
+    tight.write_text(text.replace("MC_ROLL_P = [0.0, 50.0]", "MC_ROLL_P = [0.0, 0.5]"))
+    report = tmp_path / "r.json"
+    assert main(["dry-run", str(log), "--profile", str(tight), "--report", str(report)]) == 0
+    data = json.loads(report.read_text())
+    params = {p["name"]: p["new"] for p in data["parameters"]}
+    gains = data["loops"]["roll"]["gains"]
+    assert gains["Kc"] / gains["Kd"] > 0.5  # the tuned angle P is above the range ...
+    assert params["MC_ROLL_P"] == 0.5  # ... so its upper bound is written
+    assert params["MC_ROLLRATE_P"] == pytest.approx(gains["Kd"])  # inside: as computed
+    notes = [n for n in data["loops"]["roll"]["notes"] if n.startswith("MC_ROLL_P:")]
+    assert len(notes) == 1
+    assert f"the tuned {gains['Kc'] / gains['Kd']:.4g} is above the profile's range 0 to 0.5; " \
+           f"0.5 written (roll angle loop slower than designed; in effect Kc " in notes[0]
+    assert notes[0] in data["explanation"]

@@ -13,9 +13,12 @@ from mrft_gcs.loops import Loop
 from mrft_gcs.profiles import (
     G_M_S2,
     Actuation,
+    Clamp,
     PDGains,
+    clamp_to_ranges,
     gains_to_params,
     load_profile,
+    params_in_range,
     params_to_gains,
     parse_profile,
 )
@@ -123,6 +126,19 @@ def _px4_table():
     (lambda d: d["safety"].update(max_tilt_deg=-5), "max_tilt_deg"),
     (lambda d: d["safety"].update(max_tilt_deg=95), "below 90"),
     (lambda d: d.pop("altitude"), "altitude"),
+    (lambda d: d.update(param_ranges=3), r"bad.toml \[param_ranges\]: must be a table"),
+    (lambda d: d["param_ranges"].update(MPC_Z_P=[1.5, 0.1]),
+     r"bad.toml \[param_ranges\]: 'MPC_Z_P' must be \[min, max\].*min < max"),
+    (lambda d: d["param_ranges"].update(MPC_Z_P=[1.0, 1.0]), "'MPC_Z_P' must be"),
+    (lambda d: d["param_ranges"].update(MPC_Z_P=[0.1]), "'MPC_Z_P' must be"),
+    (lambda d: d["param_ranges"].update(MPC_Z_P=[0.1, 1.5, 2.0]), "'MPC_Z_P' must be"),
+    (lambda d: d["param_ranges"].update(MPC_Z_P=[0.1, math.inf]), "'MPC_Z_P' must be"),
+    (lambda d: d["param_ranges"].update(MPC_Z_P=[0.1, math.nan]), "'MPC_Z_P' must be"),
+    (lambda d: d["param_ranges"].update(MPC_Z_P=["0.1", 1.5]), "'MPC_Z_P' must be"),
+    (lambda d: d["param_ranges"].update(MPC_Z_P=[False, 1.5]), "'MPC_Z_P' must be"),
+    (lambda d: d["param_ranges"].update(MPC_Z_P=1.5), "'MPC_Z_P' must be"),
+    (lambda d: d["param_ranges"].update(MPC_ZP=[0.1, 1.5]),
+     "'MPC_ZP' is not a parameter of this profile"),
 ])
 def test_invalid_profiles_fail_on_load(edit, match):
     data = _px4_table()
@@ -155,3 +171,88 @@ def test_docstring_examples_run():
     for mod in (mrft_gcs.profiles, mrft_gcs.link.modes, mrft_gcs.link.connection,
                 mrft_gcs.link.quality):
         assert doctest.testmod(mod).failed == 0, mod.__name__
+
+
+# ---------------------------------------------------------------------- parameter ranges
+def test_sitl_ranges_are_the_sitl_param_specs():
+    """The sitl profile's ranges are what the SITL accepts, for every name it maps."""
+    onboard = pytest.importorskip("mrft_gcs.sitl.onboard")
+    p = load_profile("sitl")
+    assert set(p.param_ranges) == set(p.parameter_names())
+    for name, rng in p.param_ranges.items():
+        spec = onboard.PARAM_SPECS[name]
+        assert rng == (spec.low, spec.high), name
+
+
+def test_ranges_are_parsed_and_optional():
+    p = load_profile("px4")
+    assert p.param_ranges["MPC_Z_P"] == (0.1, 1.5)
+    assert p.param_ranges["MC_ROLLRATE_P"] == (0.01, 0.5)
+    assert "MPC_Z_VEL_I_ACC" not in p.param_ranges  # its min would add an I term
+    assert load_profile("ardupilot").param_ranges["PSC_POSZ_P"] == (1.0, 3.0)
+    data = _px4_table()
+    data["param_ranges"] = {"MPC_Z_P": [0, 2]}  # integers are numbers too
+    assert parse_profile(data, "ok.toml").param_ranges == {"MPC_Z_P": (0.0, 2.0)}
+    del data["param_ranges"]
+    assert parse_profile(data, "ok.toml").param_ranges == {}
+
+
+def _ranged(name, **ranges):
+    from dataclasses import replace
+    return replace(load_profile(name), param_ranges=ranges)
+
+
+def test_clamp_to_ranges_moves_only_values_outside():
+    p = _ranged("sitl", MPC_Z_P=(0.5, 10.0), MPC_XY_P=(0.5, 2.0), MC_ROLL_P=(0.0, 50.0))
+    values = {"MC_ROLL_P": 6.0, "MPC_Z_P": 10.5, "MPC_XY_P": 0.2, "MPC_Z_VEL_P_ACC": 99.0,
+              "MC_PITCH_P": 10.0}
+    out, clamps = clamp_to_ranges(p, values)
+    assert out == {"MC_ROLL_P": 6.0, "MPC_Z_P": 10.0, "MPC_XY_P": 0.5,
+                   "MPC_Z_VEL_P_ACC": 99.0, "MC_PITCH_P": 10.0}  # no range: untouched
+    assert list(out) == list(values)
+    assert clamps == [Clamp("MPC_Z_P", 10.5, 10.0, 0.5, 10.0, (Loop.ALTITUDE,)),
+                      Clamp("MPC_XY_P", 0.2, 0.5, 0.5, 2.0, (Loop.X, Loop.Y))]
+    assert values["MPC_Z_P"] == 10.5  # the input is not changed
+    assert clamp_to_ranges(p, {"MPC_Z_P": 10.0, "MPC_XY_P": 0.5}) == (
+        {"MPC_Z_P": 10.0, "MPC_XY_P": 0.5}, [])  # the bounds themselves are inside
+
+
+def test_racer250_altitude_gain_is_clamped_to_the_sitl_range_with_a_note():
+    """The live failure: MPC_Z_P = 10.5 computed, the SITL accepts at most 10."""
+    p = load_profile("sitl")
+    gains = {Loop.ALTITUDE: PDGains(Kc=2.1, Kd=0.2), Loop.ROLL: PDGains(Kc=1.0, Kd=0.1)}
+    assert gains_to_params(p, gains, 0.5)["MPC_Z_P"] == pytest.approx(10.5)
+    r = params_in_range(p, gains, 0.5)
+    assert r.values["MPC_Z_P"] == 10.0
+    assert r.values["MC_ROLL_P"] == pytest.approx(10.0)  # inside: as computed
+    assert [c.name for c in r.clamps] == ["MPC_Z_P"] and len(r.notes) == 1
+    assert r.notes[0] == ("MPC_Z_P: the tuned 10.5 is above the profile's range 0 to 10; 10 "
+                          "written (altitude position loop slower than designed; in effect "
+                          "Kc 2, Kd 0.2 instead of Kc 2.1, Kd 0.2)")
+    assert r.gains[Loop.ALTITUDE].Kc == pytest.approx(2.0)  # Kd unchanged: VELZ_P unchanged
+    assert r.gains[Loop.ROLL] == PDGains(pytest.approx(1.0), pytest.approx(0.1))
+    for name, value in r.values.items():
+        lo, hi = p.param_ranges[name]
+        assert lo <= value <= hi
+
+
+def test_clamp_notes_say_what_the_loop_gets():
+    p = _ranged("px4", MPC_XY_VEL_P_ACC=(1.2, 5.0), MPC_XY_VEL_D_ACC=(0.1, 2.0),
+                MC_ROLLRATE_P=(0.01, 0.5))
+    gains = {Loop.X: PDGains(0.02, 0.1), Loop.Y: PDGains(0.03, 0.12),
+             Loop.ROLL: PDGains(6.0, 0.6)}
+    r = params_in_range(p, gains, 0.5)
+    notes = dict(zip((c.name for c in r.clamps), r.notes, strict=True))
+    assert notes["MPC_XY_VEL_P_ACC"].startswith(
+        "MPC_XY_VEL_P_ACC: the tuned 0.9807 is below the profile's range 1.2 to 5; 1.2 "
+        "written (x and y velocity loop faster than designed, with less phase margin; in "
+        "effect Kc 0.02447, Kd 0.1224 instead of Kc 0.02, Kd 0.1)")
+    assert notes["MPC_XY_VEL_D_ACC"] == (
+        "MPC_XY_VEL_D_ACC: the tuned 0 is below the profile's range 0.1 to 2; 0.1 written "
+        "(x and y velocity D term 0.1 where the PD design has 0; in effect Kc 0.02447, "
+        "Kd 0.1224 instead of Kc 0.02, Kd 0.1)")
+    assert "roll rate loop slower than designed" in notes["MC_ROLLRATE_P"]
+    assert set(r.gains) == {Loop.X, Loop.Y, Loop.ROLL}  # only the loops given
+    assert r.gains[Loop.ROLL].Kd == pytest.approx(0.5)
+    # the angle P is kept, so the whole roll PD scales down with the rate P
+    assert r.gains[Loop.ROLL].Kc == pytest.approx(6.0 * 0.5 / 0.6)

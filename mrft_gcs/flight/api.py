@@ -8,8 +8,9 @@ setpoints at 250 Hz *before* switching to OFFBOARD; arm; run
 :class:`~mrft_gcs.flight.sequence.TuningSequence` (take-off, MRFT on altitude,
 roll and pitch at once, then x and y), identifying each loop as soon as its
 oscillation is steady and switching it to its PD at once; hover; write the gains
-as autopilot parameters (backup first, every value read back); switch to the
-autopilot's position mode so it flies on them; check a short hover.
+as autopilot parameters (clamped into the profile's ``[param_ranges]``, a note per
+clamp; backup first, every value read back); switch to the autopilot's position
+mode so it flies on them; check a short hover.
 
 Safety: every setpoint tick checks the limits (:mod:`mrft_gcs.flight.safety`);
 telemetry silent for 0.5 s stops the stream and lands (the streamer's watchdog);
@@ -72,8 +73,8 @@ from mrft_gcs.profiles import (
     AutopilotProfile,
     PDGains,
     SafetyLimits,
-    gains_to_params,
     load_profile,
+    params_in_range,
 )
 from mrft_gcs.telemetry import ActuatorTarget, Attitude, AttitudeTarget, LocalPosition
 
@@ -688,7 +689,9 @@ class _Run:
                     f"not written ({NOT_REQUESTED}): on the autopilot's own {inner_lp.value} "
                     f"gains the written {lp.value} gains hold only as far as the two agree")
         gains = {lp: PDGains(g.Kc, g.Kd) for lp, g in self.written.items()}
-        values = gains_to_params(self.prof, gains, self.hover)
+        ranged = params_in_range(self.prof, gains, self.hover)  # a refused value fails it all
+        self.notes.extend(ranged.notes)
+        values = ranged.values
         if not values:
             return
         result = client.write(values, self.backup_dir, label="backup")
