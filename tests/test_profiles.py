@@ -113,7 +113,9 @@ def _px4_table():
     import tomllib
 
     from mrft_gcs.profiles import PROFILE_DIR
-    return tomllib.loads((PROFILE_DIR / "px4.toml").read_text())
+    data = tomllib.loads((PROFILE_DIR / "px4.toml").read_text())
+    data["param_ranges"] = {"MPC_Z_P": [0.1, 1.5]}  # px4.toml keeps its ranges as comments
+    return data
 
 
 @pytest.mark.parametrize("edit, match", [
@@ -185,11 +187,23 @@ def test_sitl_ranges_are_the_sitl_param_specs():
 
 
 def test_ranges_are_parsed_and_optional():
-    p = load_profile("px4")
-    assert p.param_ranges["MPC_Z_P"] == (0.1, 1.5)
-    assert p.param_ranges["MC_ROLLRATE_P"] == (0.01, 0.5)
-    assert "MPC_Z_VEL_I_ACC" not in p.param_ranges  # its min would add an I term
-    assert load_profile("ardupilot").param_ranges["PSC_POSZ_P"] == (1.0, 3.0)
+    import tomllib
+
+    from mrft_gcs.profiles import PROFILE_DIR
+
+    # px4 and ardupilot keep their documented ranges as comments (not enforced by the
+    # firmware, not clamped); uncommented, the tables are valid
+    for name, key, rng in (("px4", "MPC_Z_P", (0.1, 1.5)),
+                           ("ardupilot", "PSC_POSZ_P", (1.0, 3.0))):
+        assert load_profile(name).param_ranges == {}
+        text = (PROFILE_DIR / f"{name}.toml").read_text()
+        lines = text[text.index("# [param_ranges]"):].splitlines()
+        table = "\n".join(ln[2:] for ln in lines if ln.startswith("# ") and
+                          (ln.startswith("# [") or " = [" in ln))
+        p = parse_profile({**tomllib.loads(text), **tomllib.loads(table)}, name)
+        assert p.param_ranges[key] == rng
+        assert set(p.param_ranges) <= set(p.parameter_names())
+        assert "MPC_Z_VEL_I_ACC" not in p.param_ranges  # its min would add an I term
     data = _px4_table()
     data["param_ranges"] = {"MPC_Z_P": [0, 2]}  # integers are numbers too
     assert parse_profile(data, "ok.toml").param_ranges == {"MPC_Z_P": (0.0, 2.0)}
