@@ -17,6 +17,7 @@ import json
 import subprocess
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -79,7 +80,8 @@ def load_json(kind: LoopKind, name: str, models: Path = MODELS_DIR) -> dict:
 def record(models: Path, kind: LoopKind, step: str, info: dict) -> None:
     """Add a step's entry to ``models/manifest.json``."""
     path = models / "manifest.json"
-    manifest = json.loads(path.read_text()) if path.exists() else {"schema": "mrft-gcs-models/1"}
+    manifest: dict[str, Any] = (json.loads(path.read_text()) if path.exists()
+                                else {"schema": "mrft-gcs-models/1"})
     manifest.setdefault(kind.value, {})[step] = {
         **info, "code_version": _code_version(), "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }

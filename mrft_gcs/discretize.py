@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
@@ -221,7 +222,8 @@ class Discretisation:
 
     @classmethod
     def from_json(cls, data: dict) -> Discretisation:
-        fields = {k: (np.asarray(v) if isinstance(v, list) else v) for k, v in data.items()}
+        fields: dict[str, Any] = {k: (np.asarray(v) if isinstance(v, list) else v)
+                                  for k, v in data.items()}
         return cls(**fields)
 
 

@@ -32,7 +32,7 @@ from mrft_gcs.identify.runtime import (
 )
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.pd_design import frequency_grid, ise, margins, optimal_pd
-from mrft_gcs.plant import inner_response
+from mrft_gcs.plant import InnerModel, SideModel, inner_response
 from mrft_gcs.simulate import simulate_mrft
 
 __all__ = ["MethodScore", "Trial", "Evaluation", "evaluate", "evaluate_side"]
@@ -120,7 +120,8 @@ class Evaluation:
 
 
 def _score(Kc: float, Kd: float, p, design, w) -> tuple[float, float]:
-    G = inner_response(1.0, *p, w)[0]
+    T_prop, T1, tau = p
+    G = inner_response(1.0, T_prop, T1, tau, w)[0]
     m = margins((Kc + Kd * 1j * w) * G, w)
     if not m.stable:
         return np.inf, m.pm_deg
@@ -132,19 +133,20 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
     b = load_bundle(kind)
     rng = np.random.default_rng(seed)
     params = domain_for(kind).sample_log_uniform(n, rng)
+    T_prop, T1, tau = params.T
     K = np.exp(rng.uniform(np.log(0.5), np.log(50.0), n))
     h = b.h
     # size noise from the likely amplitude: simulate once noise-free (cheap) to know it
-    clean = simulate_mrft(K, *params.T, beta=b.beta, h=h, duration_s=1.0 + 12 * params[:, 1].max(),
-                          keep_s=4.0)
+    clean = simulate_mrft(K, T_prop, T1, tau, beta=b.beta, h=h,
+                          duration_s=1.0 + 12 * params[:, 1].max(), keep_s=4.0)
     amp0 = np.array([0.5 * np.ptp(clean.y[i, -1500:]) for i in range(n)])
     noise = rng.uniform(0, NOISE_MAX, n) * amp0
     bias = rng.uniform(-BIAS_MAX, BIAS_MAX, n) * h
     dur = 1.0 + 14 * params[:, 1].max()
-    run = simulate_mrft(K, *params.T, beta=b.beta, h=h, bias=bias, noise_std=noise,
+    run = simulate_mrft(K, T_prop, T1, tau, beta=b.beta, h=h, bias=bias, noise_std=noise,
                         band=4 * noise, duration_s=dur, keep_s=5.0, seed=seed)
-    base = simulate_mrft(K, *params.T, beta=0.0, h=h, bias=bias, noise_std=noise, band=4 * noise,
-                         duration_s=dur, keep_s=5.0, seed=seed + 7)
+    base = simulate_mrft(K, T_prop, T1, tau, beta=0.0, h=h, bias=bias, noise_std=noise,
+                         band=4 * noise, duration_s=dur, keep_s=5.0, seed=seed + 7)
     J = {m: np.full(n, np.nan) for m in METHODS}
     PM = {m: np.full(n, np.nan) for m in METHODS}
     trials = []
@@ -156,8 +158,8 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
     truth = disc.owner_of(params)
     for i in range(n):
         p = params[i]
-        w = frequency_grid(*p, n=500)
-        design = optimal_pd(inner_response(1.0, *p, w)[0], w)
+        w = frequency_grid(T_prop[i], T1[i], tau[i], n=500)
+        design = optimal_pd(inner_response(1.0, T_prop[i], T1[i], tau[i], w)[0], w)
         try:
             f = cycle_features(run.t, run.u[i], run.y[i], setpoint=0.0)
         except Exception:  # noqa: BLE001 - no cycle: counts as a failure (J = inf)
@@ -228,8 +230,9 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
     J = {m: np.full(n, np.nan) for m in names}
     PM = {m: np.full(n, np.nan) for m in names}
     trials = []
-    run = simulate_mrft(Ka, *att.T, beta=b.beta, h=b.h, duration_s=1.0 + 14 * att[:, 1].max(),
-                        keep_s=5.0, seed=seed)
+    T_prop, T1, tau = att.T
+    run = simulate_mrft(Ka, T_prop, T1, tau, beta=b.beta, h=b.h,
+                        duration_s=1.0 + 14 * att[:, 1].max(), keep_s=5.0, seed=seed)
     for i in range(n):
         try:
             a_id = identify(LoopKind.ATTITUDE, run.t, run.u[i], run.y[i], beta=b.beta, h=b.h,
@@ -240,7 +243,7 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
         pd = a_id.gains
         w = np.logspace(-3, np.log10(200 / min(att[i, 0], att[i, 2])), 900)
         T = closed_inner_response(pd.Kc * Ka[i], pd.Kd * Ka[i],
-                                  inner_response(1.0, *att[i], w), w)
+                                  inner_response(1.0, T_prop[i], T1[i], tau[i], w), w)
         P = (T * side_response(1.0, side[i, 0], side[i, 1], w))[0]
         design = optimal_pd(P, w)
         if not design.margins.stable:
@@ -274,11 +277,12 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
             m = margins((Kc + Kd * 1j * w) * P, w)
             J[name][i] = (ise(Kc, Kd, P, w) - design.ise) / design.ise * 100 if m.stable else np.inf
             PM[name][i] = m.pm_deg
-        am = a_id.model
+        am, sm = a_id.model, s_id.model
+        assert isinstance(am, InnerModel) and isinstance(sm, SideModel)  # by the loop kinds
         trials.append(Trial(
             i, {"K": float(Ks[i]), "T2": float(side[i, 0]), "tau": float(side[i, 1]),
                 "attitude": [float(Ka[i]), *map(float, att[i])]},
-            {"K": float(s_id.model.K), "T2": float(s_id.model.T2), "tau": float(s_id.model.tau),
+            {"K": float(sm.K), "T2": float(sm.T2), "tau": float(sm.tau),
              "attitude": [float(am.K), float(am.T_prop), float(am.T1), float(am.tau)]},
             float(J["exact gain"][i]), float(PM["exact gain"][i]), str(s_id.extras["method"]),
             float(noise / (0.5 * np.ptp(clean.y[0]))) if np.ptp(clean.y[0]) > 0 else 0.0,

@@ -24,6 +24,7 @@ import struct
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 from mrft_gcs.errors import InputFileError, LinkError, ParameterError
@@ -83,6 +84,10 @@ class BackupEntry:
 
 def _as_float32(x: float) -> float:
     return struct.unpack("<f", struct.pack("<f", x))[0]
+
+
+def _has_index(index: int, report: ParamReport) -> bool:
+    return report.index == index
 
 
 def _same(a: float, b: float, param_type: int) -> bool:
@@ -181,7 +186,7 @@ class ParamClient:
                     break
                 for i in missing:
                     self.link.send_param_request_read(index=i)
-                    r = sub.wait_for(lambda e, i=i: e.index == i, self.timeout_s)
+                    r = sub.wait_for(partial(_has_index, i), self.timeout_s)
                     if r is not None:
                         got[i] = self._decode(r)
         missing = [i for i in range(count) if i not in got]

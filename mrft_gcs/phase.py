@@ -190,7 +190,8 @@ def distinguishing_phase(params: np.ndarray, pds: np.ndarray, ises: np.ndarray,
 def zeta_table(params: np.ndarray, period: np.ndarray, amplitude: np.ndarray) -> np.ndarray:
     """Exact gain scaling ``zeta = a / (h |G(j 2 pi / T)|)`` per unit shape (DF gives 4/pi)."""
     w = 2 * np.pi / period
-    g = np.array([abs(inner_response(1.0, *p, [wi])[0, 0]) for p, wi in zip(params, w)])
+    g = np.array([abs(inner_response(1.0, T_prop, T1, tau, [wi])[0, 0])
+                  for (T_prop, T1, tau), wi in zip(params, w)])
     return amplitude / g
 
 

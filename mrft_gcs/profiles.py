@@ -176,13 +176,15 @@ def _need(table: Mapping[str, Any], key: str, kind: type | tuple[type, ...], whe
     return value
 
 
-def _pname(table: Mapping[str, Any], key: str, where: str, optional: bool = False) -> str | None:
-    if optional and key not in table:
-        return None
+def _pname(table: Mapping[str, Any], key: str, where: str) -> str:
     name = _need(table, key, str, where)
     if not (1 <= len(name) <= 16 and name.isascii() and name.replace("_", "").isalnum()):
         raise UsageError(f"{where}: '{name}' is not a parameter name (1-16 letters, digits, _)")
     return name
+
+
+def _optional_pname(table: Mapping[str, Any], key: str, where: str) -> str | None:
+    return _pname(table, key, where) if key in table else None
 
 
 def _ranges(data: Mapping[str, Any], source: str,
@@ -243,19 +245,19 @@ def parse_profile(data: Mapping[str, Any], source: str = "<profile>") -> Autopil
     def angle(key: str) -> AngleRateParams:
         t = _need(data, key, dict, source)
         wa = f"{source} [{key}]"
-        return AngleRateParams(*(_pname(t, k, wa) for k in ("angle_p", "rate_p", "rate_i",
-                                                              "rate_d")),
-                               rate_k=_pname(t, "rate_k", wa, optional=True))  # type: ignore[misc]
+        return AngleRateParams(
+            _pname(t, "angle_p", wa), _pname(t, "rate_p", wa), _pname(t, "rate_i", wa),
+            _pname(t, "rate_d", wa), rate_k=_optional_pname(t, "rate_k", wa))
 
     st_side = _need(data, "side", dict, source)
-    side = CascadeParams(*(_pname(st_side, k, f"{source} [side]")  # type: ignore[arg-type]
+    side = CascadeParams(*(_pname(st_side, k, f"{source} [side]")
                            for k in ("pos_p", "vel_p", "vel_i", "vel_d")))
     alt_t = _need(data, "altitude", dict, source)
     wal = f"{source} [altitude]"
     altitude = AltitudeParams(
-        *(_pname(alt_t, k, wal) for k in ("pos_p", "vel_p", "vel_i", "vel_d",  # type: ignore[arg-type]
-                                          "hover_thrust")),
-        accel_p=_pname(alt_t, "accel_p", wal, optional=True),
+        _pname(alt_t, "pos_p", wal), _pname(alt_t, "vel_p", wal), _pname(alt_t, "vel_i", wal),
+        _pname(alt_t, "vel_d", wal), _pname(alt_t, "hover_thrust", wal),
+        accel_p=_optional_pname(alt_t, "accel_p", wal),
         accel_p_value=_positive(alt_t, "accel_p_value", wal, 0.5))
     prof = AutopilotProfile(
         name=str(ap.get("name", Path(source).stem)), family=family,

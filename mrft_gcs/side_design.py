@@ -20,6 +20,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -42,7 +43,8 @@ SIDE_H = 0.08
 
 def side_plant_response(att: np.ndarray, att_pd: tuple[float, float], T2, tau, w) -> np.ndarray:
     """Closed unit attitude loop times the unit-gain side part, shape ``(n, m)``."""
-    G = inner_response(1.0, *att, w)
+    T_prop, T1, att_tau = att
+    G = inner_response(1.0, T_prop, T1, att_tau, w)
     T = closed_inner_response(att_pd[0], att_pd[1], G, w)
     return T * side_response(1.0, T2, tau, w)
 
@@ -89,7 +91,9 @@ class SideClasses:
 
     @classmethod
     def from_json(cls, d: dict) -> SideClasses:
-        return cls(**{k: (np.asarray(v) if isinstance(v, list) else v) for k, v in d.items()})
+        fields: dict[str, Any] = {k: (np.asarray(v) if isinstance(v, list) else v)
+                                  for k, v in d.items()}
+        return cls(**fields)
 
 
 def _cost(Kc, Kd, P, w) -> float:
@@ -272,8 +276,9 @@ def side_dataset_realistic(sc: SideClasses, disc, n: int, seed: int, dt: float =
     T1 = np.exp(rng.uniform(np.log(lo), np.log(np.maximum(hi, lo))))
     att = np.column_stack([np.exp(chart[:, 0]) * T1, T1, np.exp(chart[:, 1]) * T1])
     Ka = np.exp(rng.uniform(np.log(0.5), np.log(50.0), len(att)))
-    run = simulate_mrft(Ka, *att.T, beta=ab.beta, h=ab.h, duration_s=1.0 + 14 * att[:, 1].max(),
-                        keep_s=5.0, seed=int(rng.integers(2**31)))
+    run = simulate_mrft(Ka, att[:, 0], att[:, 1], att[:, 2], beta=ab.beta, h=ab.h,
+                        duration_s=1.0 + 14 * att[:, 1].max(), keep_s=5.0,
+                        seed=int(rng.integers(2**31)))
     keep = []
     for i in range(len(att)):
         try:

@@ -138,7 +138,9 @@ def _nll(logits: np.ndarray, label: np.ndarray) -> float:
 
 def export_onnx(result: TrainResult, path: Path) -> None:
     """Write the network, with the input standardisation folded in, as ONNX (opset 17)."""
-    torch = _torch()
+    _torch()  # a missing torch raises MissingDependency naming the extra
+    import torch
+
     mean = torch.tensor(result.mean)
     std = torch.tensor(result.std)
 

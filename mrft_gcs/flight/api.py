@@ -152,9 +152,10 @@ def measured_attitude_loop(snap: CycleSnapshot) -> Identification:
 
 def closed_loop_summary(inner: Identification, side: Loop) -> str:
     """One line on a measured closed attitude loop: bandwidth, response at the test."""
-    from mrft_gcs.plant import closed_inner_response, inner_response
+    from mrft_gcs.plant import InnerModel, closed_inner_response, inner_response
 
     m, g = inner.model, inner.gains
+    assert isinstance(m, InnerModel)  # a closed attitude loop identification
     w = np.logspace(-1, 3, 400)
     T = closed_inner_response(g.Kc, g.Kd, inner_response(m.K, m.T_prop, m.T1, m.tau, w),
                               w)[0]

@@ -202,8 +202,10 @@ def fit_side_model(points: HarmonicPoints, T_att: np.ndarray, max_sd: float = US
     wk = points.w[keep]
     R = points.G[keep] * (1j * wk) / T_att[keep]  # = K e^{-j w tau} / (j w T2 + 1)
     wt = 1.0 / points.sd[keep] ** 2
-    T2g = np.exp(np.linspace(*np.log(T2_range), 90))
-    tg = np.exp(np.linspace(*np.log(tau_range), 90))
+    T2_lo, T2_hi = np.log(T2_range)
+    tau_lo, tau_hi = np.log(tau_range)
+    T2g = np.exp(np.linspace(T2_lo, T2_hi, 90))
+    tg = np.exp(np.linspace(tau_lo, tau_hi, 90))
     _, cost = _lk_and_cost(R, wk, wt, T2g[:, None], tg[None, :])
     i, j = np.unravel_index(np.argmin(cost), cost.shape)
     lo, hi = np.log([T2_range[0], tau_range[0]]), np.log([T2_range[1], tau_range[1]])

@@ -36,6 +36,7 @@ import json
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -48,6 +49,13 @@ from mrft_gcs.plant import PD, InnerModel, inner_response
 __all__ = ["identify", "relay_settings", "load_bundle", "Bundle", "MODELS_DIR", "GainScaling"]
 
 MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
+
+
+class ClassifierSession(Protocol):
+    """What the bundles use of an ``onnxruntime.InferenceSession``."""
+
+    def run(self, output_names: list[str] | None,
+            input_feed: dict[str, np.ndarray]) -> list[np.ndarray]: ...
 
 
 class GainScaling:
@@ -73,7 +81,7 @@ class Bundle:
     reps: np.ndarray
     rep_shape: np.ndarray
     rule_cost: np.ndarray
-    session: object
+    session: ClassifierSession
     temperature: float = 1.0
 
     def logits(self, x: np.ndarray) -> np.ndarray:
@@ -122,7 +130,7 @@ class SideBundle:
     unit_period: np.ndarray
     unit_amplitude: np.ndarray
     rule_cost: np.ndarray
-    session: object
+    session: ClassifierSession
     temperature: float = 1.0
     att_params: np.ndarray = None  # type: ignore[assignment]
     att_pd: np.ndarray = None  # type: ignore[assignment]
@@ -251,6 +259,7 @@ def _identify_side(t, u, y, beta: float, inner: Identification | None,
     side loops within 10 % of their optimal PD from 49 % (classifier) to over 99 %.
     """
     k, c = _inner_shape(inner)
+    assert inner is not None  # _inner_shape refused None
     b = load_side_bundle(k)
     if abs(beta - b.beta) > 1e-6:
         raise IdentificationError(
@@ -295,6 +304,7 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float):
             f"{pts.spread[1]:.2f} in log units, need <= {FIT_MAX_SD[1]}): raise the side relay "
             "amplitude or let it run longer, then retry")
     m, g = inner.model, inner.gains
+    assert isinstance(m, InnerModel)  # an inner-loop identification: it has extras["shape"]
 
     def t_att(w):
         return closed_inner_response(g.Kc, g.Kd, inner_response(m.K, m.T_prop, m.T1, m.tau, w),
@@ -375,6 +385,8 @@ def scaled_gains(b: Bundle, probs: np.ndarray, period_s: float, amplitude: float
     i = int(np.argmin(b.rule_cost @ probs))
     c = period_s / b.unit_period[i]
     if scaling == GainScaling.TRUE:
+        if K_true is None:
+            raise TypeError("GainScaling.TRUE needs K_true")
         K = float(K_true)
     elif scaling == GainScaling.DF:
         K = amplitude / (h * c * b.unit_amplitude[i] / b.zeta[i] * 4 / np.pi)
@@ -426,7 +438,8 @@ def harmonic_posterior(b: Bundle, probs: np.ndarray, f, pts) -> np.ndarray:
     c = f.period_s / b.unit_period
     K = f.amplitude / (f.h * c * b.unit_amplitude)
     sp = b.shape_params * c[:, None]
-    G = K[:, None] * inner_response(1.0, *sp.T, pts.w)
+    T_prop, T1, tau = sp.T
+    G = K[:, None] * inner_response(1.0, T_prop, T1, tau, pts.w)
     ll = np.nan_to_num(class_log_likelihood(pts, G), nan=-np.inf)
     lp = np.log(np.maximum(np.asarray(probs, float), 1e-300)) + ll
     if not np.isfinite(lp.max()):
@@ -463,8 +476,9 @@ def refined_identification(b: Bundle, probs: np.ndarray, f, pts, K_true: float |
         return pd, model, k, c, post, float("nan")
     params, cost = fit_inner_model(pts, (K, *shape), prior_log_sd=PRIOR_LOG_SD,
                                    fix_gain=K_true is not None)
-    w = frequency_grid(*params[1:], n=500)
-    design = optimal_pd(inner_response(*params, w)[0], w)
+    K_fit, T_prop, T1, tau = params
+    w = frequency_grid(T_prop, T1, tau, n=500)
+    design = optimal_pd(inner_response(K_fit, T_prop, T1, tau, w)[0], w)
     change = np.abs(np.log([design.pd.Kc / pd.Kc, design.pd.Kd / pd.Kd]))
     trusted = K_true is not None or np.all(change <= np.log(MAX_REFINE_FACTOR))
     if not design.margins.stable or not trusted:

@@ -412,10 +412,15 @@ class VehicleLink:
         """
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
         name = _COMMAND_NAMES.get(command, str(command))
+
+        def send(confirmation: int) -> None:
+            self._send(lambda mav: mav.command_long_send(
+                self.target_system, self.target_component, command, confirmation, *p),
+                "COMMAND_LONG")
+
         with self.subscribe(CommandAck) as sub:
             for attempt in range(retries + 1):
-                self._send(lambda mav, a=attempt: mav.command_long_send(
-                    self.target_system, self.target_component, command, a, *p), "COMMAND_LONG")
+                send(attempt)
                 if not wait_ack:
                     return None
                 ack = sub.wait_for(lambda e: e.command == command and e.result != MAV_RESULT_IN_PROGRESS,

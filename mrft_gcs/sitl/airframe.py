@@ -123,6 +123,7 @@ def motor_layout(frame: str, arm_length_m: float) -> tuple[tuple[float, float, f
     ``spin`` is +1 for a propeller turning counter-clockwise seen from above (its reaction
     torque yaws the body clockwise, i.e. positive yaw in FRD) and -1 otherwise.
     """
+    angles_spins: tuple[tuple[float, int], ...]
     if frame == "quad_x":
         angles_spins = ((45.0, 1), (225.0, 1), (315.0, -1), (135.0, -1))  # PX4 quad-X order
     elif frame == "hexa_x":

@@ -271,6 +271,7 @@ class Autopilot:
                       _RateAxis("MC_YAWRATE", dt_s)]
         self._vel = [_VelAxis("MPC_XY_VEL", dt_s), _VelAxis("MPC_XY_VEL", dt_s),
                      _VelAxis("MPC_Z_VEL", dt_s)]
+        self._axes: tuple[_RateAxis | _VelAxis, ...] = (*self._rate, *self._vel)
         self.reset()
 
     def reset(self) -> None:
@@ -287,7 +288,7 @@ class Autopilot:
         self._hold_pos = (0.0, 0.0, 0.0)  # north, east, up
         self._hold_yaw = 0.0
         self._last_meas: tuple[tuple[float, ...], tuple[float, ...]] | None = None
-        for ax in (*self._rate, *self._vel):
+        for ax in self._axes:
             ax.reset()
 
     # ----------------------------------------------------------- commands
@@ -306,7 +307,7 @@ class Autopilot:
                 self._event(4, "Arming denied: no offboard setpoints")
                 return CommandResult.DENIED
             self.armed = True
-            for ax in (*self._rate, *self._vel):
+            for ax in self._axes:
                 ax.reset()
             self._capture_hold()
             self._event(6, "Armed")
@@ -414,7 +415,8 @@ class Autopilot:
             self.armed = False
             self._event(6, "Disarmed by auto disarm on land")
 
-    def _attitude(self, q_sp: tuple[float, ...], att: tuple[float, ...]) -> tuple[float, ...]:
+    def _attitude(self, q_sp: tuple[float, ...],
+                  att: tuple[float, ...]) -> tuple[float, float, float]:
         prm = self.params
         q = _quat_euler(att[0], att[1], att[2])
         qe = _quat_mul((q[0], -q[1], -q[2], -q[3]), q_sp)
@@ -434,7 +436,7 @@ class Autopilot:
             rate_sp = _clip(gains[i] * err[i], -lim, lim)
             u = self._rate[i].update(prm, rate_sp, att[3 + i], integrate)
             out.append(_clip(u, -1.0, 1.0))
-        return tuple(out)
+        return out[0], out[1], out[2]
 
     def _position(self, mode: FlightMode, att: tuple[float, ...],
                   posv: tuple[float, ...]) -> tuple[float, float, float, float]:
@@ -448,7 +450,7 @@ class Autopilot:
             vup_sp = _clip(prm["MPC_Z_P"] * (hup - up), -prm["MPC_Z_VEL_MAX_DN"],
                            prm["MPC_Z_VEL_MAX_UP"])
         if self.landed and (mode is FlightMode.AUTO_LAND or hup - up < 0.3):
-            for ax in (*self._rate, *self._vel):
+            for ax in self._axes:
                 ax.reset()
             return (0.0, 0.0, 0.0, 0.0)  # idle on the ground
         integrate = not self.landed

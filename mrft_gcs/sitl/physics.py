@@ -161,7 +161,7 @@ class Multirotor:
         hover = self._thrust_to_cmd(af.hover_thrust) if airborne else 0.0
         self.motor_cmd = (hover,) * self._n
         self.motor_speed = [math.sqrt(self._curve(hover))] * self._n
-        self._torque_prev = (0.0, 0.0, 0.0)
+        self._torque_prev: tuple[float, ...] = (0.0, 0.0, 0.0)
         self._sf = (0.0, 0.0, -GRAVITY_M_S2)
         self._yaw_unwrapped = yaw
         self._act_delay = _Delay(self._steps(af.actuator_delay_s), self.motor_cmd)
