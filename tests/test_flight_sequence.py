@@ -253,3 +253,25 @@ def test_restarted_attitude_relay_keeps_its_runaway_limit():
     assert t.catch is None and not seq.events
     seq._watch(t, relay, -0.2, float(relay.state[0]))
     assert t.catch is not None and "caught the run-away" in seq.events[-1]
+
+
+def test_noisy_cycle_at_the_largest_relay_amplitude_is_identified_not_waited_on():
+    """A steady cycle too small for the noise raises the relay amplitude; once it is at its
+    largest, the cycle goes to identification (with a note) instead of waiting forever."""
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.5, h_max=(0.12, 0.25, 0.2)),
+                         ATT_RELAY, ALT_RELAY)
+    t = seq.loops[Loop.ROLL]
+    t.state, t.h, t.band = LoopState.RELAY, 0.12, 0.004  # sigma 1 mrad
+    from mrft_gcs.relay import MRFT
+    t.relay = MRFT(t.beta, t.h, band=t.band)
+    for k in range(400):  # 0.2 s cycles of 0.02 rad: noise 5 % of the amplitude
+        ts = 0.004 * k
+        t.status = t.detector.update(ts, t.h * np.sign(math.sin(2 * math.pi * ts / 0.2) + 1e-9),
+                                     0.02 * math.sin(2 * math.pi * ts / 0.2 - 2.0))
+    assert t.status.steady
+    assert seq.ready() and t.state is LoopState.IDENTIFYING
+    assert "identified as it is" in seq.events[-1]
+    t2 = seq.loops[Loop.PITCH]  # below its largest amplitude: raised and started over
+    t2.state, t2.h, t2.band, t2.relay = LoopState.RELAY, 0.06, 0.004, MRFT(t2.beta, 0.06)
+    t2.detector, t2.status = t.detector, t.status
+    assert not seq.ready() and t2.h > 0.06 and t2.state is LoopState.RELAY

@@ -395,10 +395,17 @@ class TuningSequence:
             for t in self.loops.values():
                 if t.state is LoopState.RELAY and t.status.steady:
                     sigma = t.band / self.config.noise_band_sigmas
+                    if (sigma > self.config.max_noise_ratio * t.status.amplitude
+                            and self._raise_h(t, sigma / (0.7 * self.config.max_noise_ratio
+                                                          * t.status.amplitude))):
+                        continue  # started over on the larger amplitude
                     if sigma > self.config.max_noise_ratio * t.status.amplitude:
-                        self._raise_h(t, sigma / (0.7 * self.config.max_noise_ratio
-                                                  * t.status.amplitude))
-                        continue
+                        # at its largest amplitude a noisy cycle is identified as it is:
+                        # waiting would only end in the "no steady oscillation" error
+                        self.events.append(
+                            f"{t.loop.value}: noise {100 * sigma / t.status.amplitude:.1f} % of "
+                            f"the cycle amplitude with the relay at its largest amplitude "
+                            f"({t.h:.3g}); identified as it is")
                     ts, u, y = t.detector.last_cycles(self._cycles(t.loop))
                     if ts.size < 8:
                         continue
@@ -437,12 +444,15 @@ class TuningSequence:
             return min(self.config.h_max[1], cap)
         return self.config.h_max[0 if loop in (Loop.ROLL, Loop.PITCH) else 2]
 
-    def _raise_h(self, t: LoopTest, factor: float) -> None:
-        """Raise a relay's amplitude (the oscillation is too small for the noise); start over."""
+    def _raise_h(self, t: LoopTest, factor: float) -> bool:
+        """Raise a relay's amplitude (the oscillation is too small for the noise); start over.
+
+        False if it is already as large as it may be (nothing changed).
+        """
         relay = self.takeoff.relay if t.loop is Loop.ALTITUDE else t.relay
         h = min(self._h_max(t.loop), t.h * max(factor, self.config.h_raise))
         if relay is None or h <= t.h * 1.01:
-            return
+            return False
         self.events.append(f"{t.loop.value}: relay amplitude raised from {t.h:.3g} to {h:.3g} "
                            f"(cycle too small for the measured noise)")
         t.h = h
@@ -453,6 +463,7 @@ class TuningSequence:
         t.unarmed = t.switches = 0
         t.detector.reset()
         t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
+        return True
 
     def _watch(self, t: LoopTest, relay: MRFT, e: float, state_before: float) -> None:
         """After a relay step: two switches in a row before the threshold armed raise h.
@@ -748,7 +759,8 @@ class TuningSequence:
             self._watch(t, t.relay, ref - y, before)
             self._feed(t, t_s, u, y, new)
             st = t.status
-            if st.cycles >= 2 and st.spread < 0.15 and math.isfinite(st.period_s) and st.amplitude > 0:
+            if (st.cycles >= 2 and st.spread < 0.15 and math.isfinite(st.period_s)
+                    and st.amplitude > 0):
                 t.cycle = (st.period_s, st.amplitude)
         t.u = u
         return u
