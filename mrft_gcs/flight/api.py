@@ -690,7 +690,7 @@ class _Run:
                     f"not written ({NOT_REQUESTED}): on the autopilot's own {inner_lp.value} "
                     f"gains the written {lp.value} gains hold only as far as the two agree")
         gains = {lp: PDGains(g.Kc, g.Kd) for lp, g in self.written.items()}
-        ranged = params_in_range(self.prof, gains, self.hover)  # a refused value fails it all
+        ranged = params_in_range(self.prof, gains, self.hover)  # clamped as dry-run does
         self.notes.extend(ranged.notes)
         values = ranged.values
         if not values:
