@@ -24,7 +24,7 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError
 
-__all__ = ["N_POINTS", "CycleFeatures", "cycle_features", "rising_switches"]
+__all__ = ["N_POINTS", "CycleFeatures", "cycle_features", "crosses_setpoint", "rising_switches"]
 
 #: Points per cycle in the time-normalised representation.
 N_POINTS = 64
@@ -70,6 +70,16 @@ def rising_switches(u: np.ndarray) -> np.ndarray:
     return np.flatnonzero(~high[:-1] & high[1:]) + 1
 
 
+def crosses_setpoint(e: np.ndarray, rise: int, fall: int, next_rise: int) -> bool:
+    """Whether the error ``e`` crosses the set point in both halves of one relay cycle.
+
+    ``rise``, ``fall`` and ``next_rise`` are the sample indices of the cycle's switches
+    (:func:`rising_switches`): a proper MRFT cycle has a positive error during its high
+    half and a negative one during its low half before each switch.
+    """
+    return bool(e[rise:fall].max() > 0 and e[fall:next_rise].min() < 0)
+
+
 def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 4,
                    setpoint=None) -> CycleFeatures:
     """Features of the last ``n_cycles`` complete relay cycles of a record.
@@ -111,7 +121,7 @@ def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 
         f = falls[(falls > a) & (falls < b)]
         if f.size != 1 or min(f[0] - a, b - f[0]) < 3:
             continue
-        if e is not None and not (e[a:f[0]].max() > 0 and e[f[0]:b].min() < 0):
+        if e is not None and not crosses_setpoint(e, a, f[0], b):
             improper += 1
             continue
         # Switch instants are placed midway between the samples that straddle them.

@@ -50,3 +50,44 @@ def test_pd_and_yaw_hold():
     assert abs(yaw.step(math.pi - 0.01, -math.pi + 0.01, 0.0)) < 0.01  # wraps
     assert abs(yaw.step(0.0, 3.0, 0.0)) <= 0.3
     assert wrap_pi(3 * math.pi) == pytest.approx(-math.pi)
+
+
+def _climb_to_rest(c, hover_true, seconds=12.0, dt=0.004):
+    """A point mass on the climb controller (thrust / hover_true = g); returns (z, v, t)."""
+    g, z, v, t = 9.80665, 0.0, 0.0, 0.0
+    while t < seconds and not c.switched:
+        u = c.step(t, z, v)
+        v += (g * u / hover_true - g) * dt if (z > 0 or u > hover_true) else 0.0
+        z = max(z + v * dt, 0.0)
+        t += dt
+    return z, v, t
+
+
+@pytest.mark.parametrize("guess_factor", [0.85, 1.0, 1.15])
+def test_climb_learns_a_wrong_hover_guess_before_the_relay(guess_factor):
+    """A hover guess 15 % off held the PD climb 0.29 m from the set point and the relay,
+    biased at the guess, sank into a lopsided cycle: the climb's integral learns the
+    thrust that holds the vehicle, and the relay starts biased at it."""
+    hover = 0.3
+    c = TakeoffController(z_ref_m=1.0, relay_bias=guess_factor * hover)
+    z, _, t = _climb_to_rest(c, hover)
+    assert c.switched, "never settled"
+    assert t < 7.0, t  # well before settle_max_s: it settled, not timed out
+    assert abs(z - 1.0) < TABLE_V.settle_m + 0.01
+    assert c.u_z0 == pytest.approx(hover, rel=0.03)
+
+
+def test_resettle_stops_the_relay_and_climbs_back():
+    c = TakeoffController(z_ref_m=1.0, relay_bias=0.3)
+    assert not c.resettle()  # nothing to stop before the first switch
+    _climb_to_rest(c, 0.3)
+    assert c.switched and c.relay is not None
+    assert c.resettle(hover=0.31)
+    assert not c.switched and c.relay is None and c.relay_bias == pytest.approx(0.31)
+    assert c.resettle() is False  # already climbing
+    z, _, _ = _climb_to_rest(c, 0.3)
+    assert c.switched and abs(z - 1.0) < 0.06
+    assert c.u_z0 == pytest.approx(0.3, rel=0.03)  # the climb corrected the 0.31 too
+    c2 = TakeoffController(z_ref_m=1.0, relay_bias=0.3)
+    _climb_to_rest(c2, 0.3)
+    assert c2.resettle(hover=float("nan")) and c2.relay_bias == pytest.approx(c2.u_z0)

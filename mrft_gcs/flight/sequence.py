@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mrft_gcs.flight.controllers import FlightState, PDLoop, YawHold, catch_pd, wrap_pi
+from mrft_gcs.features import crosses_setpoint, rising_switches
 from mrft_gcs.flight.noise import ComplementaryFilter, NoiseEstimator
 from mrft_gcs.flight.takeoff import TABLE_V, TakeoffController, TakeoffSettings
 from mrft_gcs.identify import CycleDetector, CycleStatus, Identification, RelaySettings
@@ -496,6 +497,9 @@ class TuningSequence:
                 t.catch = catch_pd(t.h, *t.cycle)
                 self.events.append(f"{t.loop.value}: relay paused, a damping PD caught the "
                                    f"run-away (error {e:+.3g})")
+            elif t.loop is Loop.ALTITUDE and self.takeoff.resettle():
+                self.events.append(f"altitude: relay stopped (error {e:+.3g} ran away); it "
+                                   f"starts again once the climb controller holds the set point")
             else:
                 relay.step(e)
                 self.events.append(f"{t.loop.value}: relay restarted (error {e:+.3g} ran away)")
@@ -531,7 +535,12 @@ class TuningSequence:
                 t.detector.reset()
                 t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
                 relay = self.takeoff.relay if loop is Loop.ALTITUDE else t.relay
-                if restart and relay is not None:
+                mean_u = (float(np.mean(t.snapshot.u)) if t.snapshot is not None
+                          and t.snapshot.u.size else None)
+                if restart and loop is Loop.ALTITUDE and self.takeoff.resettle(hover=mean_u):
+                    t.unarmed = t.switches = 0
+                    t.ext = 0.0
+                elif restart and relay is not None:
                     relay.reset()
                     t.unarmed = t.switches = 0
                     t.ext = 0.0
@@ -665,9 +674,42 @@ class TuningSequence:
                 t.bias = self.takeoff.u_z0
                 if relay is not None:
                     self._watch(t, relay, self.takeoff.z_relay_m - zf, before)
+                cycles = t.status.cycles
                 self._feed(t, s.t_pos_s, u, zf, new)
+                if t.status.cycles > cycles and self._lopsided(t):
+                    self.takeoff.resettle(hover=float(np.mean(t.detector.last_cycles(2)[1])))
+                    self.events.append(
+                        "altitude: two relay cycles in a row did not cross the set point (a "
+                        "lopsided cycle); the relay starts again once the climb controller "
+                        "holds the set point")
+                    t.detector.reset()
+                    t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
         t.u = u
         return u
+
+    def _lopsided(self, t: LoopTest) -> bool:
+        """The altitude relay's last two cycles both miss the set point in a half-cycle.
+
+        Identification would refuse them (:func:`~mrft_gcs.features.cycle_features`); seen
+        at once, the relay is started over from the set point instead of waiting for three
+        steady cycles of a slow (0.9 s) lopsided mode first.
+        """
+        if t.state is not LoopState.RELAY or t.status.cycles < 2:
+            return False
+        _, u, y = t.detector.last_cycles(2)
+        if u.size < 8:
+            return False
+        high = u > 0.5 * (u.max() + u.min())
+        rises = np.concatenate([[0], rising_switches(u)])  # the window opens on a rise
+        falls = np.flatnonzero(high[:-1] & ~high[1:]) + 1
+        e = self.takeoff.z_relay_m - y
+        if len(rises) != 3:
+            return False
+        for a, b in zip(rises[:-1], rises[1:]):
+            f = falls[(falls > a) & (falls < b)]
+            if f.size != 1 or crosses_setpoint(e, a, f[0], b):
+                return False
+        return True
 
     def _side(self, s: FlightState, new: bool) -> tuple[float, float]:
         ex = self.origin[0] - s.x_m

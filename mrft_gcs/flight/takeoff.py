@@ -54,6 +54,14 @@ class TakeoffSettings:
     eps1_m: float = 1.0
     eps2_m: float = 2.0
     climb_pd: tuple[float, float] = (6.0, 4.0)  # (1/s^2, 1/s): climb with a known hover thrust
+    #: integral gain of that climb (1/s^3; with climb_pd the poles are -2 and -1 +- 1j),
+    #: integrating only near the set point and nearly at rest (the offset a wrong guess
+    #: leaves, not the climb's own transient): it learns the hover thrust the guess got
+    #: wrong (a guess 15 % low held the PD alone 0.29 m under the set point, never
+    #: settled, and the relay on the guess sank into a lopsided cycle)
+    climb_ki: float = 4.0
+    climb_int_band_m: float = 0.3
+    climb_int_speed_m_s: float = 0.1
     settle_m: float = 0.05
     settle_speed_m_s: float = 0.05
     settle_max_s: float = 8.0
@@ -109,13 +117,38 @@ class TakeoffController:
 
     def reset(self) -> None:
         self.integral = self.u_init
+        self.a_int = 0.0  # the climb's integral term (m/s^2)
         self.t_prev: float | None = None
+        self.t_climb: float | None = None
         self.switched = False
         self.u_z0 = math.nan
         self.t_switch = math.nan
         self.relay: MRFT | None = None
         self.u = 0.0
         self.z_relay_m = self.z_ref_m  # the altitude the relay oscillates about
+
+    def resettle(self, hover: float | None = None) -> bool:
+        """Stop the relay and climb back: the PD about the hover thrust holds the set point,
+        and the relay starts again, as after the first climb, once the vehicle holds it.
+
+        A relay restarted away from its set point (after a run-away, or on a lopsided
+        cycle) can lock into the slow, lopsided cycle described above: in-process with
+        ground-station stalls, racer250's altitude relay restarted five times at 0.2 m
+        below the set point, each time into a 0.9 s cycle (0.38 s when started at rest),
+        and was never identified. The hover thrust is ``hover`` when given (the mean
+        thrust of the relay's own cycles: over a periodic cycle the mean vertical
+        acceleration is zero, so a wrong first guess is corrected), else the relay's bias
+        ``u_z0``. False, and nothing changed, before the first switch.
+        """
+        if not self.switched or not math.isfinite(self.u_z0):
+            return False
+        ok = hover is not None and math.isfinite(hover) and 0.0 < hover < 1.0
+        self.relay_bias = float(hover) if ok else self.u_z0
+        self.switched = False
+        self.relay = None
+        self.t_prev = self.t_climb = None
+        self.a_int = 0.0
+        return True
 
     def step(self, t_s: float, z_up_m: float, vz_up_m_s: float | None = None) -> float:
         """Thrust command (normalised, clipped to [0, 1]) for the altitude sample at ``t_s``.
@@ -146,11 +179,17 @@ class TakeoffController:
         return self.u
 
     def _climb(self, t_s: float, e: float, vz: float) -> float:
-        st, hover = self.settings, float(self.relay_bias)  # type: ignore[arg-type]
-        if self.t_prev is None:
-            self.t_prev = t_s
-        t0 = self.t_prev
+        st, guess = self.settings, float(self.relay_bias)  # type: ignore[arg-type]
+        g = 9.80665
+        if self.t_climb is None:
+            self.t_climb = self.t_prev = t_s
+        t0 = self.t_climb
+        dt = max(t_s - (self.t_prev if self.t_prev is not None else t_s), 0.0)
+        self.t_prev = t_s
         airborne = self.z_ref_m - e >= st.delta_p_m
+        if airborne and abs(e) < st.climb_int_band_m and abs(vz) < st.climb_int_speed_m_s:
+            self.a_int = float(np.clip(self.a_int + st.climb_ki * e * dt, -0.3 * g, 0.3 * g))
+        hover = float(np.clip(guess * (1.0 + self.a_int / g), 0.0, 1.0))  # what holds it
         if airborne and ((abs(e) < st.settle_m and abs(vz) < st.settle_speed_m_s)
                          or t_s - t0 > st.settle_max_s):
             self.switched = True
@@ -160,7 +199,7 @@ class TakeoffController:
             self.relay = MRFT(self.beta, self.h, bias=hover, band=self.band_m)
             self.u = float(np.clip(self.relay.step(0.0)[0], 0.0, 1.0))
             return self.u
-        g = 9.80665
-        a = float(np.clip(st.climb_pd[0] * e - st.climb_pd[1] * vz, -0.3 * g, 0.3 * g))
-        self.u = float(np.clip(hover * (1.0 + a / g), 0.0, 1.0))
+        a = float(np.clip(st.climb_pd[0] * e - st.climb_pd[1] * vz + self.a_int,
+                          -0.3 * g, 0.3 * g))
+        self.u = float(np.clip(guess * (1.0 + a / g), 0.0, 1.0))
         return self.u
