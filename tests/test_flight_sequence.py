@@ -257,6 +257,27 @@ def test_restarted_attitude_relay_keeps_its_runaway_limit():
     assert t.catch is not None and "caught the run-away" in seq.events[-1]
 
 
+def test_attitude_relay_start_up_swing_and_first_run_away():
+    """Before any cycle is known a start-up swing (racer250: 0.10-0.20 rad) is no run-away;
+    once one complete cycle was seen, a run-away is caught by a damping PD sized from it
+    rather than restarted as a sign relay (in-process with stalls that restart swung
+    racer250 further out each time: 0.22 to 0.48 rad, tilt 42-90 deg, never tuned)."""
+    from mrft_gcs.identify import CycleStatus
+    from mrft_gcs.relay import MRFT
+
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.5), ATT_RELAY, ALT_RELAY)
+    t = seq.loops[Loop.ROLL]
+    t.h = 0.12
+    relay = MRFT(-0.5, t.h)
+    relay.step(0.01)  # a positive output: pushes a negative error further out
+    seq._watch(t, relay, -0.2, float(relay.state[0]))
+    assert t.catch is None and not seq.events  # start-up swing, nothing known yet
+    t.status = CycleStatus(1, False, 0.21, 0.05, math.inf)  # one complete cycle seen
+    seq._watch(t, relay, -0.2, float(relay.state[0]))
+    assert t.catch is not None and "caught the run-away" in seq.events[-1]
+    assert t.cycle == (0.21, 0.05)
+
+
 def test_noisy_cycle_at_the_largest_relay_amplitude_is_identified_not_waited_on():
     """A steady cycle too small for the noise raises the relay amplitude; once it is at its
     largest, the cycle goes to identification (with a note) instead of waiting forever."""

@@ -178,6 +178,12 @@ class SequenceConfig:
     #: rad for attitude, m for altitude and side) while still pushing it out is restarted
     runaway_factor: float = 3.0
     runaway_floor: tuple[float, float, float] = (0.1, 0.15, 0.3)
+    #: roll/pitch before any cycle is known (rad): a relay's start-up swings are larger
+    #: than its steady cycle (racer250: 0.10-0.20 rad against 0.05), and a restart as a
+    #: sign relay at such an error swings further out: with GCS stalls in-process, racer250
+    #: was restarted 140-270 times with errors growing to 0.48 rad (tilt 42-56 deg) in 2 of
+    #: 12 seeds with the 0.1 rad floor
+    runaway_floor_startup_rad: float = 0.25
     #: factor on the identified attitude PDs while they run on the GCS (during the side
     #: tests and the hover); the written gains are never scaled.
     gcs_attitude_pd_scale: float = 1.0
@@ -482,6 +488,8 @@ class TuningSequence:
             amp = t.cycle[1]
         floor = self.config.runaway_floor[0 if t.loop in (Loop.ROLL, Loop.PITCH) else
                                           1 if t.loop is Loop.ALTITUDE else 2]
+        if not math.isfinite(amp) and t.loop in (Loop.ROLL, Loop.PITCH):
+            floor = max(floor, self.config.runaway_floor_startup_rad)
         limit = max(floor, self.config.runaway_factor * amp) if math.isfinite(amp) else floor
         if t.loop in (Loop.ROLL, Loop.PITCH):
             # a disturbed cycle inflates its own amplitude: never let the limit pass the
@@ -489,6 +497,12 @@ class TuningSequence:
             limit = min(limit, self.config.max_tilt_cmd_rad)
         if abs(e) > limit and st * e < 0:  # u pushes y away: e grows
             relay.reset()
+            if (t.loop in (Loop.ROLL, Loop.PITCH) and not math.isfinite(t.cycle[0])
+                    and math.isfinite(t.status.period_s) and t.status.amplitude > 0):
+                # no settled cycle yet: the last complete one still sizes a damping PD (a
+                # sign relay restarted at the run-away's error swings further out: racer250
+                # with stalls in-process, 235 restarts from 0.22 to 0.33 rad, tilt 90 deg)
+                t.cycle = (t.status.period_s, t.status.amplitude)
             if t.loop in (Loop.ROLL, Loop.PITCH) and math.isfinite(t.cycle[0]):
                 # A relay is no stabilising controller: restarted after a disturbance (a
                 # GCS stall holding one relay level for 50-100 ms) it had fed each swing
