@@ -61,7 +61,7 @@ def _stat(vals: list, f: str = ".1f") -> str:
 def tune_table(runs: list[dict]) -> str:
     head = ("| airframe | tunes ok | take-off → last gains (s), mean / max | J roll | J pitch "
             "| J altitude | J x | J y | min PM (deg) | max tilt (deg) | figure-8 mean error (m) "
-            "| stream Hz / p99 jitter ms |")
+            "| stream Hz / p99 jitter ms | OS floor p99 / max ms |")
     rows = [head, "|" + "|".join(["---"] * (head.count("|") - 1)) + "|"]
     for v in dict.fromkeys(r["vehicle"] for r in runs):
         rs = [r for r in runs if r["vehicle"] == v]
@@ -74,16 +74,19 @@ def tune_table(runs: list[dict]) -> str:
         tilt = [r["max_tilt_deg"] for r in rs if r.get("max_tilt_deg") is not None]
         hz = [r["stream_hz"] for r in rs if r.get("stream_hz")]
         jit = [r["jitter_p99_ms"] for r in rs if r.get("jitter_p99_ms")]
+        fl = [r["os_floor_p99_ms"] for r in rs if r.get("os_floor_p99_ms") is not None]
+        flmax = [r["os_floor_max_ms"] for r in rs if r.get("os_floor_max_ms") is not None]
         rows.append(
             f"| {v} (seeds {', '.join(str(r['seed']) for r in rs)}) | {len(ok)}/{len(rs)} | "
             f"{_stat(dur, '.1f')} | " + " | ".join(_stat(js[lp]) for lp in LOOPS) +
             f" | {_fmt(min(pm) if pm else None)} | {_fmt(max(tilt) if tilt else None)} | "
             f"{_stat(f8, '.3f')} | {_fmt(np.mean(hz) if hz else None)} / "
-            f"{_fmt(max(jit) if jit else None)} |")
+            f"{_fmt(max(jit) if jit else None)} | {_fmt(max(fl) if fl else None)} / "
+            f"{_fmt(max(flmax) if flmax else None)} |")
     p = PAPER
     rows.append(f"| paper (DNN-MRFT) | | {p['tune_s']:.0f} (average) | avg {p['att_J_avg']} / "
                 f"max {p['att_J_max']} (attitude, Table VI) | | | max {p['side_J_max']} (side) | "
-                f"| | | {p['f8_sim_m']} sim / {p['f8_flight_m']} flight | |")
+                f"| | | {p['f8_sim_m']} sim / {p['f8_flight_m']} flight | | |")
     return "\n".join(rows)
 
 
@@ -169,7 +172,7 @@ def main() -> None:
         runs = []
         for v in args.vehicles.split(","):
             for seed in range(args.seeds):
-                runs.append(run_one(v, seed, figure8=not args.no_figure8))
+                runs.append(run_one(v, seed, figure8=not args.no_figure8, floor=True))
                 print(f"# {v} seed {seed}: {runs[-1].get('status')}", file=sys.stderr, flush=True)
     evals = json.loads(args.evaluation.read_text()) if args.evaluation else (
         run_evaluations(args.n, n_side=args.n_side) if args.n > 0 else [])
