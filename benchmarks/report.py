@@ -163,6 +163,9 @@ def main() -> None:
     ap.add_argument("--runs", type=Path, help="reuse tune records (JSON list)")
     ap.add_argument("--evaluation", type=Path, help="reuse Table VI records (JSON list)")
     ap.add_argument("--no-figure8", action="store_true")
+    ap.add_argument("--floor", action="store_true",
+                    help="measure the OS floor during each tune (a bare pacing loop in its own "
+                         "process; it adds a process, so the tunes' own figures get a little worse)")
     ap.add_argument("--save", type=Path, help="folder to save runs.json and evaluation.json")
     ap.add_argument("--write-readme", action="store_true")
     args = ap.parse_args()
@@ -172,7 +175,7 @@ def main() -> None:
         runs = []
         for v in args.vehicles.split(","):
             for seed in range(args.seeds):
-                runs.append(run_one(v, seed, figure8=not args.no_figure8, floor=True))
+                runs.append(run_one(v, seed, figure8=not args.no_figure8, floor=args.floor))
                 print(f"# {v} seed {seed}: {runs[-1].get('status')}", file=sys.stderr, flush=True)
     evals = json.loads(args.evaluation.read_text()) if args.evaluation else (
         run_evaluations(args.n, n_side=args.n_side) if args.n > 0 else [])
