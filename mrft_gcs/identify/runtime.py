@@ -23,7 +23,10 @@ With two or more cycles, the relay cycle's measured harmonics
 refused; the classifier's probabilities are multiplied by each shape's
 likelihood of the measured points before the Bayes decision; the chosen
 shape's model is refined on the points (its time constants held near the
-class by a prior) and the gains are the optimal PD of the refined model. The
+class by a prior) and the gains are the optimal PD of the refined model, provided
+they keep 15 deg of phase margin on every shape the posterior still holds likely
+(the refinement starts from the Bayes rule's shape, and its optimum must not undo
+the rule's safety); otherwise the rule's gains stand. The
 reported model is then the refined one (``extras["method"]`` says which path
 ran); the classifier's most likely shape is in ``extras["likeliest"]``;
 ``class_index`` is the representative process of the chosen shape nearest in
@@ -402,6 +405,26 @@ STEADY_MAX_SD = 0.1
 PRIOR_LOG_SD = 0.5
 #: Refined gains further than this factor from the chosen rule's are not trusted.
 MAX_REFINE_FACTOR = 3.0
+#: Refined gains must keep this phase margin (deg) on every shape the posterior still
+#: holds likely (:data:`LIKELY_POSTERIOR`), each at the scale and gain its period and
+#: amplitude give; the Bayes rule keeps about 20 there by construction.
+REFINED_MIN_PM_DEG = 15.0
+LIKELY_POSTERIOR = 0.1
+
+
+def _min_pm_on_likely(b: Bundle, post: np.ndarray, f, pd: PD) -> float:
+    """The smallest phase margin of ``pd`` on the likely shapes' models (deg)."""
+    from mrft_gcs.pd_design import frequency_grid, margins
+
+    worst = np.inf
+    for k in np.flatnonzero(post >= LIKELY_POSTERIOR):
+        c = f.period_s / b.unit_period[k]
+        K = f.amplitude / (f.h * c * b.unit_amplitude[k])
+        T_prop, T1, tau = b.shape_params[k] * c
+        w = frequency_grid(T_prop, T1, tau, n=300)
+        m = margins((pd.Kc + pd.Kd * 1j * w) * inner_response(K, T_prop, T1, tau, w)[0], w)
+        worst = min(worst, float(m.pm_deg) if m.stable else -np.inf)
+    return worst
 
 
 def steady_points(t, u, y):
@@ -481,6 +504,12 @@ def refined_identification(b: Bundle, probs: np.ndarray, f, pts, K_true: float |
     design = optimal_pd(inner_response(K_fit, T_prop, T1, tau, w)[0], w)
     change = np.abs(np.log([design.pd.Kc / pd.Kc, design.pd.Kd / pd.Kd]))
     trusted = K_true is not None or np.all(change <= np.log(MAX_REFINE_FACTOR))
+    if K_true is None and trusted and design.margins.stable:
+        # the refinement starts from the Bayes rule's shape, not the likeliest one: its
+        # optimum must not undo the rule's safety on the shapes still in play (qdrone
+        # with GCS stalls: refined tau 0.010 s against 0.022, PM 6.8 deg on the true
+        # process where the rule alone kept 16 deg)
+        trusted = _min_pm_on_likely(b, post, f, design.pd) >= REFINED_MIN_PM_DEG
     if not design.margins.stable or not trusted:
         # the refined model is unlike any the classifier considered: a record the model
         # structure does not explain; keep the classifier's rule
