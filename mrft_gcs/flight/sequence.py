@@ -143,6 +143,11 @@ class LoopTest:
     cycle: tuple[float, float] = (_NAN, _NAN)
     catch: tuple[float, float] | None = None
 
+    def restart_detection(self) -> None:
+        """Forget the cycles seen so far: the relay starts over."""
+        self.detector.reset()
+        self.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
+
 
 @dataclass(frozen=True)
 class SequenceConfig:
@@ -468,8 +473,7 @@ class TuningSequence:
             self.takeoff.h = h
         t.raises += 1
         t.unarmed = t.switches = 0
-        t.detector.reset()
-        t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
+        t.restart_detection()
         return True
 
     def _watch(self, t: LoopTest, relay: MRFT, e: float, state_before: float) -> None:
@@ -519,8 +523,7 @@ class TuningSequence:
                 self.events.append(f"{t.loop.value}: relay restarted (error {e:+.3g} ran away)")
             t.unarmed = t.switches = 0
             t.ext = 0.0
-            t.detector.reset()
-            t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
+            t.restart_detection()
             return
         if state_before != 0 and st != state_before:
             t.switches += 1
@@ -546,16 +549,14 @@ class TuningSequence:
             t = self.loops[loop]
             if t.state is LoopState.IDENTIFYING:
                 t.state = LoopState.RELAY
-                t.detector.reset()
-                t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
+                t.restart_detection()
                 relay = self.takeoff.relay if loop is Loop.ALTITUDE else t.relay
-                mean_u = (float(np.mean(t.snapshot.u)) if t.snapshot is not None
-                          and t.snapshot.u.size else None)
-                if restart and loop is Loop.ALTITUDE and self.takeoff.resettle(hover=mean_u):
-                    t.unarmed = t.switches = 0
-                    t.ext = 0.0
-                elif restart and relay is not None:
-                    relay.reset()
+                if restart and relay is not None:
+                    # altitude climbs back to its set point first, biased at the mean
+                    # thrust of the refused cycles; the others restart where they are
+                    mean_u = float(np.mean(t.snapshot.u)) if t.snapshot is not None else None
+                    if not (loop is Loop.ALTITUDE and self.takeoff.resettle(hover=mean_u)):
+                        relay.reset()
                     t.unarmed = t.switches = 0
                     t.ext = 0.0
                     if loop in SIDE_LOOPS:
@@ -696,8 +697,7 @@ class TuningSequence:
                         "altitude: two relay cycles in a row did not cross the set point (a "
                         "lopsided cycle); the relay starts again once the climb controller "
                         "holds the set point")
-                    t.detector.reset()
-                    t.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
+                    t.restart_detection()
         t.u = u
         return u
 

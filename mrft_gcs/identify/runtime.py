@@ -412,15 +412,21 @@ REFINED_MIN_PM_DEG = 15.0
 LIKELY_POSTERIOR = 0.1
 
 
+def _shape_models(b: Bundle, f) -> tuple[np.ndarray, np.ndarray]:
+    """Every shape's model for the measured cycle: gain ``K`` (n,) by exact gain scaling
+    and time constants ``(T_prop, T1, tau)`` (n, 3) at the scale its period gives."""
+    c = f.period_s / b.unit_period
+    return f.amplitude / (f.h * c * b.unit_amplitude), b.shape_params * c[:, None]
+
+
 def _min_pm_on_likely(b: Bundle, post: np.ndarray, f, pd: PD) -> float:
     """The smallest phase margin of ``pd`` on the likely shapes' models (deg)."""
     from mrft_gcs.pd_design import frequency_grid, margins
 
+    Ks, sps = _shape_models(b, f)
     worst = np.inf
     for k in np.flatnonzero(post >= LIKELY_POSTERIOR):
-        c = f.period_s / b.unit_period[k]
-        K = f.amplitude / (f.h * c * b.unit_amplitude[k])
-        T_prop, T1, tau = b.shape_params[k] * c
+        K, (T_prop, T1, tau) = Ks[k], sps[k]
         w = frequency_grid(T_prop, T1, tau, n=300)
         m = margins((pd.Kc + pd.Kd * 1j * w) * inner_response(K, T_prop, T1, tau, w)[0], w)
         worst = min(worst, float(m.pm_deg) if m.stable else -np.inf)
@@ -458,9 +464,7 @@ def harmonic_posterior(b: Bundle, probs: np.ndarray, f, pts) -> np.ndarray:
     """
     from mrft_gcs.identify.harmonics import class_log_likelihood
 
-    c = f.period_s / b.unit_period
-    K = f.amplitude / (f.h * c * b.unit_amplitude)
-    sp = b.shape_params * c[:, None]
+    K, sp = _shape_models(b, f)
     T_prop, T1, tau = sp.T
     G = K[:, None] * inner_response(1.0, T_prop, T1, tau, pts.w)
     ll = np.nan_to_num(class_log_likelihood(pts, G), nan=-np.inf)
