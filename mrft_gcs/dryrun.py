@@ -106,6 +106,9 @@ class RelaySegment:
         Period of the ground station's setpoint stream when the relay ran on a ground
         station (its commands are in the log), else 0. A live tune re-targets the
         written inner-loop gains by half of it (:func:`mrft_gcs.flight.onboard.gcs_delay_s`).
+    tilt : array (m,) or None
+        x/y relays: the measured tilt along the axis at the times ``t`` (from ATTITUDE),
+        which the side identification fits behind, as the live tune does.
     """
 
     loop: Loop
@@ -118,6 +121,7 @@ class RelaySegment:
     source: str
     beta_from: str
     gcs_period_s: float = 0.0
+    tilt: np.ndarray | None = None
 
     @property
     def duration_s(self) -> float:
@@ -841,9 +845,25 @@ def _side_segments(log: TelemetryLog, order: dict[str, np.ndarray],
             continue
         lo, hi = float(u[a:b].min()), float(u[a:b].max())
         t = pos[rows, 0]
-        found[lp] = _segment(lp, "attitude PD", t[a:b], u[a:b] - 0.5 * (lo + hi), y[a:b], meta,
-                             pair.gcs_period_s, inner[_SIDE_INNER[lp]].identification)
+        seg = _segment(lp, "attitude PD", t[a:b], u[a:b] - 0.5 * (lo + hi), y[a:b], meta,
+                       pair.gcs_period_s, inner[_SIDE_INNER[lp]].identification)
+        found[lp] = replace(
+            seg, tilt=_axis_tilt(att, lp, yaw_ref if frame else None, t[a:b]))
     return found, why
+
+
+def _axis_tilt(att: np.ndarray, loop: Loop, yaw_ref: float | None,
+               t: np.ndarray) -> np.ndarray:
+    """The measured tilt along side axis ``loop`` at the times ``t``, as the live tune
+    takes it: roll and pitch rotated by the heading's departure from ``yaw_ref`` (none
+    when the log was flown without that rotation; x: the forward tilt, ``-pitch``),
+    interpolated between ATTITUDE samples."""
+    d = (np.zeros(len(att)) if yaw_ref is None
+         else (att[:, 3] - yaw_ref + np.pi) % (2 * np.pi) - np.pi)
+    c, n = np.cos(d), np.sin(d)
+    roll, pitch = att[:, 1], att[:, 2]
+    tilt = c * -pitch - n * roll if loop is Loop.X else c * roll - n * pitch
+    return np.interp(t, att[:, 0], tilt)
 
 
 def _mend(u: np.ndarray) -> np.ndarray:
@@ -984,7 +1004,7 @@ def _live_cycles(seg: RelaySegment, inner: Identification | None
         cyc = (seg.t[a:b], seg.u[a:b], seg.y[a:b])
         try:
             return identify(seg.loop.kind, *cyc, beta=seg.beta, h=seg.h, bias=seg.bias,
-                            inner=inner), cyc, True, notes
+                            inner=inner, tilt=_tilt(seg, a, b)), cyc, True, notes
         except IdentificationError as err:
             if str(err) in failed:  # the same reason for every window: no point going on
                 break
@@ -999,19 +1019,23 @@ def _live_cycles(seg: RelaySegment, inner: Identification | None
         return None, (seg.t[a:b], seg.u[a:b], seg.y[a:b]), True, notes
     if rises.size >= 2:
         a, b = int(rises[max(0, rises.size - 1 - m)]), int(rises[-1]) + 1
-        cyc = (seg.t[a:b], seg.u[a:b], seg.y[a:b])
     else:
-        cyc = (seg.t, seg.u, seg.y)
+        a, b = 0, seg.t.size
+    cyc = (seg.t[a:b], seg.u[a:b], seg.y[a:b])
     spread = (np.ptp(np.diff(seg.t[rises[-4:]])) / np.mean(np.diff(seg.t[rises[-4:]]))
               if rises.size >= 3 else np.inf)
     notes.append(f"the oscillation is not steady ({max(rises.size - 1, 0)} cycles, period "
                  f"spread {spread:.0%}); results are doubtful")
     try:
         return identify(seg.loop.kind, *cyc, beta=seg.beta, h=seg.h, bias=seg.bias,
-                        inner=inner), cyc, False, notes
+                        inner=inner, tilt=_tilt(seg, a, b)), cyc, False, notes
     except MrftError as err:
         notes.append(f"not identified: {err}")
         return None, cyc, False, notes
+
+
+def _tilt(seg: RelaySegment, a: int, b: int) -> np.ndarray | None:
+    return None if seg.tilt is None else seg.tilt[a:b]
 
 
 def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,

@@ -291,7 +291,8 @@ def test_dry_run_replays_the_live_tlog(bundled):
         # agreement is 1e-5..1e-4
         rel = 5e-2
         again = identify(lp.kind, seg.t[inside], seg.u[inside], seg.y[inside], beta=seg.beta,
-                         h=seg.h, inner=inner)
+                         h=seg.h, inner=inner,
+                         tilt=None if seg.tilt is None else seg.tilt[inside])
         assert again.class_index == li.class_index, lp
         for g in ("Kc", "Kd"):
             assert getattr(again.gains, g) == pytest.approx(getattr(li.gains, g), rel=rel), lp

@@ -174,7 +174,7 @@ def bundled_identifier(loop: Loop, snap: CycleSnapshot,
                        inner: Identification | None = None) -> Identification:
     """Identification with the bundled classifiers (:func:`mrft_gcs.identify.identify`)."""
     return identify(loop.kind, snap.t_s, snap.u, snap.y, beta=snap.beta, h=snap.h,
-                    bias=snap.bias, inner=inner, setpoint=snap.setpoint)
+                    bias=snap.bias, inner=inner, setpoint=snap.setpoint, tilt=snap.tilt)
 
 
 def _synthetic_cycles(period_s: float, h: float, amplitude: float, n: int = 6,

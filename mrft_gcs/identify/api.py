@@ -196,7 +196,7 @@ def relay_settings(kind: LoopKind, inner: Identification | None = None) -> Relay
 
 def identify(kind: LoopKind, t: np.ndarray, u: np.ndarray, y: np.ndarray, *, beta: float,
              h: float, bias: float = 0.0, inner: Identification | None = None,
-             setpoint=None) -> Identification:
+             setpoint=None, tilt: np.ndarray | None = None) -> Identification:
     """Identify a loop from samples of its steady relay oscillation.
 
     Parameters
@@ -214,6 +214,10 @@ def identify(kind: LoopKind, t: np.ndarray, u: np.ndarray, y: np.ndarray, *, bet
     setpoint : float or array (m,), optional
         The relay's set point; when given, cycles that do not cross it every
         half-cycle (a degenerate test) are refused rather than identified.
+    tilt : array (m,), optional
+        Side motion: the measured tilt along the axis at the times ``t``. The side
+        model is then fitted behind the attitude loop as measured during the test
+        rather than as modelled (see :func:`mrft_gcs.identify.runtime._fit_side`).
 
     Raises
     ------
@@ -224,7 +228,8 @@ def identify(kind: LoopKind, t: np.ndarray, u: np.ndarray, y: np.ndarray, *, bet
         raise IdentificationError("side-motion identification needs the attitude loop identified first")
     from mrft_gcs.identify.runtime import identify as _impl
 
-    return _impl(kind, t, u, y, beta=beta, h=h, bias=bias, inner=inner, setpoint=setpoint)
+    return _impl(kind, t, u, y, beta=beta, h=h, bias=bias, inner=inner, setpoint=setpoint,
+                 tilt=tilt)
 
 
 def attach_residual(ident: Identification, t, u, y, *, bias: float = 0.0, band: float = 0.0,

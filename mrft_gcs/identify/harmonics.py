@@ -168,19 +168,29 @@ class SideFit:
     used: tuple[int, ...]
 
 
-def _lk_and_cost(R, wk, wt, T2, tau):
-    """Best log K and the cost for arrays of ``T2`` and ``tau`` (broadcast)."""
+def _lk_and_cost(R, wk, wt, T2, tau, accel=None):
+    """Best log K and the cost for arrays of ``T2`` and ``tau`` (broadcast).
+
+    ``accel = (a, sd)``: a prior on ``K / T2`` (log-normal about ``a``, ``sd`` in log
+    units), one more term of the cost.
+    """
     T2, tau = np.asarray(T2)[..., None], np.asarray(tau)[..., None]
     log_m = -0.5 * np.log1p((wk * T2) ** 2)
     ph_m = -np.arctan(wk * T2) - wk * tau
     dmag = np.log(np.abs(R)) - log_m
-    lk = np.sum(wt * dmag, axis=-1) / wt.sum()
     dph = np.angle(R * np.exp(-1j * ph_m))
-    return lk, np.sum(wt * ((dmag - lk[..., None]) ** 2 + dph ** 2), axis=-1)
+    if accel is None:
+        lk = np.sum(wt * dmag, axis=-1) / wt.sum()
+        return lk, np.sum(wt * ((dmag - lk[..., None]) ** 2 + dph ** 2), axis=-1)
+    wp, lk_p = 1.0 / accel[1] ** 2, np.log(accel[0]) + np.log(T2[..., 0])
+    lk = (np.sum(wt * dmag, axis=-1) + wp * lk_p) / (wt.sum() + wp)
+    return lk, (np.sum(wt * ((dmag - lk[..., None]) ** 2 + dph ** 2), axis=-1)
+                + wp * (lk - lk_p) ** 2)
 
 
 def fit_side_model(points: HarmonicPoints, T_att: np.ndarray, max_sd: float = USABLE_SD,
-                   T2_range=(0.01, 100.0), tau_range=(1e-4, 1.0)) -> SideFit:
+                   T2_range=(0.01, 100.0), tau_range=(1e-4, 1.0),
+                   accel_prior: tuple[float, float] | None = None) -> SideFit:
     """Fit the side model on measured points, the closed attitude loop ``T_att(j w)`` known.
 
     Parameters
@@ -190,6 +200,12 @@ def fit_side_model(points: HarmonicPoints, T_att: np.ndarray, max_sd: float = US
         The closed attitude loop (set point to angle) at ``points.w``.
     max_sd : float
         Harmonics measured worse than this are left out.
+    accel_prior : (a, sd), optional
+        What is known of ``K / T2`` before the test: the model's high-frequency
+        asymptote ``K / (T2 s^2)`` is the horizontal acceleration per radian of tilt,
+        which for a multirotor in hover is ``g`` whatever its size or drag. A log-normal
+        prior about ``a`` with ``sd`` (log units) settles the trade between a short drag
+        time constant and a long delay that disturbed harmonics leave open.
 
     Raises
     ------
@@ -206,18 +222,18 @@ def fit_side_model(points: HarmonicPoints, T_att: np.ndarray, max_sd: float = US
     tau_lo, tau_hi = np.log(tau_range)
     T2g = np.exp(np.linspace(T2_lo, T2_hi, 90))
     tg = np.exp(np.linspace(tau_lo, tau_hi, 90))
-    _, cost = _lk_and_cost(R, wk, wt, T2g[:, None], tg[None, :])
+    _, cost = _lk_and_cost(R, wk, wt, T2g[:, None], tg[None, :], accel_prior)
     i, j = np.unravel_index(np.argmin(cost), cost.shape)
     lo, hi = np.log([T2_range[0], tau_range[0]]), np.log([T2_range[1], tau_range[1]])
 
     def f(p):
         p = np.clip(p, lo, hi)
-        return float(_lk_and_cost(R, wk, wt, np.exp(p[0]), np.exp(p[1]))[1])
+        return float(_lk_and_cost(R, wk, wt, np.exp(p[0]), np.exp(p[1]), accel_prior)[1])
 
     res = minimize(f, np.log([T2g[i], tg[j]]), method="Nelder-Mead",
                    options={"xatol": 1e-5, "fatol": 1e-10})
     T2, tau = np.exp(np.clip(res.x, lo, hi))
-    lk, cost = _lk_and_cost(R, wk, wt, T2, tau)
+    lk, cost = _lk_and_cost(R, wk, wt, T2, tau, accel_prior)
     return SideFit(K=float(np.exp(lk)), T2=float(T2), tau=float(tau), cost=float(cost),
                    used=tuple(int(k) for k, ok in zip(points.harmonics, keep, strict=True) if ok))
 
