@@ -52,12 +52,13 @@ def test_pd_and_yaw_hold():
     assert wrap_pi(3 * math.pi) == pytest.approx(-math.pi)
 
 
-def _climb_to_rest(c, hover_true, seconds=12.0, dt=0.004):
-    """A point mass on the climb controller (thrust / hover_true = g); returns (z, v, t)."""
+def _climb_to_rest(c, hover_true, seconds=12.0, dt=0.004, drag_T1=math.inf):
+    """A point mass on the climb controller (thrust / hover_true = g, linear drag of time
+    constant ``drag_T1``); returns (z, v, t)."""
     g, z, v, t = 9.80665, 0.0, 0.0, 0.0
     while t < seconds and not c.switched:
         u = c.step(t, z, v)
-        v += (g * u / hover_true - g) * dt if (z > 0 or u > hover_true) else 0.0
+        v += (g * u / hover_true - g - v / drag_T1) * dt if (z > 0 or u > hover_true) else 0.0
         z = max(z + v * dt, 0.0)
         t += dt
     return z, v, t
@@ -75,6 +76,25 @@ def test_climb_learns_a_wrong_hover_guess_before_the_relay(guess_factor):
     assert t < 7.0, t  # well before settle_max_s: it settled, not timed out
     assert abs(z - 1.0) < TABLE_V.settle_m + 0.01
     assert c.u_z0 == pytest.approx(hover, rel=0.03)
+
+
+def test_climb_at_rest_off_its_set_point_takes_its_thrust_for_hover():
+    """With drag (f550-like, T1 0.7 s) and a guess 15 % low the climb crept at 0.02 m/s just
+    outside the integral's band, 0.3 m under the set point: at rest, the thrust that holds
+    the vehicle is the hover thrust, and folding the PD's effort into the integral at once
+    settles seconds sooner than integrating."""
+    import dataclasses
+
+    hover = 0.5
+    times = {}
+    for fold in (True, False):
+        st = TABLE_V if fold else dataclasses.replace(TABLE_V, rest_s=math.inf)
+        c = TakeoffController(z_ref_m=1.0, settings=st, relay_bias=0.85 * hover)
+        z, _, times[fold] = _climb_to_rest(c, hover, drag_T1=0.7)
+        assert c.switched and c.folded is fold
+        assert abs(z - 1.0) < TABLE_V.settle_m + 0.01
+        assert c.u_z0 == pytest.approx(hover, rel=0.03)
+    assert times[True] < times[False] - 1.0, times
 
 
 def test_resettle_stops_the_relay_and_climbs_back():
