@@ -329,8 +329,6 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, til
     fit = fit_side_model(fit_pts, T_att, T2_range=(D_SIDE.low[0] / 2, D_SIDE.high[0] * 2),
                          tau_range=(D_SIDE.low[1] / 2, D_SIDE.high[1] * 2),
                          accel_prior=SIDE_ACCEL_PRIOR)
-    w = np.logspace(np.log10(1e-2 / (fit.T2 + m.T1 + fit.tau)),
-                    np.log10(200 / min(m.T_prop, m.tau + fit.tau)), 900)
     if SIDE_ACCEL_PRIOR is not None and \
             abs(np.log(fit.K / fit.T2 / SIDE_ACCEL_PRIOR[0])) > SIDE_ACCEL_REFUSE:
         raise IdentificationError(
@@ -338,6 +336,8 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, til
             f"tilt where a multirotor in hover has about {SIDE_ACCEL_PRIOR[0]:.3g}: the cycles "
             "are disturbed (wind, a bumped vehicle, a stalled link); let the relay run on and "
             "retry")
+    w = np.logspace(np.log10(1e-2 / (fit.T2 + m.T1 + fit.tau)),
+                    np.log10(200 / min(m.T_prop, m.tau + fit.tau)), 900)
     design = optimal_pd(t_att(w) * side_response(fit.K, fit.T2, fit.tau, w)[0], w)
     if not design.margins.stable:
         return None, "no stable PD for the fitted side model"
@@ -378,7 +378,7 @@ SIDE_ACCEL_REFUSE = 0.4
 #: standard error (log units) is within this; else the modelled loop stands there. With
 #: :data:`~mrft_gcs.identify.harmonics.USABLE_SD` (0.5) a disturbed f550 cycle's 7th
 #: harmonic (error 0.36, phase 170 deg off the model) pulled the fit to T2 0.18 s
-#: against 0.64 (J 12 %)
+#: against the true 0.80 s (in-process, under a per-axis torque limit tried and dropped)
 MEASURED_T_ATT_MAX_SD = 0.25
 
 
