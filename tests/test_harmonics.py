@@ -32,6 +32,15 @@ def _side_run(T2: float, tau: float, noise: float = 0.0, bias: float = 0.0):
     return side, run
 
 
+def _attitude_identified():
+    """The ATT process identified from its relay test, and the side relay it asks for."""
+    b = load_bundle(LoopKind.ATTITUDE)
+    run = simulate_mrft(ATT[0], *ATT[1:], beta=b.beta, h=b.h, duration_s=8.0, keep_s=4.0)
+    a_id = identify(LoopKind.ATTITUDE, run.t, run.u[0], run.y[0], beta=b.beta, h=b.h,
+                    setpoint=0.0)
+    return a_id, relay_settings(LoopKind.SIDE, inner=a_id)
+
+
 def _t_att(w):
     return closed_inner_response(*ATT_PD, inner_response(*ATT, w), w)[0]
 
@@ -117,11 +126,7 @@ def test_side_fit_refuses_one_harmonic():
 @pytest.mark.parametrize("T2", [0.25, 4.0])
 def test_side_gains_near_optimal_with_noise_and_bias(T2):
     """End to end through identify(): noisy, biased side test, gains scored on the truth."""
-    b = load_bundle(LoopKind.ATTITUDE)
-    run = simulate_mrft(ATT[0], *ATT[1:], beta=b.beta, h=b.h, duration_s=8.0, keep_s=4.0)
-    a_id = identify(LoopKind.ATTITUDE, run.t, run.u[0], run.y[0], beta=b.beta, h=b.h,
-                    setpoint=0.0)
-    rs = relay_settings(LoopKind.SIDE, inner=a_id)
+    a_id, rs = _attitude_identified()
     side = (9.81 * T2, T2, 0.03)
     clean = simulate_side_mrft(ATT, (a_id.gains.Kc, a_id.gains.Kd), side, beta=rs.beta, h=rs.h,
                                duration_s=10 + 20 * T2, keep_s=8.0)
@@ -214,11 +219,7 @@ def _periodic(T_of_w, period_s: float, h: float, cycles: int = 4, dt: float = 0.
 def test_side_fit_behind_the_measured_attitude_loop():
     """The attitude loop lags its model during the side test (as when the motors saturate at
     each side relay switch): with the measured tilt, the side model is still the truth."""
-    b = load_bundle(LoopKind.ATTITUDE)
-    run = simulate_mrft(ATT[0], *ATT[1:], beta=b.beta, h=b.h, duration_s=8.0, keep_s=4.0)
-    a_id = identify(LoopKind.ATTITUDE, run.t, run.u[0], run.y[0], beta=b.beta, h=b.h,
-                    setpoint=0.0)
-    rs = relay_settings(LoopKind.SIDE, inner=a_id)
+    a_id, rs = _attitude_identified()
     slow = (ATT[0], ATT[1], ATT[2], 2.5 * ATT[3])  # the loop as it behaves in the test
 
     def t_true(w):
@@ -244,11 +245,7 @@ def test_side_cycles_no_multirotor_makes_are_refused():
     cycles that say twice that are disturbed, and a retry beats tuning on them."""
     from mrft_gcs.errors import IdentificationError
 
-    b = load_bundle(LoopKind.ATTITUDE)
-    run = simulate_mrft(ATT[0], *ATT[1:], beta=b.beta, h=b.h, duration_s=8.0, keep_s=4.0)
-    a_id = identify(LoopKind.ATTITUDE, run.t, run.u[0], run.y[0], beta=b.beta, h=b.h,
-                    setpoint=0.0)
-    rs = relay_settings(LoopKind.SIDE, inner=a_id)
+    a_id, rs = _attitude_identified()
 
     def t_att(w):
         return closed_inner_response(a_id.gains.Kc, a_id.gains.Kd, inner_response(*ATT, w),
