@@ -52,6 +52,7 @@ and is snapped to the classifier's beta when within 0.1, unless metadata gives i
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -104,8 +105,16 @@ class RelaySegment:
         tune uses on that loop, and snapped to it).
     gcs_period_s : float
         Period of the ground station's setpoint stream when the relay ran on a ground
-        station (its commands are in the log), else 0. A live tune re-targets the
-        written inner-loop gains by half of it (:func:`mrft_gcs.flight.onboard.gcs_delay_s`).
+        station (its commands are in the log), else 0.
+    age_s : array (m,) or None
+        With ``gcs_period_s``: how old each sample was when the command answering it was
+        logged (s; command minus sample time on the log's vehicle clock, whose offset is
+        the least-delayed sample's). A live tune re-targets the written inner-loop gains
+        by their mean over the identified cycles
+        (:func:`mrft_gcs.flight.onboard.command_delay_s`), as dry-run does here. Where
+        the log cannot tell which sample a command answered (altitude, see
+        :func:`_answer_position`), file order pairs it with the last one logged before
+        it, which it may not have seen yet: the ages are then up to a period short.
     tilt : array (m,) or None
         x/y relays: the measured tilt along the axis at the times ``t`` (from ATTITUDE),
         which the side identification fits behind, as the live tune does.
@@ -122,6 +131,7 @@ class RelaySegment:
     beta_from: str
     gcs_period_s: float = 0.0
     tilt: np.ndarray | None = None
+    age_s: np.ndarray | None = None
 
     @property
     def duration_s(self) -> float:
@@ -146,6 +156,8 @@ class LoopResult:
     notes: tuple[str, ...] = ()
     cycles: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     gains: PD | None = None
+    #: the GCS delay re-targeted out of ``gains`` (s; NaN: not re-targeted)
+    gcs_delay_s: float = math.nan
 
     def as_dict(self) -> dict:
         """The loop's entry of the tuning report (SPEC 4.3), as far as dry-run knows it."""
@@ -509,6 +521,7 @@ class _Candidate:
     u: np.ndarray
     y: np.ndarray
     gcs_period_s: float = 0.0
+    age_s: np.ndarray | None = None  # see RelaySegment
 
 
 def _position_signal(pos: np.ndarray, rows: np.ndarray, col: int, filtered: bool,
@@ -518,6 +531,11 @@ def _position_signal(pos: np.ndarray, rows: np.ndarray, col: int, filtered: bool
     if not filtered:
         return p
     return _smoothed(pos[rows, 0], p, sign * pos[rows, col + 3])
+
+
+def _ages(cmd: np.ndarray, tab: np.ndarray, c: _Commands) -> np.ndarray | None:
+    """How old each paired sample was when its command was logged (s), for a GCS's."""
+    return cmd[c.cmd, 0] - tab[c.rows, 0] if c.gcs_period_s > 0 else None
 
 
 def _candidates(log: TelemetryLog, order: dict[str, np.ndarray]) -> dict[Loop, list[_Candidate]]:
@@ -539,7 +557,7 @@ def _candidates(log: TelemetryLog, order: dict[str, np.ndarray]) -> dict[Loop, l
             else:
                 y = tab[c.rows, ycol]
             out[loop].append(_Candidate("actuator", tab[c.rows, 0], act[c.cmd, col], y,
-                                        c.gcs_period_s))
+                                        c.gcs_period_s, _ages(act, tab, c)))
     if len(atg) and len(pos):
         roll, pitch = _rpy(atg[:, 1:5])
         c = _pair(pos, order.get("position"), atg[:, 0], order.get("attitude_target"))
@@ -550,7 +568,7 @@ def _candidates(log: TelemetryLog, order: dict[str, np.ndarray]) -> dict[Loop, l
                                       _position_signal(pos, c.rows, 2, filt), c.gcs_period_s))
         out[Loop.ALTITUDE].append(_Candidate("attitude target", t, atg[c.cmd, 5],
                                              _position_signal(pos, c.rows, 3, filt, -1.0),
-                                             c.gcs_period_s))
+                                             c.gcs_period_s, _ages(atg, pos, c)))
     return out
 
 
@@ -614,7 +632,9 @@ def _find(log: TelemetryLog, meta: dict[str, str], want: tuple[Loop, ...],
             if reason:
                 reasons.append(f"{c.source} command: {reason}")
                 continue
-            found.append(_segment(loop, c.source, t[a:b], u[a:b], y[a:b], meta, c.gcs_period_s))
+            age = None if c.age_s is None else c.age_s[ok][a:b]
+            found.append(_segment(loop, c.source, t[a:b], u[a:b], y[a:b], meta, c.gcs_period_s,
+                                  age_s=age))
             break
         else:
             if loop in sig and "h" in meta:
@@ -649,7 +669,8 @@ def _missing(loop: Loop, log: TelemetryLog) -> str:
 
 
 def _segment(loop, source, t, u, y, meta, gcs_period_s: float = 0.0,
-             inner: Identification | None = None) -> RelaySegment:
+             inner: Identification | None = None, age_s: np.ndarray | None = None
+             ) -> RelaySegment:
     lo, hi = float(u.min()), float(u.max())
     h = float(meta.get("h", 0.5 * (hi - lo)))
     bias = float(meta.get("bias", 0.5 * (hi + lo)))
@@ -664,7 +685,7 @@ def _segment(loop, source, t, u, y, meta, gcs_period_s: float = 0.0,
         if dom is not None and abs(dom - beta) < 0.1:
             # A tune runs the domain's beta; the inferred value is that one, blurred by sampling.
             beta, frm = dom, "domain"
-    return RelaySegment(loop, t, u, y, beta, h, bias, source, frm, gcs_period_s)
+    return RelaySegment(loop, t, u, y, beta, h, bias, source, frm, gcs_period_s, age_s=age_s)
 
 
 def _domain_beta(loop: Loop, inner: Identification | None = None) -> float | None:
@@ -1038,6 +1059,16 @@ def _tilt(seg: RelaySegment, a: int, b: int) -> np.ndarray | None:
     return None if seg.tilt is None else seg.tilt[a:b]
 
 
+def _retarget_delay(seg: RelaySegment, t_cycles: np.ndarray) -> float:
+    """The GCS delay over the identified cycles (s; NaN: not measurable in this log)."""
+    from mrft_gcs.flight.onboard import command_delay_s
+
+    if seg.age_s is None or len(t_cycles) == 0:
+        return float("nan")
+    m = (seg.t >= t_cycles[0]) & (seg.t <= t_cycles[-1])
+    return command_delay_s(seg.age_s[m], seg.gcs_period_s)
+
+
 def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
                     model: InnerModel | None = None, hover: float = 0.5) -> LoopResult:
     """Cycle detector, identification and residual analysis of one relay test.
@@ -1048,17 +1079,20 @@ def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
     analysis (e.g. a known model while the classifiers are not bundled).
     """
     ident, cyc, steady, notes = _live_cycles(seg, inner)
-    gains = None
+    gains, delay = None, math.nan
     if ident is not None:
         gains = ident.gains
         if seg.gcs_period_s > 0 and isinstance(ident.model, InnerModel):
             from mrft_gcs.flight.onboard import gcs_delay_s, onboard_gains
 
-            delay = gcs_delay_s(seg.gcs_period_s)
+            delay = _retarget_delay(seg, cyc[0])
+            how = "measured: how old telemetry was when the command answering it was logged"
+            if not math.isfinite(delay):
+                delay, how = gcs_delay_s(seg.gcs_period_s), "half a setpoint period"
             gains = onboard_gains(ident, delay)
             notes.append(f"gains re-targeted to the onboard loop ({delay * 1e3:.1f} ms "
-                         f"less delay than the ground-station relay), as a tune writes them; "
-                         f"identified Kc {ident.gains.Kc:.4g}, Kd {ident.gains.Kd:.4g}")
+                         f"less delay than the ground-station relay, {how}), as a tune writes "
+                         f"them; identified Kc {ident.gains.Kc:.4g}, Kd {ident.gains.Kd:.4g}")
     res = None
     use = ident.model if ident is not None else model
     if isinstance(use, InnerModel):
@@ -1072,7 +1106,7 @@ def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
             notes.append(f"residual not analysed: {err}")
     elif isinstance(use, SideModel):
         notes.append("residual analysis covers roll, pitch and altitude only")
-    return LoopResult(seg.loop, seg, steady, ident, res, tuple(notes), cyc, gains)
+    return LoopResult(seg.loop, seg, steady, ident, res, tuple(notes), cyc, gains, delay)
 
 
 def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=None,

@@ -245,7 +245,7 @@ def test_dry_run_replays_the_live_tlog(bundled):
     """
     import numpy as np
 
-    from mrft_gcs.dryrun import _steady_rises, dry_run
+    from mrft_gcs.dryrun import _retarget_delay, _steady_rises, dry_run
     from mrft_gcs.flight.sequence import SIDE_INNER, SequenceConfig
     from mrft_gcs.identify import identify
     from mrft_gcs.profiles import PDGains, gains_to_params, load_profile
@@ -263,6 +263,21 @@ def test_dry_run_replays_the_live_tlog(bundled):
         assert rep.identification is not None, (lp, rep.notes)
         assert seg.beta == pytest.approx(live.beta, abs=1e-9)
         assert seg.h == pytest.approx(live.h, rel=1e-3)
+        # the GCS delay re-targeted out of the written gains: the live tune measures it on
+        # its receive and send times, dry-run on the .tlog's stamps of the same frames (over
+        # the live cycles: dry-run's own may be later ones)
+        assert math.isfinite(live.gcs_delay_s) == (lp.kind is not LoopKind.SIDE), lp
+        if lp.kind is not LoopKind.SIDE:
+            assert 0 < live.gcs_delay_s < 3 * 0.004, lp
+            dry = _retarget_delay(seg, live.cycles[0])
+            if lp is Loop.ALTITUDE:
+                # which position sample a command answered is not always known (see below):
+                # file order pairs it with one logged just before, which it may not have
+                # seen yet (received while the command was computed): never older
+                assert live.gcs_delay_s - 0.004 - 5e-4 <= dry <= live.gcs_delay_s + 5e-4
+            else:
+                assert dry == pytest.approx(live.gcs_delay_s, abs=5e-4), lp
+            assert math.isfinite(rep.gcs_delay_s), lp
         if lp is Loop.ALTITUDE:
             assert rep.identification.period_s == pytest.approx(li.period_s, rel=0.03)
             for g in ("Kc", "Kd"):

@@ -34,8 +34,8 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.onboard import command_delay_s, onboard_gains
 from mrft_gcs.flight.onboard import gcs_delay_s as _gcs_delay_s
-from mrft_gcs.flight.onboard import onboard_gains
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
 from mrft_gcs.flight.sequence import AUTOPILOT_ATTITUDE as _AUTOPILOT_ATTITUDE
 from mrft_gcs.flight.sequence import (
@@ -229,6 +229,8 @@ class LoopResult:
     note: str
     cycles: tuple[np.ndarray, np.ndarray, np.ndarray] | None  # t_s, u, y of the identified cycles
     band: float = math.nan  # the relay's noise band (loop output units)
+    #: the GCS delay re-targeted out of the written gains (s; NaN: written as identified)
+    gcs_delay_s: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -282,6 +284,33 @@ class _Telemetry:
                            p.vx_m_s, p.vy_m_s, -p.vz_m_s)
 
 
+class _AgeLog:
+    """Per stream tick: the vehicle times of the ATTITUDE and LOCAL_POSITION_NED samples a
+    command answered, and when it left (monotonic); written by the stream thread only.
+    The GCS delay re-targeted out of the written gains is measured on it
+    (:func:`mrft_gcs.flight.onboard.command_delay_s`)."""
+
+    def __init__(self, capacity: int = 1 << 16) -> None:  # over four minutes at 250 Hz
+        self.rows = np.full((capacity, 3), np.nan)  # t_att, t_pos, sent
+        self.n = 0
+
+    def record(self, att: Attitude | None, pos: LocalPosition | None) -> None:
+        if self.n >= len(self.rows) or att is None or pos is None:
+            return
+        self.rows[self.n] = (att.t_s, pos.t_s, time.monotonic())
+        self.n += 1
+
+    def ages_s(self, position: bool, t0_s: float, t1_s: float, rx_offset_s: float
+               ) -> np.ndarray:
+        """How old the samples (position or attitude) with vehicle time in [t0, t1] were
+        when their commands left: send time minus sample time minus ``rx_offset_s`` (the
+        link's least-delayed receive-minus-vehicle time, :attr:`VehicleLink.rx_offset_s`)."""
+        r = self.rows[: self.n]
+        t = r[:, 1] if position else r[:, 0]
+        m = (t >= t0_s) & (t <= t1_s)
+        return r[m, 2] - t[m] - rx_offset_s
+
+
 def _idle(actuation: Actuation) -> ActuatorTarget | AttitudeTarget:
     if actuation is Actuation.TORQUE:
         return ActuatorTarget(0.0, 0.0, 0.0, 0.0, 0.0)
@@ -333,8 +362,10 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
     gcs_delay_s : float, optional
         Delay the GCS-side relay adds to the identified inner loops (s); the written
         gains are re-targeted to the onboard loop without it
-        (:func:`mrft_gcs.flight.onboard.onboard_gains`). Default: half a setpoint
-        period (:func:`mrft_gcs.flight.onboard.gcs_delay_s`).
+        (:func:`mrft_gcs.flight.onboard.onboard_gains`). Default: measured per loop over
+        its identified cycles, how old telemetry was when the command answering it left
+        (:func:`mrft_gcs.flight.onboard.command_delay_s`); half a setpoint period
+        where that cannot be measured.
     config : SequenceConfig, optional
         Sequence settings (relay noise bands, amplitudes...); actuation, altitude,
         hover guess and tilt command limit are always taken from the tune's arguments.
@@ -374,7 +405,7 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
                                tlog_path=tlog_path, signing_key=signing_key)
     run = _Run(link, prof, act, lim, z_ref_m, connection, started, backup_dir, rate_hz,
                max_relay_s, hover_check_s, on_progress, ident_fn, relay or {})
-    run.gcs_delay_s = _gcs_delay_s(1.0 / rate_hz) if gcs_delay_s is None else gcs_delay_s
+    run.gcs_delay_s = gcs_delay_s
     run.config = config or SequenceConfig()
     run.residuals = residuals
     run.requested = wanted
@@ -428,7 +459,9 @@ class _Run:
         self.limit_hit: LimitExceeded | None = None
         self.hover_error_m = math.nan
         self.notes: list[str] = []
-        self.gcs_delay_s = 0.0
+        self.gcs_delay_s: float | None = None  # None: measured per loop (self.ages)
+        self.ages = _AgeLog()
+        self.delays: dict[Loop, float] = {}  # re-targeted out of the written gains (s)
         self.config = SequenceConfig()
         self.written: dict[Loop, PD] = {}
         self.residuals = True
@@ -452,7 +485,8 @@ class _Run:
                 snap.status.amplitude if snap else t.status.amplitude,
                 ident, self.written.get(lp, ident.gains if ident else None),
                 t.t_tuned_s - (seq.t_start_s if seq is not None else math.nan), t.note,
-                (snap.t_s, snap.u, snap.y) if snap else None, t.band)
+                (snap.t_s, snap.u, snap.y) if snap else None, t.band,
+                self.delays.get(lp, math.nan))
         stream = self.streamer.stats() if self.streamer is not None else None
         return TuneResult(
             connection=self.connection, autopilot=self.link.family.value, profile=self.prof.name,
@@ -537,7 +571,7 @@ class _Run:
 
     def _setpoint(self, telemetry: _Telemetry
                   ) -> Callable[[float], ActuatorTarget | AttitudeTarget | None]:
-        seq, idle = self.seq, _idle(self.act)
+        seq, idle, ages = self.seq, _idle(self.act), self.ages
         assert seq is not None
 
         def make(_t: float):
@@ -553,7 +587,9 @@ class _Run:
                 except LimitExceeded as err:
                     self.limit_hit = err
                     raise
-            return seq.step(s)
+            out = seq.step(s)
+            ages.record(telemetry.att, telemetry.pos)  # the command leaves right after
+            return out
 
         return make
 
@@ -666,7 +702,7 @@ class _Run:
     def _write_back(self, client: ParamClient) -> None:
         seq = self.seq
         assert seq is not None
-        identified = {}
+        identified, delay = {}, {}
         for lp, t in seq.loops.items():
             if t.state is not LoopState.TUNED or t.identification is None:
                 continue
@@ -675,13 +711,18 @@ class _Run:
                           f"it) but not written; the report's gains are the identified ones")
                 continue
             identified[lp] = t.identification.gains
-            self.written[lp] = onboard_gains(t.identification, self.gcs_delay_s)
-        moved = [lp.value for lp, g in identified.items() if self.written[lp] != g]
+            delay[lp] = self._gcs_delay(lp, t.snapshot)
+            self.written[lp] = onboard_gains(t.identification, delay[lp])
+        moved = [lp for lp, g in identified.items() if self.written[lp] != g]
+        self.delays = {lp: delay[lp] for lp in moved}
         if moved:
+            how = ("as asked" if self.gcs_delay_s is not None else "measured: how old telemetry "
+                   "was when the command answering it left")
             self.notes.append(
-                f"written {', '.join(moved)} gains are re-targeted from the GCS-side loop "
-                f"to the onboard loop ({self.gcs_delay_s * 1e3:.1f} ms less delay); the report's "
-                f"gains are the written ones")
+                f"written {', '.join(lp.value for lp in moved)} gains are re-targeted from the "
+                f"GCS-side loop to the onboard loop ("
+                f"{', '.join(f'{lp.value} {delay[lp] * 1e3:.1f} ms' for lp in moved)} less "
+                f"delay, {how}); the report's gains are the written ones")
         for lp, inner_lp in _SIDE_INNER.items():
             if (lp in self.written and inner_lp not in self.requested
                     and seq.loops[inner_lp].state is LoopState.TUNED):
@@ -698,6 +739,20 @@ class _Run:
         result = client.write(values, self.backup_dir, label="backup")
         self.changes, self.backup = result.changes, str(result.backup_path)
         self._check_stream()
+
+    def _gcs_delay(self, lp: Loop, snap: CycleSnapshot | None) -> float:
+        """The delay re-targeted out of ``lp``'s written gains (s): as asked, else measured
+        over its identified cycles, else half a setpoint period."""
+        if self.gcs_delay_s is not None:
+            return self.gcs_delay_s
+        period = 1.0 / self.rate_hz
+        if snap is not None and len(snap.t_s):
+            ages = self.ages.ages_s(lp is Loop.ALTITUDE, float(snap.t_s[0]), float(snap.t_s[-1]),
+                                    self.link.rx_offset_s)
+            d = command_delay_s(ages, period)
+            if math.isfinite(d):
+                return d
+        return _gcs_delay_s(period)
 
     def _hand_over(self) -> None:
         """Switch to the autopilot's position mode, stop streaming, check it hovers."""

@@ -14,25 +14,38 @@ and only moves it by the change the delay makes. ``d`` is never allowed to take
 more than half of the identified delay (the correction is steep: over-correcting
 erodes the phase margin on the true process).
 
-``d`` (:func:`gcs_delay_s`) is half a setpoint period: telemetry and the stream's
-ticks are not synchronised, so a sample waits on average half a period for the
-command that answers it; the rest (the link both ways, the vehicle taking the
-command) is left in the written gains, which errs on the side of margin. Measured
-live (qdrone, racer250, 3 seeds each, quiet box): re-targeting by a whole period
-(4 ms at 250 Hz) left the written roll/pitch gains aggressive: PM on the true process
-below 15 deg (11.1-14.8) in 6 of 9 completed tunes, J down to -9.4 %; by half a
-period, PM 18.6-22.8 deg and J -2.0 to +4.6 % in 6 of 6. Racer250's roll was identified with 6.4 ms of delay against a true
-8 ms plus the GCS's 2.5-3 ms: the identification does not resolve all of the GCS
-delay, so removing a whole period took delay that had never been identified.
+``d`` is measured (:func:`command_delay_s`): over the identified cycles, how old
+each telemetry sample was when the command answering it left, counted from the
+earliest the link has delivered a sample (the session's smallest receive-minus-vehicle
+time, as the .tlog reader places commands on the vehicle clock, so dry-run measures the
+same on the session's log; a vehicle clock drifting 20 ppm against the ground station's
+moves it by 0.2 ms per 10 s of session). Telemetry and the stream's ticks are not
+synchronised: at 250 Hz both, their phase is fixed for a session at whatever it
+happened to be, so this age is anywhere from 0 to 4 ms from one tune to the next
+(measured live: session means 1.4-4.9 ms), plus the reader's and the stream's
+lateness on a loaded machine. The link's smallest latency both ways and the vehicle
+taking the command are not measured and stay in the written gains, on the side of
+margin. Without a measurement (too few samples), ``d`` is half a setpoint period
+(:func:`gcs_delay_s`), the mean of an unsynchronised wait.
+
+Why it matters: racer250's roll (8 ms of delay) loses about 3.5 % of J per millisecond
+of GCS delay left in its gains. Re-targeting by a fixed half period left the written
+gains from 5 % aggressive to 9 % cautious with the session's phase (live, 3 seeds);
+earlier, a fixed whole period (4 ms) left them aggressive: PM on the true process below
+15 deg in 6 of 9 tunes (11.1-14.8). Racer250's roll was once identified with 6.4 ms of
+delay against a true 8 ms plus the GCS's 2.5-3 ms: the identification does not resolve
+all of the GCS delay, hence the cap below.
 """
 
 from __future__ import annotations
+
+import numpy as np
 
 from mrft_gcs.identify import Identification
 from mrft_gcs.pd_design import frequency_grid, optimal_pd
 from mrft_gcs.plant import PD, InnerModel, inner_response
 
-__all__ = ["onboard_gains", "gcs_delay_s"]
+__all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -42,6 +55,29 @@ def gcs_delay_s(setpoint_period_s: float) -> float:
     0.002
     """
     return 0.5 * setpoint_period_s
+
+
+#: ages over this many setpoint periods are a stall, not the loop's steady delay: clipped
+AGE_CLIP_PERIODS = 3.0
+#: fewer aged samples than this in a window: no measurement
+MIN_AGED_SAMPLES = 20
+
+
+def command_delay_s(ages_s, setpoint_period_s: float) -> float:
+    """The GCS delay of a relay loop from its samples' ages (s; NaN: too few).
+
+    The mean age, each clipped to :data:`AGE_CLIP_PERIODS` setpoint periods.
+
+    >>> command_delay_s([0.002] * 24 + [0.2], 0.004)  # the stall counts as 12 ms
+    0.0024
+    >>> command_delay_s([0.002] * 5, 0.004)
+    nan
+    """
+    a = np.asarray(ages_s, dtype=float)
+    a = a[np.isfinite(a)]
+    if a.size < MIN_AGED_SAMPLES:
+        return float("nan")
+    return round(float(np.mean(np.clip(a, 0.0, AGE_CLIP_PERIODS * setpoint_period_s))), 9)
 
 
 def onboard_gains(ident: Identification, delay_s: float) -> PD:

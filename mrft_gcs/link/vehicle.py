@@ -183,6 +183,10 @@ class VehicleLink:
         self._last_telemetry = self._t0
         self._got_telemetry = False
         self._boot_s = 0.0
+        #: the smallest receive time minus vehicle time over ATTITUDE and LOCAL_POSITION_NED
+        #: so far (s, monotonic clock): the least-delayed sample's, which puts vehicle times
+        #: on this clock as a .tlog reader does (``mrft_gcs.logs.tlog``)
+        self.rx_offset_s = math.inf
         self._stop = threading.Event()
         #: mode numbers used by :meth:`land`; a profile replaces them (``link.modes = profile.modes``)
         self.modes: dict[str, CustomMode] = self.default_modes()
@@ -344,6 +348,7 @@ class VehicleLink:
         if isinstance(event, self.TELEMETRY_KINDS):
             self._last_telemetry = time.monotonic()
             self._got_telemetry = True
+            self.rx_offset_s = min(self.rx_offset_s, self._last_telemetry - event.t_s)
         if isinstance(event, Heartbeat):
             self.heartbeat = event
         with self._samples_cv:
