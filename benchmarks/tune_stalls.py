@@ -13,8 +13,14 @@ linear model (x/y: the true cascade under the identified attitude gains).
 ``--hover-factor`` scales the hover-thrust guess the tune starts from (the autopilot's
 estimate; 1 = the true hover thrust), to test a wrong one.
 
+``--gcs-delay`` adds the ground station's own delay: each command reaches the vehicle
+``seed % 4`` ms after the sample it answers (live, the phase between telemetry and the
+stream is fixed per session by chance: 0-4 ms). The written gains are then scored too, re-
+targeted to the onboard loop (:func:`mrft_gcs.flight.onboard.onboard_gains`) by that
+delay (what a live tune measures) and by a fixed 2 ms (half a period, for comparison).
+
     .venv/bin/python benchmarks/tune_stalls.py [--vehicles racer250,qdrone,f550] \
-        [--seeds 6] [--stalls 1.0] [--hover-factor 1.0] [--json runs.json]
+        [--seeds 6] [--stalls 1.0] [--hover-factor 1.0] [--gcs-delay] [--json runs.json]
 
 Simulated time, so the figures do not depend on this machine's load.
 """
@@ -35,6 +41,7 @@ from flight_sim import state_of  # noqa: E402
 
 from mrft_gcs.errors import IdentificationError  # noqa: E402
 from mrft_gcs.flight.api import bundled_identifier  # noqa: E402
+from mrft_gcs.flight.onboard import onboard_gains  # noqa: E402
 from mrft_gcs.flight.scoring import score_gains  # noqa: E402
 from mrft_gcs.flight.sequence import Phase, SequenceConfig, TuningSequence  # noqa: E402
 from mrft_gcs.identify import relay_settings  # noqa: E402
@@ -58,7 +65,7 @@ def stall_ticks(rng: np.random.Generator, scale: float) -> int:
 
 
 def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float = 1.0,
-            max_s: float = 40.0) -> dict:
+            gcs_delay_ms: int | None = None, max_s: float = 40.0) -> dict:
     """One tune from the ground; returns a JSON-able record."""
     af = load_airframe(vehicle)
     v = SimVehicle(af, seed=seed)
@@ -78,6 +85,8 @@ def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float
         s = state_of(v)
         sp = seq.step(s)
         max_tilt = max(max_tilt, math.degrees(s.tilt_rad))
+        for _ in range(gcs_delay_ms or 0):  # the command is on its way: the last one holds
+            v.step()
         ap.set_actuator_controls(sp.roll, sp.pitch, sp.yaw, sp.thrust)
         for snap in seq.ready():
             inner = seq.loops[_SIDE_INNER[snap.loop]].identification \
@@ -94,11 +103,19 @@ def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float
         if seq.phase is Phase.HOVER:
             done = True
             break
-        for _ in range(4 + stall_ticks(rng, stalls)):
+        for _ in range(4 - (gcs_delay_ms or 0) + stall_ticks(rng, stalls)):
             v.step()
     gains = {lp: t.identification.gains for lp, t in seq.loops.items()
              if t.identification is not None}
     scores = score_gains(af.linear_models(), gains)
+    written = {}
+    if gcs_delay_ms is not None:
+        for name, d in (("measured", gcs_delay_ms * 1e-3), ("fixed_2ms", 0.002)):
+            w = score_gains(af.linear_models(),
+                            {lp: onboard_gains(t.identification, d) for lp, t in seq.loops.items()
+                             if t.identification is not None and lp.kind is not LoopKind.SIDE})
+            written[name] = {lp.value: [sc.J_pct if sc.stable else None, sc.pm_deg]
+                             for lp, sc in w.items()}
     return {"vehicle": vehicle, "seed": seed, "stalls": stalls, "hover_factor": hover_factor,
             "done_s": v.time_s - seq.t_start_s if done else None,
             "tuned_s": {lp.value: (t.t_tuned_s - seq.t_start_s
@@ -106,7 +123,8 @@ def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float
                         for lp, t in seq.loops.items()},
             "J_pct": {lp.value: (sc.J_pct if sc.stable else None) for lp, sc in scores.items()},
             "pm_deg": {lp.value: sc.pm_deg for lp, sc in scores.items()},
-            "max_tilt_deg": max_tilt, "events": list(seq.events), "retries": retries}
+            "max_tilt_deg": max_tilt, "events": list(seq.events), "retries": retries,
+            "gcs_delay_ms": gcs_delay_ms, "written": written}
 
 
 def line(r: dict) -> str:
@@ -125,12 +143,15 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=6)
     ap.add_argument("--stalls", type=float, default=1.0, help="scale on the stall rates")
     ap.add_argument("--hover-factor", type=float, default=1.0)
+    ap.add_argument("--gcs-delay", action="store_true",
+                    help="commands reach the vehicle seed %% 4 ms after their sample")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     recs = []
     for vehicle in args.vehicles.split(","):
         for seed in range(args.seeds):
-            r = run_one(vehicle, seed, stalls=args.stalls, hover_factor=args.hover_factor)
+            r = run_one(vehicle, seed, stalls=args.stalls, hover_factor=args.hover_factor,
+                        gcs_delay_ms=seed % 4 if args.gcs_delay else None)
             recs.append(r)
             print(line(r), flush=True)
     done = [r["done_s"] for r in recs if r["done_s"] is not None]
@@ -141,6 +162,14 @@ def main() -> None:
           f" |J| max {max(js):.1f} %, {sum(j > 10 for j in js)} of {len(js)} loops over 10 %;"
           f" smallest PM {min(pms):.1f} deg; largest tilt "
           f"{max(r['max_tilt_deg'] for r in recs):.1f} deg")
+    for name in ("measured", "fixed_2ms") if args.gcs_delay else ():
+        jw = [v[0] for r in recs for v in r["written"][name].values()]
+        pw = [v[1] for r in recs for v in r["written"][name].values()]
+        ok = [j for j in jw if j is not None]
+        print(f"written inner-loop gains re-targeted by the {name.replace('_', ' ')} GCS delay: "
+              f"|J| mean {np.mean(np.abs(ok)):.2f} %, J max {max(ok):.1f} %, "
+              f"{sum(j > 10 for j in ok)} over 10 %, {len(jw) - len(ok)} unstable; smallest PM "
+              f"{min(pw):.1f} deg, {sum(p < 15 for p in pw)} of {len(pw)} under 15 deg")
     if args.json is not None:
         args.json.write_text(json.dumps(recs, indent=1))
 
