@@ -702,7 +702,7 @@ class _Run:
     def _write_back(self, client: ParamClient) -> None:
         seq = self.seq
         assert seq is not None
-        identified, delay = {}, {}
+        identified, delay, unmeasured = {}, {}, []
         for lp, t in seq.loops.items():
             if t.state is not LoopState.TUNED or t.identification is None:
                 continue
@@ -712,12 +712,17 @@ class _Run:
                 continue
             identified[lp] = t.identification.gains
             delay[lp] = self._gcs_delay(lp, t.snapshot)
+            if not math.isfinite(delay[lp]):
+                delay[lp] = _gcs_delay_s(1.0 / self.rate_hz)
+                unmeasured.append(lp.value)
             self.written[lp] = onboard_gains(t.identification, delay[lp])
         moved = [lp for lp, g in identified.items() if self.written[lp] != g]
         self.delays = {lp: delay[lp] for lp in moved}
         if moved:
             how = ("as asked" if self.gcs_delay_s is not None else "measured: how old telemetry "
-                   "was when the command answering it left")
+                   "was when the command answering it left" + (
+                       f"; {', '.join(unmeasured)}: half a setpoint period, too few samples"
+                       if unmeasured else ""))
             self.notes.append(
                 f"written {', '.join(lp.value for lp in moved)} gains are re-targeted from the "
                 f"GCS-side loop to the onboard loop ("
@@ -742,17 +747,14 @@ class _Run:
 
     def _gcs_delay(self, lp: Loop, snap: CycleSnapshot | None) -> float:
         """The delay re-targeted out of ``lp``'s written gains (s): as asked, else measured
-        over its identified cycles, else half a setpoint period."""
+        over its identified cycles (NaN: too few samples)."""
         if self.gcs_delay_s is not None:
             return self.gcs_delay_s
-        period = 1.0 / self.rate_hz
-        if snap is not None and len(snap.t_s):
-            ages = self.ages.ages_s(lp is Loop.ALTITUDE, float(snap.t_s[0]), float(snap.t_s[-1]),
-                                    self.link.rx_offset_s)
-            d = command_delay_s(ages, period)
-            if math.isfinite(d):
-                return d
-        return _gcs_delay_s(period)
+        if snap is None or not len(snap.t_s):
+            return math.nan
+        ages = self.ages.ages_s(lp is Loop.ALTITUDE, float(snap.t_s[0]), float(snap.t_s[-1]),
+                                self.link.rx_offset_s)
+        return command_delay_s(ages, 1.0 / self.rate_hz)
 
     def _hand_over(self) -> None:
         """Switch to the autopilot's position mode, stop streaming, check it hovers."""
