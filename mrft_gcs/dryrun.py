@@ -1059,14 +1059,15 @@ def _tilt(seg: RelaySegment, a: int, b: int) -> np.ndarray | None:
     return None if seg.tilt is None else seg.tilt[a:b]
 
 
-def _retarget_delay(seg: RelaySegment, t_cycles: np.ndarray) -> float:
-    """The GCS delay over the identified cycles (s; NaN: not measurable in this log)."""
-    from mrft_gcs.flight.onboard import command_delay_s
+def _retarget_delay(seg: RelaySegment, t_cycles: np.ndarray) -> tuple[float, bool]:
+    """The GCS delay over the identified cycles (s), and whether this log measured it
+    (:func:`mrft_gcs.flight.onboard.retarget_delay_s`: else half a setpoint period)."""
+    from mrft_gcs.flight.onboard import retarget_delay_s
 
-    if seg.age_s is None or len(t_cycles) == 0:
-        return float("nan")
-    m = (seg.t >= t_cycles[0]) & (seg.t <= t_cycles[-1])
-    return command_delay_s(seg.age_s[m], seg.gcs_period_s)
+    ages = np.empty(0)
+    if seg.age_s is not None and len(t_cycles):
+        ages = seg.age_s[(seg.t >= t_cycles[0]) & (seg.t <= t_cycles[-1])]
+    return retarget_delay_s(ages, seg.gcs_period_s)
 
 
 def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
@@ -1083,12 +1084,11 @@ def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
     if ident is not None:
         gains = ident.gains
         if seg.gcs_period_s > 0 and isinstance(ident.model, InnerModel):
-            from mrft_gcs.flight.onboard import gcs_delay_s, onboard_gains
+            from mrft_gcs.flight.onboard import onboard_gains
 
-            delay = _retarget_delay(seg, cyc[0])
-            how = "measured: how old telemetry was when the command answering it was logged"
-            if not math.isfinite(delay):
-                delay, how = gcs_delay_s(seg.gcs_period_s), "half a setpoint period"
+            delay, measured = _retarget_delay(seg, cyc[0])
+            how = ("measured: how old telemetry was when the command answering it was logged"
+                   if measured else "half a setpoint period")
             gains = onboard_gains(ident, delay)
             notes.append(f"gains re-targeted to the onboard loop ({delay * 1e3:.1f} ms "
                          f"less delay than the ground-station relay, {how}), as a tune writes "

@@ -269,7 +269,8 @@ def test_dry_run_replays_the_live_tlog(bundled):
         assert math.isfinite(live.gcs_delay_s) == (lp.kind is not LoopKind.SIDE), lp
         if lp.kind is not LoopKind.SIDE:
             assert 0 < live.gcs_delay_s < 3 * 0.004, lp
-            dry = _retarget_delay(seg, live.cycles[0])
+            dry, measured = _retarget_delay(seg, live.cycles[0])
+            assert measured, lp
             if lp is Loop.ALTITUDE:
                 # which position sample a command answered is not always known (see below):
                 # file order pairs it with one logged just before, which it may not have

@@ -34,8 +34,7 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState
-from mrft_gcs.flight.onboard import command_delay_s, onboard_gains
-from mrft_gcs.flight.onboard import gcs_delay_s as _gcs_delay_s
+from mrft_gcs.flight.onboard import onboard_gains, retarget_delay_s
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
 from mrft_gcs.flight.sequence import AUTOPILOT_ATTITUDE as _AUTOPILOT_ATTITUDE
 from mrft_gcs.flight.sequence import (
@@ -288,7 +287,7 @@ class _AgeLog:
     """Per stream tick: the vehicle times of the ATTITUDE and LOCAL_POSITION_NED samples a
     command answered, and when it left (monotonic); written by the stream thread only.
     The GCS delay re-targeted out of the written gains is measured on it
-    (:func:`mrft_gcs.flight.onboard.command_delay_s`)."""
+    (:func:`mrft_gcs.flight.onboard.retarget_delay_s`)."""
 
     def __init__(self, capacity: int = 1 << 16) -> None:  # over four minutes at 250 Hz
         self.rows = np.full((capacity, 3), np.nan)  # t_att, t_pos, sent
@@ -711,9 +710,8 @@ class _Run:
                           f"it) but not written; the report's gains are the identified ones")
                 continue
             identified[lp] = t.identification.gains
-            delay[lp] = self._gcs_delay(lp, t.snapshot)
-            if not math.isfinite(delay[lp]):
-                delay[lp] = _gcs_delay_s(1.0 / self.rate_hz)
+            delay[lp], measured = self._gcs_delay(lp, t.snapshot)
+            if not measured:
                 unmeasured.append(lp.value)
             self.written[lp] = onboard_gains(t.identification, delay[lp])
         moved = [lp for lp, g in identified.items() if self.written[lp] != g]
@@ -745,16 +743,14 @@ class _Run:
         self.changes, self.backup = result.changes, str(result.backup_path)
         self._check_stream()
 
-    def _gcs_delay(self, lp: Loop, snap: CycleSnapshot | None) -> float:
-        """The delay re-targeted out of ``lp``'s written gains (s): as asked, else measured
-        over its identified cycles (NaN: too few samples)."""
+    def _gcs_delay(self, lp: Loop, snap: CycleSnapshot | None) -> tuple[float, bool]:
+        """The delay re-targeted out of ``lp``'s written gains (s), and whether it was
+        measured (or asked for): measured over its identified cycles, else half a period."""
         if self.gcs_delay_s is not None:
-            return self.gcs_delay_s
-        if snap is None or not len(snap.t_s):
-            return math.nan
-        ages = self.ages.ages_s(lp is Loop.ALTITUDE, float(snap.t_s[0]), float(snap.t_s[-1]),
-                                self.link.rx_offset_s)
-        return command_delay_s(ages, 1.0 / self.rate_hz)
+            return self.gcs_delay_s, True
+        ages = np.empty(0) if snap is None or not len(snap.t_s) else self.ages.ages_s(
+            lp is Loop.ALTITUDE, float(snap.t_s[0]), float(snap.t_s[-1]), self.link.rx_offset_s)
+        return retarget_delay_s(ages, 1.0 / self.rate_hz)
 
     def _hand_over(self) -> None:
         """Switch to the autopilot's position mode, stop streaming, check it hovers."""

@@ -45,7 +45,7 @@ from mrft_gcs.identify import Identification
 from mrft_gcs.pd_design import frequency_grid, optimal_pd
 from mrft_gcs.plant import PD, InnerModel, inner_response
 
-__all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s"]
+__all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -78,6 +78,17 @@ def command_delay_s(ages_s, setpoint_period_s: float) -> float:
     if a.size < MIN_AGED_SAMPLES:
         return float("nan")
     return round(float(np.mean(np.clip(a, 0.0, AGE_CLIP_PERIODS * setpoint_period_s))), 9)
+
+
+def retarget_delay_s(ages_s, setpoint_period_s: float) -> tuple[float, bool]:
+    """The delay to re-target out of a relay loop's written gains (s), and whether it was
+    measured: :func:`command_delay_s` of the ages, else half a period (:func:`gcs_delay_s`).
+
+    >>> retarget_delay_s([], 0.004)
+    (0.002, False)
+    """
+    d = command_delay_s(ages_s, setpoint_period_s)
+    return (d, True) if np.isfinite(d) else (gcs_delay_s(setpoint_period_s), False)
 
 
 def onboard_gains(ident: Identification, delay_s: float) -> PD:
