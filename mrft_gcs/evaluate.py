@@ -170,7 +170,7 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
             pts = steady_points(run.t, run.u[i], run.y[i])
         except IdentificationError:  # not a steady oscillation: refused, as in flight
             continue
-        pd, model, _, _, _, cost = refined_identification(b, probs, f, pts)
+        pd, model, _, _, _, cost, _ = refined_identification(b, probs, f, pts)
         if pts is None:
             for name, scaling in ((METHODS[0], GainScaling.TRUE), (METHODS[1], GainScaling.DF),
                                   (METHODS[2], GainScaling.EXACT)):

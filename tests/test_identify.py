@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -141,3 +142,48 @@ def test_refinement_keeps_the_rules_margin_on_the_likely_shapes():
     assert m.stable and m.pm_deg > 12.0, (pd, m.pm_deg)
     best = optimal_pd(G, w)
     assert (ise(pd.Kc, pd.Kd, G, w) / best.ise - 1) * 100 < 10.0
+    # the cycles wander (spread 0.08): the rule stands, not held back towards the refinement
+    assert ident.extras["held_back"] == 0.0 and ident.extras["method"] == "classifier"
+
+
+def test_refused_refinement_on_steady_cycles_is_held_back_not_dropped():
+    """Recorded live (racer250 pitch over loopback UDP, the SITL's seed 1): steady cycles
+    (spread 0.03) whose refined gains leave 14.4 deg on a likely shape, so the margin guard
+    refuses them; the rule's gains alone were written 14.6 % J above the optimum (PM 28
+    deg on the true process). Moving from the rule's gains towards the refined ones as far
+    as the guard allows brings the written gains within 10 %, keeping 15 deg on every
+    likely shape."""
+    from pathlib import Path
+
+    from mrft_gcs.features import cycle_features
+    from mrft_gcs.flight.onboard import onboard_gains
+    from mrft_gcs.flight.scoring import score_gains
+    from mrft_gcs.identify.runtime import (
+        REFINED_MIN_PM_DEG,
+        _min_pm_on_likely,
+        _softmax,
+        harmonic_posterior,
+        scaled_gains,
+        steady_points,
+    )
+    from mrft_gcs.loops import Loop
+    from mrft_gcs.sitl import load_airframe
+
+    rec = np.load(Path(__file__).parent / "data" / "racer250_pitch_live_cycles.npz")
+    ident = identify(LoopKind.ATTITUDE, rec["t"], rec["u"], rec["y"], beta=float(rec["beta"]),
+                     h=float(rec["h"]))
+    a = ident.extras["held_back"]
+    assert 0.0 < a < 1.0 and ident.extras["method"] == "classifier + harmonics"
+    models = load_airframe("racer250").linear_models()
+    written = onboard_gains(ident, float(rec["gcs_delay_s"]))
+    s = score_gains(models, {Loop.PITCH: written})[Loop.PITCH]
+    assert s.stable and s.J_pct < 10.0 and s.pm_deg > 20.0, s
+    b = load_bundle(LoopKind.ATTITUDE)
+    f = cycle_features(rec["t"], rec["u"], rec["y"])
+    post = harmonic_posterior(b, _softmax(b.logits(f.x)[0]), f,
+                              steady_points(rec["t"], rec["u"], rec["y"]))
+    assert _min_pm_on_likely(b, post, f, ident.gains) >= REFINED_MIN_PM_DEG
+    # the rule's gains alone (nothing taken from the refinement): the live tune's 14.6 %
+    rule, *_ = scaled_gains(b, post, f.period_s, f.amplitude, f.h)
+    alone = onboard_gains(dataclasses.replace(ident, gains=rule), float(rec["gcs_delay_s"]))
+    assert score_gains(models, {Loop.PITCH: alone})[Loop.PITCH].J_pct > 10.0
