@@ -187,3 +187,34 @@ def test_refused_refinement_on_steady_cycles_is_held_back_not_dropped():
     rule, *_ = scaled_gains(b, post, f.period_s, f.amplitude, f.h)
     alone = onboard_gains(dataclasses.replace(ident, gains=rule), float(rec["gcs_delay_s"]))
     assert score_gains(models, {Loop.PITCH: alone})[Loop.PITCH].J_pct > 10.0
+
+
+def test_refined_model_the_record_refutes_is_not_trusted(monkeypatch):
+    """Recorded live (racer250 altitude over loopback UDP, the SITL's seed 54): the refined
+    model misses the measured harmonics by a cost of 233 (a sum of squared standard errors;
+    the median over 474 loops is 0.3); its optimal PD would be written 44 % J above the
+    optimum with 12.7 deg of phase margin. The rule's gains stand instead."""
+    from pathlib import Path
+
+    from mrft_gcs.flight.onboard import onboard_gains
+    from mrft_gcs.flight.scoring import score_gains
+    from mrft_gcs.identify import runtime
+    from mrft_gcs.loops import Loop
+    from mrft_gcs.sitl import load_airframe
+
+    rec = np.load(Path(__file__).parent / "data" / "racer250_altitude_live_misfit.npz")
+    models = load_airframe("racer250").linear_models()
+
+    def written_j() -> tuple[float, dict]:
+        ident = identify(LoopKind.ALTITUDE, rec["t"], rec["u"], rec["y"],
+                         beta=float(rec["beta"]), h=float(rec["h"]), bias=float(rec["bias"]),
+                         setpoint=float(rec["setpoint"]))
+        s = score_gains(models, {Loop.ALTITUDE: onboard_gains(ident, float(rec["gcs_delay_s"]))})
+        return s[Loop.ALTITUDE].J_pct, ident.extras
+
+    J, extras = written_j()
+    assert extras["method"] == "classifier" and extras["fit_cost"] == float("inf")
+    assert J < 5.0
+    monkeypatch.setattr(runtime, "MAX_FIT_COST", float("inf"))  # the gate off: the misfit
+    J, extras = written_j()
+    assert extras["method"] == "classifier + harmonics" and J > 20.0
