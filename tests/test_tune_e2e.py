@@ -128,14 +128,16 @@ def test_wrong_hover_estimate_is_learnt_before_the_altitude_relay(tmp_path):
 
 def test_telemetry_cut_mid_test_lands_with_exit_code_5(tmp_path):
     with SitlProcess(vehicle="qdrone", port=None, seed=4) as sitl:
-        def cut():
-            time.sleep(4.0)  # after arming, in the air
-            sitl.stop()
+        cut = threading.Thread(target=sitl.stop, daemon=True)
 
-        threading.Thread(target=cut, daemon=True).start()
+        def progress(snap: dict) -> None:
+            # in the air, mid-test: a second of setpoints streamed since the take-off
+            if snap["stream_sent"] > 250 and not cut.is_alive() and cut.ident is None:
+                cut.start()
+
         with pytest.raises(SafetyAbort) as err:
             tune(sitl.connection_string, "sitl", backup_dir=tmp_path, relay=RELAY,
-                 identifier=_truth("qdrone"))
+                 identifier=_truth("qdrone"), on_progress=progress)
     assert err.value.exit_code == 5
     assert "no telemetry" in str(err.value) and "landing command" in str(err.value)
     partial = err.value.partial_result

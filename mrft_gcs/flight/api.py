@@ -515,9 +515,11 @@ class _Run:
             return self.result("dry-link")
         att = self.relay.get(LoopKind.ATTITUDE) or relay_settings(LoopKind.ATTITUDE)
         alt = self.relay.get(LoopKind.ALTITUDE) or relay_settings(LoopKind.ALTITUDE)
-        if self.ident_fn is bundled_identifier:
-            warm_up_identification(relay_settings(LoopKind.ATTITUDE),
-                                   relay_settings(LoopKind.ALTITUDE))
+        # also for an identifier passed in: one that wraps the bundled identification (a
+        # script keeping each snapshot did) would otherwise load it in flight, next to the
+        # stream (racer250, the first tune of such a script: aborted at 48 deg of tilt)
+        warm_up_identification(relay_settings(LoopKind.ATTITUDE),
+                               relay_settings(LoopKind.ALTITUDE))
         # Everything loaded so far lives as long as the process: out of the cyclic garbage
         # collector's sight, a full collection in flight takes ~0 ms instead of 95-165 ms
         # (measured after the warm-up), time in which no setpoint would go out.
