@@ -267,7 +267,11 @@ def test_dry_run_replays_the_live_tlog(bundled):
         assert seg.h == pytest.approx(live.h, rel=1e-3)
         # the GCS delay re-targeted out of the written gains: the live tune measures it on
         # its receive and send times, dry-run on the .tlog's stamps of the same frames (over
-        # the live cycles: dry-run's own may be later ones)
+        # the live cycles: dry-run's own may be later ones). The two stamp a frame at
+        # different moments, and each takes the link offset as a running minimum (live: up
+        # to the identification; dry-run: the whole log): within 0.1-0.55 ms in 12 quiet
+        # tunes, 0.78 ms once in CI; a pairing error would be a whole period (4 ms)
+        tol = 1e-3
         assert math.isfinite(live.gcs_delay_s) == (lp.kind is not LoopKind.SIDE), lp
         if lp.kind is not LoopKind.SIDE:
             assert 0 < live.gcs_delay_s < 3 * 0.004, lp
@@ -277,9 +281,9 @@ def test_dry_run_replays_the_live_tlog(bundled):
                 # which position sample a command answered is not always known (see below):
                 # file order pairs it with one logged just before, which it may not have
                 # seen yet (received while the command was computed): never older
-                assert live.gcs_delay_s - 0.004 - 5e-4 <= dry <= live.gcs_delay_s + 5e-4
+                assert live.gcs_delay_s - 0.004 - tol <= dry <= live.gcs_delay_s + tol
             else:
-                assert dry == pytest.approx(live.gcs_delay_s, abs=5e-4), lp
+                assert dry == pytest.approx(live.gcs_delay_s, abs=tol), lp
             assert math.isfinite(rep.gcs_delay_s), lp
         if lp is Loop.ALTITUDE:
             assert rep.identification.period_s == pytest.approx(li.period_s, rel=0.03)
