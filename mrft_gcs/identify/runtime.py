@@ -546,17 +546,17 @@ def held_back_gains(b: Bundle, post: np.ndarray, f, rule: PD, refined: PD) -> tu
 
     The rule keeps about 20 deg there by construction; the step that first loses the
     margin ends the search. Replayed on 40 live racer250 roll/pitch identifications not
-    used to choose it (README, "Reading the table"): written J at most 12.9 -> 6.2 %, the
-    smallest phase margin on the true process unchanged (13.8 deg).
+    used to choose it (README, "How identification works"): written J at most 12.9 -> 6.2
+    %, the smallest phase margin on the true process unchanged (13.8 deg).
     """
-    a = 0.0
+    held, a = rule, 0.0
     for step in range(1, HOLD_BACK_STEPS + 1):
         x = step / HOLD_BACK_STEPS
         pd = PD(rule.Kc ** (1 - x) * refined.Kc ** x, rule.Kd ** (1 - x) * refined.Kd ** x)
         if _min_pm_on_likely(b, post, f, pd) < REFINED_MIN_PM_DEG:
             break
-        a = x
-    return PD(rule.Kc ** (1 - a) * refined.Kc ** a, rule.Kd ** (1 - a) * refined.Kd ** a), a
+        held, a = pd, x
+    return held, a
 
 
 def steady_points(t, u, y):
@@ -614,8 +614,8 @@ def refined_identification(b: Bundle, probs: np.ndarray, f, pts,
     gains; one that leaves less than :data:`REFINED_MIN_PM_DEG` on a likely shape is
     approached only as far as that margin allows (:func:`held_back_gains`; attitude only,
     :data:`HOLD_BACK_KINDS`), and on cycles less steady than :data:`HOLD_BACK_MAX_SPREAD`
-    not at all. ``K_true``: the gain
-    is known (the "normalised gain" evaluation) and is not fitted.
+    not at all. ``K_true``: the gain is known (the "normalised gain" evaluation) and is
+    not fitted.
     """
     from mrft_gcs.identify.harmonics import fit_inner_model
     from mrft_gcs.pd_design import frequency_grid, optimal_pd
@@ -636,9 +636,9 @@ def refined_identification(b: Bundle, probs: np.ndarray, f, pts,
     w = frequency_grid(T_prop, T1, tau, n=500)
     design = optimal_pd(inner_response(K_fit, T_prop, T1, tau, w)[0], w)
     change = np.abs(np.log([design.pd.Kc / pd.Kc, design.pd.Kd / pd.Kd]))
-    far = K_true is None and (not np.all(change <= np.log(MAX_REFINE_FACTOR))
-                              or cost > MAX_FIT_COST)
-    if not design.margins.stable or far:
+    unexplained = K_true is None and (not np.all(change <= np.log(MAX_REFINE_FACTOR))
+                                      or cost > MAX_FIT_COST)
+    if not design.margins.stable or unexplained:
         # the refined model is unlike any the classifier considered: a record the model
         # structure does not explain; keep the classifier's rule
         return Refinement(pd, model, k, c, post, float("inf"), 0.0)
