@@ -140,6 +140,7 @@ def run_one(vehicle: str, seed: int, *, truth: bool = False, figure8: bool = Fal
     rec["duration_s"] = _num(r.duration_s)
     rec["notes"] = list(r.notes)  # relay raises and restarts, identification retries
     rec["max_tilt_deg"] = _num(r.max_tilt_deg)
+    rec["max_tilt_by_phase"] = {ph: _num(d) for ph, d in r.max_tilt_by_phase.items()}
     if r.stream is not None:
         rec["stream_hz"] = _num(r.stream.rate_hz_achieved)
         rec["jitter_p99_ms"] = _num(r.stream.jitter_p99_ms)
@@ -179,9 +180,11 @@ def line(rec: dict) -> str:
                f"{rec['os_floor_p99_ms']:.2f} ms, max {rec['os_floor_max_ms']:.1f} ms")
     at = "/".join(f"{v['tuned_after_s']:.1f}" if v.get("tuned_after_s") is not None else "-"
                   for v in rec["loops"].values())
+    phases = rec.get("max_tilt_by_phase") or {}
+    where = f" in {max(phases, key=lambda ph: phases[ph] or 0)}" if phases else ""
     return (f"{head} load {rec.get('load_1min', math.nan):.2f}, {rec['status']}, "
             f"{rec['duration_s'] or math.nan:5.2f} s (loops tuned at {at} s), tilt "
-            f"{rec['max_tilt_deg'] or math.nan:4.1f} deg, stream {rec.get('stream_hz', 0):.1f} Hz "
+            f"{rec['max_tilt_deg'] or math.nan:4.1f} deg{where}, stream {rec.get('stream_hz', 0):.1f} Hz "
             f"p99 jitter {rec.get('jitter_p99_ms', math.nan):.2f} ms; J {js}{f8}")
 
 

@@ -218,3 +218,30 @@ def test_refined_model_the_record_refutes_is_not_trusted(monkeypatch):
     monkeypatch.setattr(runtime, "MAX_FIT_COST", float("inf"))  # the gate off: the misfit
     J, extras = written_j()
     assert extras["method"] == "classifier + harmonics" and J > 20.0
+
+
+def test_side_fit_keeps_a_harmonic_the_measured_attitude_loop_would_push_out():
+    """Recorded in-process (racer250 with GCS stalls, ``tune_stalls.py --gcs-delay`` seed 10):
+    the y relay's 3rd harmonic has a standard error of 0.494, inside the fit's 0.5, but with
+    the measured attitude loop's 0.101 added it was 0.504 and the fit was left with the
+    fundamental alone: the tune stopped on a ValueError. The 3rd harmonic now keeps the
+    modelled attitude loop, and the gains are within 10 % of the true optimum."""
+    from pathlib import Path
+
+    from mrft_gcs.flight.scoring import score_gains
+    from mrft_gcs.identify.harmonics import USABLE_SD
+    from mrft_gcs.loops import Loop
+    from mrft_gcs.sitl import load_airframe
+
+    rec = np.load(Path(__file__).parent / "data" / "racer250_y_stalled_cycles.npz")
+    roll = identify(LoopKind.ATTITUDE, rec["roll_t"], rec["roll_u"], rec["roll_y"],
+                    beta=float(rec["roll_beta"]), h=float(rec["roll_h"]))
+    side = identify(LoopKind.SIDE, rec["t"], rec["u"], rec["y"], beta=float(rec["beta"]),
+                    h=float(rec["h"]), inner=roll, setpoint=float(rec["setpoint"]),
+                    tilt=rec["tilt"])
+    sd = side.extras["harmonic_sd"]
+    assert side.extras["method"] == "harmonic fit" and 0.45 < sd[1] <= USABLE_SD
+    assert 3 in side.extras["harmonics"] and 3 not in side.extras["t_att_measured"]
+    s = score_gains(load_airframe("racer250").linear_models(),
+                    {Loop.ROLL: roll.gains, Loop.Y: side.gains})
+    assert s[Loop.Y].stable and abs(s[Loop.Y].J_pct) < 10.0, s[Loop.Y]

@@ -213,6 +213,12 @@ def test_tune_with_bundled_classifiers(bundled):
     for lp in Loop:
         assert scores[lp].stable and scores[lp].J_pct < 25, (lp, scores[lp])
     assert not math.isnan(result.max_tilt_deg)
+    # the tilt of every phase the tune flew, from the samples the stream acted on (the
+    # safety monitor's maximum also sees the last sample before the hand-over)
+    phases = result.max_tilt_by_phase
+    assert {"take-off", "side MRFT", "hover"} <= set(phases), phases
+    assert max(phases.values()) <= result.max_tilt_deg + 1e-9
+    assert any(n.startswith("largest tilt by phase: take-off") for n in result.notes)
     for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE, Loop.X, Loop.Y):
         assert result.loops[lp].band > 0  # relay noise band from the measured noise
 

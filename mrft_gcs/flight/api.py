@@ -169,6 +169,16 @@ def closed_loop_summary(inner: Identification, side: Loop) -> str:
             f"standard errors")
 
 
+def tilt_note(by_phase: dict[str, float]) -> str:
+    """The report's line on the largest tilt of each phase.
+
+    >>> tilt_note({"take-off": 1.23, "inner MRFT": 9.6, "side MRFT": 8.04})
+    'largest tilt by phase: take-off 1.2 deg, inner MRFT 9.6 deg, side MRFT 8.0 deg'
+    """
+    return "largest tilt by phase: " + ", ".join(f"{ph} {d:.1f} deg"
+                                                  for ph, d in by_phase.items())
+
+
 def bundled_identifier(loop: Loop, snap: CycleSnapshot,
                        inner: Identification | None = None) -> Identification:
     """Identification with the bundled classifiers (:func:`mrft_gcs.identify.identify`)."""
@@ -251,6 +261,9 @@ class TuneResult:
     stream: StreamStats | None = None
     tlog: str | None = None
     max_tilt_deg: float = float("nan")
+    #: the largest tilt in each phase of the tests (deg, by phase name: "take-off",
+    #: "inner MRFT", "side MRFT", "hover"), from the samples the stream acted on
+    max_tilt_by_phase: dict[str, float] = field(default_factory=dict)
     limits: SafetyLimits | None = None
     hover_error_m: float = float("nan")
     notes: tuple[str, ...] = field(default_factory=tuple)
@@ -495,8 +508,10 @@ class _Run:
             link=self.quality, stream=stream,
             tlog=str(self.link.tlog_path) if self.link.tlog_path else None,
             max_tilt_deg=self.monitor.max_tilt_seen_deg if self.monitor else math.nan,
+            max_tilt_by_phase=dict(seq.max_tilt_deg) if seq is not None else {},
             limits=self.lim, hover_error_m=self.hover_error_m,
-            notes=tuple([YAW_NOTE] + self.notes + (list(seq.events) if seq else [])))
+            notes=tuple([YAW_NOTE] + self.notes + (list(seq.events) if seq else [])
+                        + ([tilt_note(seq.max_tilt_deg)] if seq and seq.max_tilt_deg else [])))
 
     # ------------------------------------------------------------------ steps
     def execute(self, dry_link: bool) -> TuneResult:

@@ -219,9 +219,15 @@ class SequenceConfig:
     #: classifiers' default (Table V: 0.05) gives cycles of 0.01-0.016 rad at beta -0.7 on
     #: the bundled airframes, too small to clear a 4-sigma band of 0.8 mrad noise
     h_att_min: float = 0.12
-    #: the same for the x/y relays (tilt, rad): the side classifiers' 0.08 gives cycles of
-    #: about 2 cm on qdrone, where 0.8 mm position noise is already 4 % of the amplitude
-    h_side_min: float = 0.16
+    #: the same for the x/y relays (tilt, rad): the side classifiers' own 0.08. On x and
+    #: y smoothed by the complementary filter (0.16 x the raw noise) it gives cycles of
+    #: 1-10 cm, the noise 0.3-1.5 % of them; a noisier estimate raises it (``h_raise``).
+    #: Each side relay switch steps the attitude set point by 2 h, which the freshly tuned
+    #: attitude PD (15-25 deg of phase margin) overshoots, and a GCS stall holds the torque
+    #: of that step: with 0.16 racer250 reached 42 deg (tune_stalls --gcs-delay, 36 tunes:
+    #: largest tilt 42.0 -> 25.5 deg, racer250 mean 23.3 -> 11.4 deg with 0.08, take-off to
+    #: all tuned mean 11.03 -> 10.62 s, x/y |J| within 4.5 and 3.5 %)
+    h_side_min: float = 0.08
     #: gain of the complementary filter (position + velocity) on x, y and altitude for the
     #: relays and their identification (1 = raw position)
     side_filter_k: float = 0.05
@@ -297,6 +303,8 @@ class TuningSequence:
         self.xy_f = (0.0, 0.0)
         self.z_f = 0.0
         self.events: list[str] = []  # for the report's notes (relay amplitude raised...)
+        #: largest tilt seen in each phase (deg, by :class:`Phase` value), for the report
+        self.max_tilt_deg: dict[str, float] = {}
         alt = self.loops[Loop.ALTITUDE]
         alt.beta, alt.h = self.altitude_relay.beta, self.altitude_relay.h
         for lp in (Loop.ROLL, Loop.PITCH):
@@ -637,6 +645,9 @@ class TuningSequence:
             s = self._heading_frame(s)
             self.state = s
             cfg = self.config
+            tilt = math.degrees(s.tilt_rad)
+            if tilt > self.max_tilt_deg.get(self.phase.value, -1.0):
+                self.max_tilt_deg[self.phase.value] = tilt
             z = s.z_up_m - self.origin[2]
             new_att = s.t_att_s > self._t_att_prev
             new_pos = s.t_pos_s > self._t_pos_prev

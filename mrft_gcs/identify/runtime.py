@@ -392,6 +392,7 @@ def _measured_t_att(t, u, tilt, pts, modelled: np.ndarray):
     import dataclasses
 
     from mrft_gcs.identify.closed_loop import closed_loop_points
+    from mrft_gcs.identify.harmonics import USABLE_SD
 
     none = np.zeros(len(pts.harmonics), bool)
     if tilt is None:
@@ -404,6 +405,11 @@ def _measured_t_att(t, u, tilt, pts, modelled: np.ndarray):
     except IdentificationError:
         return modelled, pts, none
     ok = (cl.sd <= MEASURED_T_ATT_MAX_SD) & np.isfinite(cl.G) & (np.abs(cl.G) > 0)
+    # a harmonic whose error, with the measured loop's added, would leave the fit keeps
+    # the modelled loop (racer250 seed 10 of tune_stalls --gcs-delay: the 3rd harmonic's
+    # 0.494 with 0.101 added made 0.504 > USABLE_SD, the fit was left with the fundamental
+    # alone, and the tune stopped on its ValueError)
+    ok[1:] &= np.hypot(pts.sd, cl.sd)[1:] <= USABLE_SD
     if cl.cycles != pts.cycles or not np.allclose(cl.w, pts.w) or not ok[0]:
         return modelled, pts, none
     T_att = np.where(ok, cl.G, modelled)
