@@ -337,3 +337,24 @@ def test_lopsided_altitude_cycles_are_seen_after_two_cycles():
 
     assert feed(0.8) and feed(1.2)
     assert not feed(1.0)
+
+
+def test_attitude_swing_still_growing_against_the_relay_is_caught():
+    """A relay locked by GCS stalls into a slow, large mode swings out on its momentum
+    while it already pushes back (racer250 in-process, stalls x 6: pitch to -48 deg in
+    0.6 s cycles); past the run-away limit and still moving out, it is caught, so that the
+    relay does not drive the return at full amplitude into as large a swing the other
+    way. A swing already on its way back is left to the relay."""
+    from mrft_gcs.relay import MRFT
+
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.5), ATT_RELAY, ALT_RELAY)
+    t = seq.loops[Loop.PITCH]
+    t.h, t.cycle = 0.12, (0.25, 0.06)
+    relay = MRFT(-0.5, t.h)
+    relay.step(-0.01)
+    relay.step(0.3)  # a positive output: pushes a positive error back
+    assert float(relay.state[0]) > 0
+    seq._watch(t, relay, 0.3, float(relay.state[0]), e_rate=-2.0)  # coming back
+    assert t.catch is None and not seq.events
+    seq._watch(t, relay, 0.3, float(relay.state[0]), e_rate=2.0)  # still swinging out
+    assert t.catch is not None and "caught the run-away" in seq.events[-1]

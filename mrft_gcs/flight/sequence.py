@@ -494,12 +494,15 @@ class TuningSequence:
         t.restart_detection()
         return True
 
-    def _watch(self, t: LoopTest, relay: MRFT, e: float, state_before: float) -> None:
+    def _watch(self, t: LoopTest, relay: MRFT, e: float, state_before: float,
+               e_rate: float = 0.0) -> None:
         """After a relay step: two switches in a row before the threshold armed raise h.
 
         A runaway (the error beyond ``runaway_factor`` cycle amplitudes while the relay
-        pushes it further out, e.g. after a noise-triggered switch-back) restarts the relay
-        as a plain sign relay, which at once pushes back, and restarts the detector.
+        pushes it further out, e.g. after a noise-triggered switch-back, or while it still
+        grows: ``e_rate`` > 0 with ``e`` > 0) hands roll and pitch to a damping PD until
+        they are back inside their cycle, and restarts the others as a plain sign relay,
+        which at once pushes back; the detector starts over.
         """
         st = float(relay.state[0])
         amp = t.status.amplitude
@@ -517,7 +520,14 @@ class TuningSequence:
             # a disturbed cycle inflates its own amplitude: never let the limit pass the
             # largest tilt the tests command (20 deg), well inside the 35 deg safety limit
             limit = min(limit, self.config.max_tilt_cmd_rad)
-        if abs(e) > limit and st * e < 0:  # u pushes y away: e grows
+        # u pushes y away, or y still moves away (``e_rate``: de/dt, roll and pitch) although
+        # u pushes back: GCS stalls can lock a relay into a slow, large mode that swings out
+        # on its momentum while u pushes back all along, then drives the return at full h
+        # into as large a swing the other way (racer250 in-process, stalls x 6: pitch to
+        # -48 deg in 0.6 s cycles where the steady one is 0.25 s). The damping PD brings
+        # the return swing to rest instead (30 seeds: largest tilt before any loop was
+        # tuned 48.4 -> 26.6 deg)
+        if abs(e) > limit and (st * e < 0 or e * e_rate > 0):
             relay.reset()
             if (t.loop in (Loop.ROLL, Loop.PITCH) and not math.isfinite(t.cycle[0])
                     and math.isfinite(t.status.period_s) and t.status.amplitude > 0):
@@ -833,7 +843,7 @@ class TuningSequence:
                     return u
             before = float(t.relay.state[0])
             u = float(t.relay.step(ref - y)[0])
-            self._watch(t, t.relay, ref - y, before)
+            self._watch(t, t.relay, ref - y, before, -rate)
             self._feed(t, t_s, u, y, new)
             st = t.status
             if (st.cycles >= 2 and st.spread < 0.15 and math.isfinite(st.period_s)
