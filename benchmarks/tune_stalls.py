@@ -123,7 +123,8 @@ def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float
                         for lp, t in seq.loops.items()},
             "J_pct": {lp.value: (sc.J_pct if sc.stable else None) for lp, sc in scores.items()},
             "pm_deg": {lp.value: sc.pm_deg for lp, sc in scores.items()},
-            "max_tilt_deg": max_tilt, "events": list(seq.events), "retries": retries,
+            "max_tilt_deg": max_tilt, "max_tilt_by_phase": dict(seq.max_tilt_deg),
+            "events": list(seq.events), "retries": retries,
             "gcs_delay_ms": gcs_delay_ms, "written": written}
 
 
@@ -162,6 +163,13 @@ def main() -> None:
           f" |J| max {max(js):.1f} %, {sum(j > 10 for j in js)} of {len(js)} loops over 10 %;"
           f" smallest PM {min(pms):.1f} deg; largest tilt "
           f"{max(r['max_tilt_deg'] for r in recs):.1f} deg")
+    for vehicle in args.vehicles.split(","):
+        rs = [r for r in recs if r["vehicle"] == vehicle]
+        phases = {ph: [r["max_tilt_by_phase"].get(ph, 0.0) for r in rs]
+                  for ph in ("take-off", "inner MRFT", "side MRFT")}
+        print(f"{vehicle}: largest tilt by phase (max / 90th percentile over seeds, deg): "
+              + ", ".join(f"{ph} {max(v):.1f} / {np.percentile(v, 90):.1f}"
+                          for ph, v in phases.items()))
     for name in ("measured", "fixed_2ms") if args.gcs_delay else ():
         jw = [v[0] for r in recs for v in r["written"][name].values()]
         pw = [v[1] for r in recs for v in r["written"][name].values()]

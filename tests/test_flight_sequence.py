@@ -344,7 +344,10 @@ def test_attitude_swing_still_growing_against_the_relay_is_caught():
     while it already pushes back (racer250 in-process, stalls x 6: pitch to -48 deg in
     0.6 s cycles); past the run-away limit and still moving out, it is caught, so that the
     relay does not drive the return at full amplitude into as large a swing the other
-    way. A swing already on its way back is left to the relay."""
+    way. A swing already on its way back is left to the relay, and so is the relay's own
+    start-up swing before the detector has measured a cycle (live racer250: caught ten
+    times in a row at 0.18 rad without that wait)."""
+    from mrft_gcs.identify import CycleStatus
     from mrft_gcs.relay import MRFT
 
     seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.5), ATT_RELAY, ALT_RELAY)
@@ -354,6 +357,9 @@ def test_attitude_swing_still_growing_against_the_relay_is_caught():
     relay.step(-0.01)
     relay.step(0.3)  # a positive output: pushes a positive error back
     assert float(relay.state[0]) > 0
+    seq._watch(t, relay, 0.3, float(relay.state[0]), e_rate=2.0)  # just (re)started
+    assert t.catch is None and not seq.events
+    t.status = CycleStatus(2, False, 0.25, 0.06, math.inf)  # cycles measured since
     seq._watch(t, relay, 0.3, float(relay.state[0]), e_rate=-2.0)  # coming back
     assert t.catch is None and not seq.events
     seq._watch(t, relay, 0.3, float(relay.state[0]), e_rate=2.0)  # still swinging out

@@ -525,9 +525,12 @@ class TuningSequence:
         # on its momentum while u pushes back all along, then drives the return at full h
         # into as large a swing the other way (racer250 in-process, stalls x 6: pitch to
         # -48 deg in 0.6 s cycles where the steady one is 0.25 s). The damping PD brings
-        # the return swing to rest instead (30 seeds: largest tilt before any loop was
-        # tuned 48.4 -> 26.6 deg)
-        if abs(e) > limit and (st * e < 0 or e * e_rate > 0):
+        # the return swing to rest instead (tune_stalls --stalls 6, 30 seeds: largest tilt
+        # 48.4 -> 30.5 deg). Only once the detector has measured cycles since the relay
+        # (re)started: its own start-up swing also carries past 3 amplitudes while it
+        # pushes back (live racer250 roll: caught 10 times in a row at -0.18 rad)
+        outward = e * e_rate > 0 and math.isfinite(t.status.amplitude)
+        if abs(e) > limit and (st * e < 0 or outward):
             relay.reset()
             if (t.loop in (Loop.ROLL, Loop.PITCH) and not math.isfinite(t.cycle[0])
                     and math.isfinite(t.status.period_s) and t.status.amplitude > 0):
