@@ -499,8 +499,9 @@ class TuningSequence:
         """After a relay step: two switches in a row before the threshold armed raise h.
 
         A runaway (the error beyond ``runaway_factor`` cycle amplitudes while the relay
-        pushes it further out, e.g. after a noise-triggered switch-back, or while it still
-        grows: ``e_rate`` > 0 with ``e`` > 0) hands roll and pitch to a damping PD until
+        pushes it further out, e.g. after a noise-triggered switch-back, or, once cycles were
+        measured, while it still grows: ``e`` and ``e_rate`` of one sign) hands roll and
+        pitch to a damping PD until
         they are back inside their cycle, and restarts the others as a plain sign relay,
         which at once pushes back; the detector starts over.
         """
