@@ -123,7 +123,7 @@ def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float
                         for lp, t in seq.loops.items()},
             "J_pct": {lp.value: (sc.J_pct if sc.stable else None) for lp, sc in scores.items()},
             "pm_deg": {lp.value: sc.pm_deg for lp, sc in scores.items()},
-            "max_tilt_deg": max_tilt, "max_tilt_by_phase": dict(seq.max_tilt_deg),
+            "max_tilt_deg": max_tilt, "max_tilt_by_phase": dict(seq.max_tilt_by_phase),
             "events": list(seq.events), "retries": retries,
             "gcs_delay_ms": gcs_delay_ms, "written": written}
 

@@ -508,10 +508,11 @@ class _Run:
             link=self.quality, stream=stream,
             tlog=str(self.link.tlog_path) if self.link.tlog_path else None,
             max_tilt_deg=self.monitor.max_tilt_seen_deg if self.monitor else math.nan,
-            max_tilt_by_phase=dict(seq.max_tilt_deg) if seq is not None else {},
+            max_tilt_by_phase=dict(seq.max_tilt_by_phase) if seq is not None else {},
             limits=self.lim, hover_error_m=self.hover_error_m,
             notes=tuple([YAW_NOTE] + self.notes + (list(seq.events) if seq else [])
-                        + ([tilt_note(seq.max_tilt_deg)] if seq and seq.max_tilt_deg else [])))
+                        + ([tilt_note(seq.max_tilt_by_phase)]
+                           if seq and seq.max_tilt_by_phase else [])))
 
     # ------------------------------------------------------------------ steps
     def execute(self, dry_link: bool) -> TuneResult:

@@ -304,7 +304,7 @@ class TuningSequence:
         self.z_f = 0.0
         self.events: list[str] = []  # for the report's notes (relay amplitude raised...)
         #: largest tilt seen in each phase (deg, by :class:`Phase` value), for the report
-        self.max_tilt_deg: dict[str, float] = {}
+        self.max_tilt_by_phase: dict[str, float] = {}
         alt = self.loops[Loop.ALTITUDE]
         alt.beta, alt.h = self.altitude_relay.beta, self.altitude_relay.h
         for lp in (Loop.ROLL, Loop.PITCH):
@@ -501,9 +501,8 @@ class TuningSequence:
         A runaway (the error beyond ``runaway_factor`` cycle amplitudes while the relay
         pushes it further out, e.g. after a noise-triggered switch-back, or, once cycles were
         measured, while it still grows: ``e`` and ``e_rate`` of one sign) hands roll and
-        pitch to a damping PD until
-        they are back inside their cycle, and restarts the others as a plain sign relay,
-        which at once pushes back; the detector starts over.
+        pitch to a damping PD until they are back inside their cycle, and restarts the
+        others as a plain sign relay, which at once pushes back; the detector starts over.
         """
         st = float(relay.state[0])
         amp = t.status.amplitude
@@ -660,8 +659,8 @@ class TuningSequence:
             self.state = s
             cfg = self.config
             tilt = math.degrees(s.tilt_rad)
-            if tilt > self.max_tilt_deg.get(self.phase.value, -1.0):
-                self.max_tilt_deg[self.phase.value] = tilt
+            if tilt > self.max_tilt_by_phase.get(self.phase.value, -1.0):
+                self.max_tilt_by_phase[self.phase.value] = tilt
             z = s.z_up_m - self.origin[2]
             new_att = s.t_att_s > self._t_att_prev
             new_pos = s.t_pos_s > self._t_pos_prev

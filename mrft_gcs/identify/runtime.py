@@ -405,15 +405,16 @@ def _measured_t_att(t, u, tilt, pts, modelled: np.ndarray):
     except IdentificationError:
         return modelled, pts, none
     ok = (cl.sd <= MEASURED_T_ATT_MAX_SD) & np.isfinite(cl.G) & (np.abs(cl.G) > 0)
+    combined = np.hypot(pts.sd, cl.sd)
     # a harmonic whose error, with the measured loop's added, would leave the fit keeps
     # the modelled loop (racer250 seed 10 of tune_stalls --gcs-delay: the 3rd harmonic's
     # 0.494 with 0.101 added made 0.504 > USABLE_SD, the fit was left with the fundamental
     # alone, and the tune stopped on its ValueError)
-    ok[1:] &= np.hypot(pts.sd, cl.sd)[1:] <= USABLE_SD
+    ok[1:] &= combined[1:] <= USABLE_SD
     if cl.cycles != pts.cycles or not np.allclose(cl.w, pts.w) or not ok[0]:
         return modelled, pts, none
     T_att = np.where(ok, cl.G, modelled)
-    sd = np.where(ok, np.hypot(pts.sd, cl.sd), pts.sd)
+    sd = np.where(ok, combined, pts.sd)
     return T_att, dataclasses.replace(pts, sd=sd), ok
 
 
