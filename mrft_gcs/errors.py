@@ -17,6 +17,7 @@ Exit codes (documented in README):
 6     identification failed (no steady oscillation, no relay test)
 7     missing optional dependency (install the named extra)
 8     some vehicles of a fleet failed
+130   interrupted, or a take-off / write question answered no
 ====  ==========================================================
 """
 

@@ -24,3 +24,17 @@ def test_console_script_runs_as_module():
     )
     assert proc.returncode == 0, proc.stderr
     assert "mrft-tune" in proc.stdout
+
+
+def test_a_bad_connection_string_is_refused_before_the_take_off_question(capsys, monkeypatch):
+    asked = []
+    monkeypatch.setattr("typer.confirm", lambda *a, **k: asked.append(a) or True)
+    assert main(["tune", "--connect", "bogus:foo"]) == 3
+    assert not asked
+    assert "cannot read connection string" in capsys.readouterr().err
+
+
+def test_answering_no_to_the_take_off_question_exits_non_zero(capsys, monkeypatch):
+    monkeypatch.setattr("typer.confirm", lambda *a, **k: False)
+    assert main(["tune", "--connect", "udp:127.0.0.1:14599"]) == 130
+    assert "nothing done" in capsys.readouterr().err

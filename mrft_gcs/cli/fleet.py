@@ -14,7 +14,7 @@ import typer
 from rich.live import Live
 from rich.table import Table
 
-from mrft_gcs.cli import app, console, err_console
+from mrft_gcs.cli import DECLINED, app, console, err_console
 from mrft_gcs.errors import FleetError
 from mrft_gcs.fleet import FleetResult, FleetSpec, VehicleOutcome, load_fleet, tune_fleet
 from mrft_gcs.loops import Loop
@@ -125,7 +125,7 @@ def fleet(
                       f"({', '.join(flying)}). Clear the areas.")
         if not typer.confirm("take off and tune?"):
             err_console.print("nothing done")
-            raise typer.Exit(1)
+            raise typer.Exit(DECLINED)
     board = FleetBoard(spec)
     with Live(console=console, refresh_per_second=4, transient=True,
               get_renderable=lambda: status_table(board)):

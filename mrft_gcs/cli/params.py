@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from mrft_gcs.cli import app, console, err_console
+from mrft_gcs.cli import DECLINED, app, console, err_console
 from mrft_gcs.errors import UsageError
 from mrft_gcs.link import VehicleLink
 from mrft_gcs.params import ParamClient, WriteResult, read_params_file, write_params_file
@@ -70,7 +70,7 @@ def restore(
             console.print(table)
             if not typer.confirm(f"write {len(entries)} parameters to the vehicle?"):
                 err_console.print("nothing written")
-                raise typer.Exit(1)
+                raise typer.Exit(DECLINED)
         result = client.restore(backup)
     console.print(_changes_table(result, f"restored from {backup}"))
     console.print(f"values replaced are backed up in {result.backup_path}")

@@ -10,11 +10,12 @@ import typer
 from rich.live import Live
 from rich.table import Table
 
-from mrft_gcs.cli import app, console, err_console
+from mrft_gcs.cli import DECLINED, app, console, err_console
 from mrft_gcs.errors import MrftError
 from mrft_gcs.flight import TuneResult, tune
 from mrft_gcs.flight.api import parse_actuation, requested_loops
 from mrft_gcs.flight.report import write_report
+from mrft_gcs.link import load_signing_key, parse_connection_string
 from mrft_gcs.profiles import load_profile
 
 __all__ = ["tune_command", "progress_table", "result_table"]
@@ -113,6 +114,9 @@ def tune_command(
     limits = prof.safety.with_overrides(max_tilt_deg=max_tilt, max_altitude_m=max_altitude,
                                         max_distance_m=max_distance,
                                         max_test_duration_s=max_duration)
+    parse_connection_string(connect, baud)  # so is a typo here or in the key file
+    if signing_key is not None:
+        load_signing_key(signing_key)
     if not (yes or dry_link):
         console.print(f"The vehicle at {connect} will arm, take off to {altitude:g} m and "
                       f"oscillate on purpose (limits: tilt {limits.max_tilt_deg:g} deg, "
@@ -120,7 +124,7 @@ def tune_command(
                       f"{limits.max_distance_m:g} m). Clear the area.")
         if not typer.confirm("take off and tune?"):
             err_console.print("nothing done")
-            raise typer.Exit(1)
+            raise typer.Exit(DECLINED)
     try:
         with Live(console=console, refresh_per_second=8, transient=True) as live:
             result = tune(connect, prof, actuation=actuation, limits=limits, z_ref_m=altitude,
