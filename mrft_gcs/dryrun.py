@@ -938,15 +938,18 @@ def _hold_levels(u: np.ndarray) -> np.ndarray:
 
 # ------------------------------------------------------------------ per loop
 def _steady_rises(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_periods: int,
-                  period_tol: float, amplitude_tol: float = 0.08
+                  period_tol: float, amplitude_tol: float = 0.08,
+                  relax_after: int | None = None, relaxed_tol: tuple[float, float] = (0.08, 0.16)
                   ) -> tuple[np.ndarray, np.ndarray]:
     """The live cycle detector's verdict at each rising switch, computed on whole arrays.
 
     Equals feeding :class:`CycleDetector` one sample at a time as the live sequence
     does: before each sample the period tolerance becomes ``max(period_tol, 2.5 dt/P)``,
     ``dt`` an exponential average (weight 0.01) of the sample intervals since the first
-    period was known and ``P`` the last period. Returns the sample indices of the rising
-    switches and, for each, whether the detector said "steady" there.
+    period was known and ``P`` the last period; from ``relax_after`` cycles on both
+    tolerances are at least ``relaxed_tol`` (:meth:`CycleDetector.tolerances`). Returns
+    the sample indices of the rising switches and, for each, whether the detector said
+    "steady" there.
     """
     lo, hi = np.minimum.accumulate(u), np.maximum.accumulate(u)
     known = hi > lo
@@ -975,11 +978,13 @@ def _steady_rises(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_periods: int,
         p = periods[i - n:i]
         a = amps[i - n:i]
         r = int(rises[i])
-        tol = period_tol
+        tol, atol = period_tol, amplitude_tol
         if r >= k0 and periods[i - 2] > 0:
             tol = max(period_tol, 2.5 * float(dt_avg[r]) / float(periods[i - 2]))
+        if relax_after is not None and i >= relax_after:  # i cycles are complete at rise i
+            tol, atol = max(tol, relaxed_tol[0]), max(atol, relaxed_tol[1])
         steady[i] = (np.ptp(p) / p.mean() <= tol and a.mean() > 0
-                     and np.ptp(a) / a.mean() <= amplitude_tol)
+                     and np.ptp(a) / a.mean() <= atol)
     return rises, steady
 
 
@@ -1004,14 +1009,15 @@ def _live_cycles(seg: RelaySegment, inner: Identification | None
     from mrft_gcs.flight.sequence import SequenceConfig
 
     cfg = SequenceConfig()
-    n_att, n_alt, n_side = cfg.steady_periods
-    n = {LoopKind.ATTITUDE: n_att, LoopKind.ALTITUDE: n_alt, LoopKind.SIDE: n_side}
+    kinds = (LoopKind.ATTITUDE, LoopKind.ALTITUDE, LoopKind.SIDE)
+    i = kinds.index(seg.loop.kind)
     tol = cfg.period_tol
     if seg.loop.kind is LoopKind.SIDE:  # where the sequence allows x/y a wider tolerance
         tol = float(getattr(cfg, "side_period_tol", tol))
-    det = CycleDetector(n_periods=n[seg.loop.kind], period_tol=tol)
+    det = CycleDetector(n_periods=cfg.steady_periods[i], period_tol=tol,
+                        relax_after=cfg.relax_after_cycles[i], relaxed_tol=cfg.relaxed_tol)
     rises, steady = _steady_rises(seg.t, seg.u, seg.y, det.n_periods, det.period_tol,
-                                  det.amplitude_tol)
+                                  det.amplitude_tol, det.relax_after, det.relaxed_tol)
     m = cfg.identify_cycles
     # altitude and side hand over fewer cycles where the sequence says so
     fewer = getattr(cfg, "identify_cycles_alt_side", None)

@@ -96,6 +96,27 @@ def test_cycle_detector_reports_steady_oscillation():
     assert t.size > 100 and u.size == y.size == t.size
 
 
+def test_cycle_detector_relaxes_its_tolerances_after_relax_after_cycles():
+    """Square-wave relay cycles whose amplitude alternates over three levels 12 % apart
+    (kicked cycles): never steady within 8 %, steady from cycle ``relax_after`` on."""
+    def feed(det):
+        verdicts, k = {}, 0
+        for c in range(14):
+            a = (1.0, 1.06, 1.12)[c % 3]
+            for i in range(100):  # 100 samples a cycle: high, then low
+                t = k * 0.002
+                st = det.update(t, 1.0 if i < 50 else -1.0, a * np.sin(2 * np.pi * i / 100))
+                k += 1
+            verdicts[st.cycles] = st.steady
+        return verdicts
+
+    assert not any(feed(CycleDetector()).values())
+    relaxed = feed(CycleDetector(relax_after=8))
+    assert [c for c, s in relaxed.items() if s] == [c for c in relaxed if c >= 8]
+    assert CycleDetector(relax_after=8).tolerances(7) == (0.03, 0.08)
+    assert CycleDetector(relax_after=8).tolerances(8) == (0.08, 0.16)
+
+
 def test_incomplete_class_table_is_an_identification_error(tmp_path):
     d = tmp_path / "attitude"
     d.mkdir()

@@ -265,6 +265,7 @@ def test_dry_run_replays_the_live_tlog(bundled):
     assert set(found) == set(Loop), dr.explanation()
     cfg = SequenceConfig()
     n_steady = dict(zip(LoopKind, cfg.steady_periods, strict=True))
+    relax = dict(zip(LoopKind, cfg.relax_after_cycles, strict=True))
     for lp in Loop:
         live, rep = result.loops[lp], found[lp]
         li, seg = live.identification, rep.segment
@@ -342,7 +343,8 @@ def test_dry_run_replays_the_live_tlog(bundled):
                         assert dr.parameters[name] == pytest.approx(value, rel=2 * rel), name
         else:
             tol = getattr(cfg, "side_period_tol", cfg.period_tol) if inner else cfg.period_tol
-            rises, steady = _steady_rises(seg.t, seg.u, seg.y, n_steady[lp.kind], tol)
+            rises, steady = _steady_rises(seg.t, seg.u, seg.y, n_steady[lp.kind], tol, 0.08,
+                                          relax[lp.kind], cfg.relaxed_tol)
             assert np.isclose(seg.t[rises[steady]], lt[-1], atol=1e-6).any(), lp
 
 

@@ -45,6 +45,8 @@ class CycleStatus:
         Of the last complete cycle (NaN before the first one).
     spread : float
         Relative spread of the last periods (steadiness measure).
+    amplitude_spread : float
+        Relative spread of the last amplitudes.
     """
 
     cycles: int
@@ -52,6 +54,7 @@ class CycleStatus:
     period_s: float
     amplitude: float
     spread: float
+    amplitude_spread: float = math.inf
 
 
 class CycleDetector:
@@ -65,16 +68,32 @@ class CycleDetector:
         Relative spread allowed among them (default 3 % and 8 %).
     max_s : float
         Seconds of history kept.
+    relax_after : int, optional
+        From this many complete cycles on, the tolerances are widened to
+        ``relaxed_tol`` (period, amplitude; each at least the strict one). A relay
+        kicked every cycle or two (a ground station whose ticks come late now and then
+        holds a switch for a tick) may never give three cycles within the strict
+        tolerances; after ``relax_after`` cycles the detector accepts a wider spread
+        instead of waiting on. None (default): never.
 
     Cycles are delimited by the relay output's rising switches; the relay's two
     levels are learnt from the data, so bias and amplitude need not be given.
     """
 
     def __init__(self, n_periods: int = 3, period_tol: float = 0.03, amplitude_tol: float = 0.08,
-                 max_s: float = 30.0) -> None:
+                 max_s: float = 30.0, relax_after: int | None = None,
+                 relaxed_tol: tuple[float, float] = (0.08, 0.16)) -> None:
         self.n_periods, self.period_tol, self.amplitude_tol = n_periods, period_tol, amplitude_tol
         self.max_s = max_s
+        self.relax_after, self.relaxed_tol = relax_after, relaxed_tol
         self.reset()
+
+    def tolerances(self, cycles: int) -> tuple[float, float]:
+        """(period, amplitude) tolerances in force once ``cycles`` cycles are complete."""
+        if self.relax_after is not None and cycles >= self.relax_after:
+            return (max(self.period_tol, self.relaxed_tol[0]),
+                    max(self.amplitude_tol, self.relaxed_tol[1]))
+        return self.period_tol, self.amplitude_tol
 
     def reset(self) -> None:
         self.t: deque[float] = deque()
@@ -130,17 +149,19 @@ class CycleDetector:
         return self._cached
 
     def _status(self) -> CycleStatus:
-        periods = self._periods()[-self.n_periods:]
+        all_periods = self._periods()
+        periods = all_periods[-self.n_periods:]
         n = len(periods)
         if n == 0:
             return CycleStatus(0, False, np.nan, np.nan, np.inf)
         spread = float(np.ptp(periods) / periods.mean()) if n > 1 else np.inf
         amps = np.asarray(self.amps)
         aspread = float(np.ptp(amps) / amps.mean()) if len(amps) > 1 and amps.mean() > 0 else np.inf
-        steady = (n >= self.n_periods and spread <= self.period_tol
-                  and len(amps) >= self.n_periods and aspread <= self.amplitude_tol)
-        return CycleStatus(len(self._periods()), steady, float(periods[-1]),
-                           float(amps[-1]) if len(amps) else np.nan, spread)
+        tol_p, tol_a = self.tolerances(len(all_periods))
+        steady = (n >= self.n_periods and spread <= tol_p
+                  and len(amps) >= self.n_periods and aspread <= tol_a)
+        return CycleStatus(len(all_periods), steady, float(periods[-1]),
+                           float(amps[-1]) if len(amps) else np.nan, spread, aspread)
 
     def last_cycles(self, n: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(t, u, y)`` of the last ``n`` complete cycles (empty arrays if fewer exist)."""
