@@ -39,7 +39,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mrft_gcs.errors import MrftError, UsageError
+from mrft_gcs.errors import LinkError, MrftError, UsageError
+from mrft_gcs.link.connection import parse_connection_string
 from mrft_gcs.loops import Loop
 from mrft_gcs.profiles import Actuation, SafetyLimits, load_profile
 
@@ -119,6 +120,10 @@ def _vehicle(merged: Mapping[str, Any], where: str, default_name: str) -> Vehicl
     baud = merged.get("baud")
     if baud is not None and (isinstance(baud, bool) or not isinstance(baud, int) or baud <= 0):
         raise UsageError(f"{where}: 'baud' must be a positive integer, got {baud!r}")
+    try:  # a typo in one vehicle's connection must not wait until the others fly
+        parse_connection_string(connect, baud)
+    except LinkError as err:
+        raise UsageError(f"{where}: 'connect': {err}") from None
     key = merged.get("signing_key")
     if key is not None and not isinstance(key, str):
         raise UsageError(f"{where}: 'signing_key' must be a path to the key file")

@@ -28,10 +28,10 @@ def test_parse_and_defaults(tmp_path):
 
 
 @pytest.mark.parametrize("body", [
-    "", '[[vehicle]]\nname = "a"\n', '[[vehicle]]\nconnect = "x"\nbogus = 1\n',
-    '[[vehicle]]\nconnect = "x"\nmax_tilt_deg = -3\n',
-    '[[vehicle]]\nname = "a"\nconnect = "x"\n[[vehicle]]\nname = "a"\nconnect = "y"\n',
-    '[[vehicle]]\nconnect = "x"\nprofile = "nope"\n',
+    "", '[[vehicle]]\nname = "a"\n', '[[vehicle]]\nconnect = "udp:h:1"\nbogus = 1\n',
+    '[[vehicle]]\nconnect = "udp:h:1"\nmax_tilt_deg = -3\n',
+    '[[vehicle]]\nname = "a"\nconnect = "udp:h:1"\n[[vehicle]]\nname = "a"\nconnect = "udp:h:2"\n',
+    '[[vehicle]]\nconnect = "udp:h:1"\nprofile = "nope"\n',
 ])
 def test_bad_fleet_files(tmp_path, body):
     with pytest.raises(UsageError):
@@ -86,6 +86,7 @@ def test_doctests():
     ("baud = -9", "vehicle v: 'baud' must be a positive integer"),
     ("altitude_m = 0", "vehicle v: 'altitude_m' must be a positive number"),
     ('dry_link = "yes"', "vehicle v: 'dry_link' must be true or false"),
+    ("baud = 57600", "vehicle v: 'connect': --baud applies to serial devices only"),
 ])
 def test_bad_vehicle_fields_name_vehicle_and_field(tmp_path, extra, match):
     f = _spec(tmp_path, f'[[vehicle]]\nname = "v"\nconnect = "udp:127.0.0.1:1"\n'
@@ -93,6 +94,13 @@ def test_bad_vehicle_fields_name_vehicle_and_field(tmp_path, extra, match):
     with pytest.raises(UsageError, match=match) as err:
         load_fleet(f)
     assert "\n" not in str(err.value)
+
+
+def test_a_bad_connection_string_is_refused_before_anything_flies(tmp_path):
+    f = _spec(tmp_path, '[[vehicle]]\nname = "ok"\nconnect = "udp:127.0.0.1:1"\n\n'
+                        '[[vehicle]]\nname = "typo"\nconnect = "udp:127.0.0.1"\n')
+    with pytest.raises(UsageError, match="vehicle typo: 'connect': cannot read connection"):
+        load_fleet(f)
 
 
 def test_fleet_fields_reach_the_tuner(tmp_path):
@@ -104,13 +112,13 @@ def test_fleet_fields_reach_the_tuner(tmp_path):
 
     res = tune_fleet({"defaults": {"profile": "sitl", "backup_dir": str(tmp_path),
                                    "loops": ["Altitude", "x", "altitude"]},
-                      "vehicle": [{"name": "a", "connect": "udp:127.0.0.1:1", "baud": 57600,
+                      "vehicle": [{"name": "a", "connect": "/dev/ttyUSB0", "baud": 57600,
                                    "signing_key": "a.key", "max_tilt_deg": 20,
                                    "heartbeat_timeout_s": 2.5, "altitude_m": 1.5},
                                   {"name": "b", "connect": "udp:127.0.0.1:2", "loops": ["roll"],
                                    "actuation": "torque"}]}, tuner=tuner)
     assert not res.failed
-    prof, a = seen["udp:127.0.0.1:1"]
+    prof, a = seen["/dev/ttyUSB0"]
     assert prof == "sitl" and a["loops"] == ("altitude", "x") and a["baud"] == 57600
     assert a["signing_key"] == "a.key" and a["heartbeat_timeout_s"] == 2.5
     assert a["limits"].max_tilt_deg == 20.0 and a["z_ref_m"] == 1.5
