@@ -364,3 +364,28 @@ def test_attitude_swing_still_growing_against_the_relay_is_caught():
     assert t.catch is None and not seq.events
     seq._watch(t, relay, 0.3, float(relay.state[0]), e_rate=2.0)  # still swinging out
     assert t.catch is not None and "caught the run-away" in seq.events[-1]
+
+
+def test_a_swing_is_caught_where_it_will_stop_and_held_with_more_than_h():
+    """A GCS stall of 60 ms during racer250's first relay cycle sent roll and pitch to
+    -3.5 rad/s at 0.11 rad, inside the run-away limit; caught only past it and held with
+    h, what the relay itself pushes back with, they stopped at 25.5 deg. The catch now
+    looks at where the swing will stop (the plant's acceleration per h from the cycle)
+    and its damping PD may use ``catch_torque_factor`` x h."""
+    from mrft_gcs.identify import CycleStatus
+    from mrft_gcs.relay import MRFT
+
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.5), ATT_RELAY, ALT_RELAY)
+    t = seq.loops[Loop.PITCH]
+    t.h, t.cycle = 0.12, (0.25, 0.06)  # run-away limit 3 x 0.06 = 0.18 rad
+    t.status = CycleStatus(2, False, 0.25, 0.06, math.inf)
+    relay = MRFT(-0.5, t.h)
+    relay.step(-0.01)
+    relay.step(0.12)
+    seq._watch(t, relay, 0.12, float(relay.state[0]), e_rate=0.5)  # stops at 0.124 rad
+    assert t.catch is None
+    seq._watch(t, relay, 0.12, float(relay.state[0]), e_rate=3.0)  # would stop at 0.27 rad
+    assert t.catch is not None and "caught the run-away" in seq.events[-1]
+    t.state, t.relay = LoopState.RELAY, relay
+    u = seq._attitude(Loop.PITCH, 0.0, -0.2, -3.0, 1.0, True, True)
+    assert t.h < u <= seq.config.catch_torque_factor * t.h

@@ -209,6 +209,15 @@ class SequenceConfig:
     #: was restarted 140-270 times with errors growing to 0.48 rad (tilt 42-56 deg) in 2 of
     #: 12 seeds with the 0.1 rad floor
     runaway_floor_startup_rad: float = 0.25
+    #: roll/pitch run-away catch: a swing still carrying out is caught where it will *stop*
+    #: (error plus rate^2 / 2 a, with a = pi A w0^2 / 4 the plant's acceleration per h from
+    #: the relay's cycle) rather than where it is, and the damping PD may use this many
+    #: times the relay amplitude. A GCS stall of 60 ms during racer250's first relay cycle
+    #: sent roll and pitch to -3.5 rad/s; a catch limited to h (what the relay itself
+    #: pushes back with) stopped them only at 25.5 deg. tune_stalls --gcs-delay, racer250
+    #: x 24 seeds: largest tilt 25.5 -> 18.7 deg; x 30 seeds at 6 x the stalls: 33.0 ->
+    #: 24.2 deg, written inner |J| max 24.7 -> 12.8 %; qdrone and f550 unchanged (no catch)
+    catch_torque_factor: float = 3.0
     #: factor on the identified attitude PDs while they run on the GCS (during the side
     #: tests and the hover); the written gains are never scaled.
     gcs_attitude_pd_scale: float = 1.0
@@ -543,7 +552,14 @@ class TuningSequence:
         # (re)started: its own start-up swing also carries past 3 amplitudes while it
         # pushes back (live racer250 roll: caught 10 times in a row at -0.18 rad)
         outward = e * e_rate > 0 and math.isfinite(t.status.amplitude)
-        if abs(e) > limit and (st * e < 0 or outward):
+        reach = abs(e)
+        if outward and t.loop in (Loop.ROLL, Loop.PITCH):
+            per, a = t.cycle if math.isfinite(t.cycle[0]) else (t.status.period_s,
+                                                                   t.status.amplitude)
+            if math.isfinite(per) and per > 0 and a > 0:  # where the swing will stop
+                w0 = 2 * math.pi / per
+                reach += e_rate ** 2 / (2 * math.pi * a * w0 ** 2 / 4)
+        if reach > limit and (st * e < 0 or outward):
             relay.reset()
             if (t.loop in (Loop.ROLL, Loop.PITCH) and not math.isfinite(t.cycle[0])
                     and math.isfinite(t.status.period_s) and t.status.amplitude > 0):
@@ -854,7 +870,8 @@ class TuningSequence:
                     t.catch = None
                 else:
                     kc, kd = t.catch
-                    u = min(t.h, max(-t.h, kc * e - kd * rate))
+                    lim = self.config.catch_torque_factor * t.h
+                    u = min(lim, max(-lim, kc * e - kd * rate))
                     t.u = u
                     return u
             before = float(t.relay.state[0])
