@@ -277,8 +277,10 @@ def test_dry_run_replays_the_live_tlog(bundled):
         # the live cycles: dry-run's own may be later ones). The two stamp a frame at
         # different moments, and each takes the link offset as a running minimum (live: up
         # to the identification; dry-run: the whole log): within 0.1-0.55 ms in 12 quiet
-        # tunes, 0.78 ms once in CI; a pairing error would be a whole period (4 ms)
-        tol = 1e-3
+        # tunes, 0.78 ms once in CI, 1.29 ms once in CI since roll and pitch may be
+        # identified sooner (relaxed cycle detector: a shorter running minimum); a pairing
+        # error would be a whole period (4 ms)
+        tol = 2e-3
         assert math.isfinite(live.gcs_delay_s) == (lp.kind is not LoopKind.SIDE), lp
         if lp.kind is not LoopKind.SIDE:
             assert 0 < live.gcs_delay_s < 3 * 0.004, lp
