@@ -525,6 +525,8 @@ class TuningSequence:
         measured, while it still grows: ``e`` and ``e_rate`` of one sign) hands roll and
         pitch to a damping PD until they are back inside their cycle, and restarts the
         others as a plain sign relay, which at once pushes back; the detector starts over.
+        A roll/pitch swing still carrying out counts by where it will stop, not where it
+        is (``SequenceConfig.catch_torque_factor``).
         """
         st = float(relay.state[0])
         amp = t.status.amplitude
