@@ -45,8 +45,6 @@ class CycleStatus:
         Of the last complete cycle (NaN before the first one).
     spread : float
         Relative spread of the last periods (steadiness measure).
-    amplitude_spread : float
-        Relative spread of the last amplitudes.
     """
 
     cycles: int
@@ -54,7 +52,6 @@ class CycleStatus:
     period_s: float
     amplitude: float
     spread: float
-    amplitude_spread: float = math.inf
 
 
 class CycleDetector:
@@ -161,7 +158,7 @@ class CycleDetector:
         steady = (n >= self.n_periods and spread <= tol_p
                   and len(amps) >= self.n_periods and aspread <= tol_a)
         return CycleStatus(len(all_periods), steady, float(periods[-1]),
-                           float(amps[-1]) if len(amps) else np.nan, spread, aspread)
+                           float(amps[-1]) if len(amps) else np.nan, spread)
 
     def last_cycles(self, n: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(t, u, y)`` of the last ``n`` complete cycles (empty arrays if fewer exist)."""

@@ -292,7 +292,7 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, til
     from scipy.stats import chi2
 
     from mrft_gcs.features import rising_switches
-    from mrft_gcs.identify.harmonics import fit_side_model, harmonic_points
+    from mrft_gcs.identify.harmonics import USABLE_SD, fit_side_model, harmonic_points
     from mrft_gcs.pd_design import optimal_pd
     from mrft_gcs.plant import SideModel, closed_inner_response, inner_response, side_response
 
@@ -338,7 +338,7 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, til
         raise IdentificationError(
             f"the side relay cycles are too noisy to measure their 3rd harmonic (error "
             f"{fit_pts.sd[1]:.3f} in log units with noise and timing, need <= "
-            f"{FIT_MAX_SD[1]}; {exc}): raise the side relay amplitude or let it run longer, "
+            f"{USABLE_SD}; {exc}): raise the side relay amplitude or let it run longer, "
             "then retry") from None
     if SIDE_ACCEL_PRIOR is not None and \
             abs(np.log(fit.K / fit.T2 / SIDE_ACCEL_PRIOR[0])) > SIDE_ACCEL_REFUSE:
