@@ -406,6 +406,8 @@ class TuningSequence:
 
         Altitude must be done too: its relay swings the thrust by +-h (about a quarter of
         hover), which modulates the horizontal force of a tilt and breaks the side cycles.
+        Scaling the tilt commands by hover / thrust does not undo it (it lags by the
+        attitude loop's response): tried, README "Tuning a vehicle" step 7.
         """
         done = (LoopState.TUNED, LoopState.LEFT_ALONE)
         if self.loops[Loop.ALTITUDE].state not in done:
