@@ -126,6 +126,54 @@ def test_wrong_hover_estimate_is_learnt_before_the_altitude_relay(tmp_path):
     assert alt.bias == pytest.approx(true_hover, rel=0.05)  # learnt, not the 0.85 estimate
 
 
+def _failing(vehicle, times):
+    """The truth identifier, but altitude's first ``times`` identifications raise a bare
+    ValueError (as a numerical failure inside the harmonic fits did twice under stalls)."""
+    ti, calls = truth_identifier(vehicle), []
+
+    def ident(loop, snap, inner):
+        if loop is Loop.ALTITUDE and len(calls) < times:
+            calls.append(snap.t_s[-1])
+            raise ValueError("fewer than two usable harmonics")
+        return ti(loop, snap, inner)
+
+    return ident, calls
+
+
+def test_a_numerical_failure_in_identification_is_retried_on_the_next_cycles(tmp_path):
+    ident, calls = _failing("qdrone", 1)
+    with SitlProcess(vehicle="qdrone", port=None, seed=2) as sitl:
+        result = tune(sitl.connection_string, "sitl", backup_dir=tmp_path, relay=RELAY,
+                      identifier=ident, hover_check_s=1.0, loops=["altitude"],
+                      residuals=False)
+    assert result.status == "ok", result.notes
+    assert len(calls) == 1
+    alt = result.loops[Loop.ALTITUDE]
+    assert alt.state == "tuned" and alt.cycles[0][0] > calls[0]  # on later cycles
+    assert ("altitude: identification retried after a numerical error (ValueError: fewer "
+            "than two usable harmonics)") in result.notes
+    assert {c.name for c in result.parameters} >= {"MPC_Z_P", "MPC_Z_VEL_P_ACC"}
+
+
+def test_a_numerical_failure_that_repeats_stops_the_test_and_lands(tmp_path):
+    from mrft_gcs.errors import IdentificationError
+
+    ident, calls = _failing("qdrone", 99)
+    with SitlProcess(vehicle="qdrone", port=None, seed=6) as sitl:
+        with pytest.raises(IdentificationError, match="failed 3 times on a numerical error "
+                           r"\(ValueError: fewer than two usable harmonics\)") as err:
+            tune(sitl.connection_string, "sitl", backup_dir=tmp_path, relay=RELAY,
+                 identifier=ident, loops=["altitude"], residuals=False)
+        with VehicleLink.connect(sitl.connection_string) as link:  # the vehicle was told to land
+            deadline = time.monotonic() + 2.0
+            while (link.heartbeat.custom_mode >> 16) & 0xFF != 4 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert (link.heartbeat.custom_mode >> 16) & 0xFF == 4  # AUTO (LAND)
+    assert len(calls) == 3
+    assert err.value.partial_result.parameters == ()  # nothing written
+    assert sum("numerical error" in n for n in err.value.partial_result.notes) == 2
+
+
 def test_telemetry_cut_mid_test_lands_with_exit_code_5(tmp_path):
     with SitlProcess(vehicle="qdrone", port=None, seed=4) as sitl:
         cut = threading.Thread(target=sitl.stop, daemon=True)

@@ -88,6 +88,9 @@ YAW_NOTE = ("yaw is not tuned: it is held by a conservative GCS-side PD during t
 _SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 NOT_REQUESTED = "not requested"
 _ATTITUDE_LOOPS = (Loop.ROLL, Loop.PITCH)
+#: identifications of one loop that may fail on a numerical error (ValueError,
+#: ArithmeticError) and be retried on the next cycles before the tune stops
+NUMERIC_RETRIES = 2
 
 
 def requested_loops(loops: Collection[str | Loop] | None, actuation: Actuation) -> frozenset[Loop]:
@@ -471,6 +474,7 @@ class _Run:
         self.limit_hit: LimitExceeded | None = None
         self.hover_error_m = math.nan
         self.notes: list[str] = []
+        self.numeric_failures: dict[Loop, int] = {}  # identifications that raised (_identify)
         self.gcs_delay_s: float | None = None  # None: measured per loop (self.ages)
         self.ages = _AgeLog()
         self.delays: dict[Loop, float] = {}  # re-targeted out of the written gains (s)
@@ -683,6 +687,23 @@ class _Run:
         except IdentificationError as err:
             self.notes.append(f"{snap.loop.value}: identification retried ({err})")
             seq.retry(snap.loop, restart="set point" in str(err))
+            return
+        except (ValueError, ArithmeticError) as err:
+            # a numerical failure inside identification (numpy's LinAlgError is a
+            # ValueError): the cycles that caused it are disturbed ones as a rule (two such
+            # paths were found under ground-station stalls; both now raise
+            # IdentificationError themselves), so the relay runs on and the next cycles are
+            # tried, as for a refused identification; a failure that repeats is a fault
+            n = self.numeric_failures[snap.loop] = self.numeric_failures.get(snap.loop, 0) + 1
+            what = f"{type(err).__name__}: {err}"
+            if n > NUMERIC_RETRIES:
+                raise IdentificationError(
+                    f"{snap.loop.value}: identification failed {n} times on a numerical "
+                    f"error ({what}); the test stopped and the vehicle lands: "
+                    f"please report it with the session's .tlog") from err
+            self.notes.append(f"{snap.loop.value}: identification retried after a numerical "
+                              f"error ({what})")
+            seq.retry(snap.loop)
             return
         if inner is not None and inner.extras.get("method") == CLOSED_LOOP_METHOD:
             att = seq.loops[_SIDE_INNER[snap.loop]]

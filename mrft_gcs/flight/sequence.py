@@ -170,7 +170,8 @@ class SequenceConfig:
     #: done): they hand over this many (altitude, side) once steady, one cycle sooner
     #: (measured on the in-process SITL, 3 airframes x 8 seeds: take-off to all loops tuned
     #: 11.8 s mean with 4 cycles, 10.5 s with 3; see README "Tuning a vehicle" for J).
-    #: Roll and pitch are done seconds before altitude and keep four.
+    #: Roll and pitch are done seconds before altitude and keep four. Two side cycles:
+    #: racer250 x/y J up to 63 %, one unstable (tune_stalls --gcs-delay, 12 seeds)
     identify_cycles_alt_side: tuple[int, int] = (3, 3)
     #: periods (and amplitudes) that must agree before a loop's cycles are identified:
     #: attitude, altitude, side. x and y run at once and disturb each other: on racer250
