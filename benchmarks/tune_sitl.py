@@ -7,7 +7,7 @@ gains, each axis with its own identified gains and, as ``xy``, with the one set 
 once written), with the phase margin on the true process.
 
     .venv/bin/python benchmarks/tune_sitl.py [--vehicles qdrone,racer250,f550] [--seeds 5] \
-        [--json runs.json] [--figure8] [--floor]
+        [--json runs.json] [--figure8] [--floor] [--set NAME=VALUE ...]
 
 Identification uses the bundled classifiers (models/). ``--truth`` runs the whole flight
 with the truth identifier of the tests instead (J is then about 0 by construction: only
@@ -35,6 +35,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from overrides import apply_overrides  # noqa: E402
 
 from mrft_gcs.errors import MrftError  # noqa: E402
 from mrft_gcs.flight import tune  # noqa: E402
@@ -91,9 +93,16 @@ class OsFloor:
 
 
 def run_one(vehicle: str, seed: int, *, truth: bool = False, figure8: bool = False,
-            speedup: float = 1.0, floor: bool = False) -> dict:
-    """One tune (and optionally a figure-eight) on a fresh SITL; returns a JSON-able record."""
+            speedup: float = 1.0, floor: bool = False, overrides: tuple[str, ...] = ()) -> dict:
+    """One tune (and optionally a figure-eight) on a fresh SITL; returns a JSON-able record.
+
+    ``overrides``: ``--set NAME=VALUE`` items (``overrides.py``) on the tune's SequenceConfig.
+    """
     kw: dict = {}
+    if overrides:
+        from mrft_gcs.flight.sequence import SequenceConfig
+
+        kw["config"] = apply_overrides(SequenceConfig(), overrides)
     if truth:
         from flight_sim import ALT_RELAY, ATT_RELAY, SIDE_RELAY, truth_identifier
 
@@ -104,7 +113,7 @@ def run_one(vehicle: str, seed: int, *, truth: bool = False, figure8: bool = Fal
     prof = load_profile("sitl")
     af = load_airframe(vehicle)
     rec: dict = {"vehicle": vehicle, "seed": seed, "identifier": "truth" if truth else "bundled",
-                 "load_1min": os.getloadavg()[0]}
+                 "load_1min": os.getloadavg()[0], "overrides": list(overrides)}
     wall = time.monotonic()
     with tempfile.TemporaryDirectory() as d, \
             SitlProcess(vehicle=vehicle, port=None, seed=seed, speedup=speedup) as sitl:
@@ -199,13 +208,23 @@ def main() -> None:
     ap.add_argument("--floor", action="store_true",
                     help="during each tune, measure how late a bare 250 Hz pacing loop in its "
                          "own process wakes (the floor under the stream's jitter on this machine)")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="tune with a SequenceConfig field changed (takeoff.FIELD for the "
+                         "take-off settings; repeatable), e.g. relax_after_cycles=None,None,None")
     args = ap.parse_args()
+    from mrft_gcs.flight.sequence import SequenceConfig
+
+    try:  # a typo fails here, not after the first tune
+        apply_overrides(SequenceConfig(), args.set)
+    except ValueError as err:
+        ap.error(str(err))
     print(f"machine: {platform.machine()}, {platform.python_implementation()} "
           f"{platform.python_version()}, identifier: {'truth' if args.truth else 'bundled'}")
     records = []
     for vehicle in args.vehicles.split(","):
         for seed in range(args.first_seed, args.first_seed + args.seeds):
-            rec = run_one(vehicle, seed, truth=args.truth, figure8=args.figure8, floor=args.floor)
+            rec = run_one(vehicle, seed, truth=args.truth, figure8=args.figure8, floor=args.floor,
+                          overrides=tuple(args.set))
             records.append(rec)
             print(line(rec), flush=True)
             if args.json is not None:

@@ -20,7 +20,12 @@ targeted to the onboard loop (:func:`mrft_gcs.flight.onboard.onboard_gains`) by 
 delay (what a live tune measures) and by a fixed 2 ms (half a period, for comparison).
 
     .venv/bin/python benchmarks/tune_stalls.py [--vehicles racer250,qdrone,f550] \
-        [--seeds 6] [--stalls 1.0] [--hover-factor 1.0] [--gcs-delay] [--json runs.json]
+        [--seeds 6] [--first-seed 0] [--stalls 1.0] [--hover-factor 1.0] [--gcs-delay] \
+        [--set NAME=VALUE ...] [--json runs.json]
+
+``--set`` changes a :class:`SequenceConfig` field for an A/B comparison (``overrides.py``),
+e.g. ``--set relax_after_cycles=None,None,None`` for the cycle detector before its
+relaxation.
 
 Simulated time, so the figures do not depend on this machine's load.
 """
@@ -38,6 +43,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from flight_sim import state_of  # noqa: E402
+from overrides import apply_overrides  # noqa: E402
 
 from mrft_gcs.errors import IdentificationError  # noqa: E402
 from mrft_gcs.flight.api import bundled_identifier  # noqa: E402
@@ -65,16 +71,18 @@ def stall_ticks(rng: np.random.Generator, scale: float) -> int:
 
 
 def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float = 1.0,
-            gcs_delay_ms: int | None = None, max_s: float = 40.0) -> dict:
-    """One tune from the ground; returns a JSON-able record."""
+            gcs_delay_ms: int | None = None, max_s: float = 40.0,
+            overrides: tuple[str, ...] = ()) -> dict:
+    """One tune from the ground; returns a JSON-able record (``overrides``: ``--set``)."""
     af = load_airframe(vehicle)
     v = SimVehicle(af, seed=seed)
     ap = v.autopilot
     ap.set_actuator_controls(0, 0, 0, 0)
     ap.set_mode(FlightMode.OFFBOARD)
     ap.arm(True)
-    seq = TuningSequence(SequenceConfig(hover_thrust_guess=hover_factor * af.hover_thrust),
-                         relay_settings(LoopKind.ATTITUDE), relay_settings(LoopKind.ALTITUDE))
+    cfg = apply_overrides(SequenceConfig(hover_thrust_guess=hover_factor * af.hover_thrust),
+                          overrides)
+    seq = TuningSequence(cfg, relay_settings(LoopKind.ATTITUDE), relay_settings(LoopKind.ALTITUDE))
     for _ in range(100):  # 0.4 s on the ground: the noise that sets the relay bands
         v.run(0.004)
         seq.observe(state_of(v))
@@ -117,6 +125,7 @@ def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float
             written[name] = {lp.value: [sc.J_pct if sc.stable else None, sc.pm_deg]
                              for lp, sc in w.items()}
     return {"vehicle": vehicle, "seed": seed, "stalls": stalls, "hover_factor": hover_factor,
+            "overrides": list(overrides),
             "done_s": v.time_s - seq.t_start_s if done else None,
             "tuned_s": {lp.value: (t.t_tuned_s - seq.t_start_s
                                    if math.isfinite(t.t_tuned_s) else None)
@@ -147,12 +156,21 @@ def main() -> None:
     ap.add_argument("--gcs-delay", action="store_true",
                     help="commands reach the vehicle seed %% 4 ms after their sample")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="fly with a SequenceConfig field changed (takeoff.FIELD for the "
+                         "take-off settings; repeatable), e.g. relax_after_cycles=None,None,None")
     args = ap.parse_args()
+    try:  # a typo fails here, not after the first tune
+        apply_overrides(SequenceConfig(), args.set)
+    except ValueError as err:
+        ap.error(str(err))
     recs = []
     for vehicle in args.vehicles.split(","):
-        for seed in range(args.seeds):
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
             r = run_one(vehicle, seed, stalls=args.stalls, hover_factor=args.hover_factor,
-                        gcs_delay_ms=seed % 4 if args.gcs_delay else None)
+                        gcs_delay_ms=seed % 4 if args.gcs_delay else None,
+                        overrides=tuple(args.set))
             recs.append(r)
             print(line(r), flush=True)
     done = [r["done_s"] for r in recs if r["done_s"] is not None]
