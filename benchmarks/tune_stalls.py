@@ -46,7 +46,7 @@ from flight_sim import state_of  # noqa: E402
 from overrides import apply_overrides  # noqa: E402
 
 from mrft_gcs.errors import IdentificationError  # noqa: E402
-from mrft_gcs.flight.api import bundled_identifier  # noqa: E402
+from mrft_gcs.flight.api import NUMERIC_RETRIES, bundled_identifier  # noqa: E402
 from mrft_gcs.flight.onboard import onboard_gains  # noqa: E402
 from mrft_gcs.flight.scoring import score_gains  # noqa: E402
 from mrft_gcs.flight.sequence import Phase, SequenceConfig, TuningSequence  # noqa: E402
@@ -89,6 +89,7 @@ def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float
     seq.start(state_of(v))
     rng = np.random.default_rng(1000 + seed)
     retries, max_tilt, done = [], 0.0, False
+    failed: dict[Loop, int] = {}  # identifications that raised a numerical error
     while v.time_s < max_s:
         s = state_of(v)
         sp = seq.step(s)
@@ -104,6 +105,13 @@ def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float
             except IdentificationError as err:  # as the tune does: wait for the next cycles
                 retries.append(f"{snap.loop.value}: {err}")
                 seq.retry(snap.loop, restart="set point" in str(err))
+            except (ValueError, ArithmeticError) as err:  # as the tune does (flight/api.py)
+                failed[snap.loop] = failed.get(snap.loop, 0) + 1
+                retries.append(f"{snap.loop.value}: numerical error ({type(err).__name__}: "
+                               f"{err})")
+                seq.retry(snap.loop)
+        if any(n > NUMERIC_RETRIES for n in failed.values()):
+            break  # the tune stops here (recorded as not done)
         if seq.side_waiting:
             seq.start_side({lp: relay_settings(LoopKind.SIDE,
                                                seq.loops[_SIDE_INNER[lp]].identification)
