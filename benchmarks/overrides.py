@@ -17,6 +17,10 @@ changed, so that an A/B comparison README quotes can be repeated from the comman
 Traceback (most recent call last):
 ...
 ValueError: --set no_such_field=1: SequenceConfig has no field 'no_such_field'
+>>> apply_overrides(SequenceConfig(), ["period_tol=five"])
+Traceback (most recent call last):
+...
+ValueError: --set period_tol=five: 'five' is not a Python literal
 """
 
 from __future__ import annotations
@@ -30,11 +34,7 @@ __all__ = ["apply_overrides"]
 
 def _value(text: str, item: str) -> object:
     try:
-        return ast.literal_eval(text)
-    except (ValueError, SyntaxError):
-        pass
-    try:
-        return ast.literal_eval(f"({text},)") if "," in text else text
+        return ast.literal_eval(text)  # "6,2.5" parses as a tuple too
     except (ValueError, SyntaxError):
         raise ValueError(f"--set {item}: {text!r} is not a Python literal") from None
 
