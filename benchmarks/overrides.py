@@ -25,11 +25,12 @@ ValueError: --set period_tol=five: 'five' is not a Python literal
 
 from __future__ import annotations
 
+import argparse
 import ast
 import dataclasses
 from collections.abc import Iterable
 
-__all__ = ["apply_overrides"]
+__all__ = ["apply_overrides", "add_set_option", "checked_overrides"]
 
 
 def _value(text: str, item: str) -> object:
@@ -56,3 +57,22 @@ def apply_overrides(config, items: Iterable[str]):
             raise ValueError(f"--set {item}: expected NAME=VALUE")
         config = _replace(config, name.strip().split("."), _value(text.strip(), item), item)
     return config
+
+
+def add_set_option(ap: argparse.ArgumentParser) -> None:
+    """The benchmarks' ``--set`` option (repeatable)."""
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="tune with a SequenceConfig field changed (takeoff.FIELD for the "
+                         "take-off settings; repeatable), e.g. relax_after_cycles=None,None,None")
+
+
+def checked_overrides(ap: argparse.ArgumentParser, items: list[str]) -> tuple[str, ...]:
+    """``items`` once they apply to the default SequenceConfig: a typo stops the benchmark
+    with a one-line usage error before the first tune, not after it."""
+    from mrft_gcs.flight.sequence import SequenceConfig
+
+    try:
+        apply_overrides(SequenceConfig(), items)
+    except ValueError as err:
+        ap.error(str(err))
+    return tuple(items)

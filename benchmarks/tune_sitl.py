@@ -36,11 +36,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from overrides import apply_overrides  # noqa: E402
+from overrides import add_set_option, apply_overrides, checked_overrides  # noqa: E402
 
 from mrft_gcs.errors import MrftError  # noqa: E402
 from mrft_gcs.flight import tune  # noqa: E402
 from mrft_gcs.flight.scoring import score_gains  # noqa: E402
+from mrft_gcs.flight.sequence import SequenceConfig  # noqa: E402
 from mrft_gcs.loops import Loop, LoopKind  # noqa: E402
 from mrft_gcs.profiles import load_profile, params_to_gains  # noqa: E402
 from mrft_gcs.sitl import SitlProcess, load_airframe  # noqa: E402
@@ -100,8 +101,6 @@ def run_one(vehicle: str, seed: int, *, truth: bool = False, figure8: bool = Fal
     """
     kw: dict = {}
     if overrides:
-        from mrft_gcs.flight.sequence import SequenceConfig
-
         kw["config"] = apply_overrides(SequenceConfig(), overrides)
     if truth:
         from flight_sim import ALT_RELAY, ATT_RELAY, SIDE_RELAY, truth_identifier
@@ -208,23 +207,16 @@ def main() -> None:
     ap.add_argument("--floor", action="store_true",
                     help="during each tune, measure how late a bare 250 Hz pacing loop in its "
                          "own process wakes (the floor under the stream's jitter on this machine)")
-    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                    help="tune with a SequenceConfig field changed (takeoff.FIELD for the "
-                         "take-off settings; repeatable), e.g. relax_after_cycles=None,None,None")
+    add_set_option(ap)
     args = ap.parse_args()
-    from mrft_gcs.flight.sequence import SequenceConfig
-
-    try:  # a typo fails here, not after the first tune
-        apply_overrides(SequenceConfig(), args.set)
-    except ValueError as err:
-        ap.error(str(err))
+    overrides = checked_overrides(ap, args.set)
     print(f"machine: {platform.machine()}, {platform.python_implementation()} "
           f"{platform.python_version()}, identifier: {'truth' if args.truth else 'bundled'}")
     records = []
     for vehicle in args.vehicles.split(","):
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             rec = run_one(vehicle, seed, truth=args.truth, figure8=args.figure8, floor=args.floor,
-                          overrides=tuple(args.set))
+                          overrides=overrides)
             records.append(rec)
             print(line(rec), flush=True)
             if args.json is not None:

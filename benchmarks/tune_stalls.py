@@ -43,7 +43,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from flight_sim import state_of  # noqa: E402
-from overrides import apply_overrides  # noqa: E402
+from overrides import add_set_option, apply_overrides, checked_overrides  # noqa: E402
 
 from mrft_gcs.errors import IdentificationError  # noqa: E402
 from mrft_gcs.flight.api import NUMERIC_RETRIES, bundled_identifier  # noqa: E402
@@ -165,20 +165,15 @@ def main() -> None:
                     help="commands reach the vehicle seed %% 4 ms after their sample")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--first-seed", type=int, default=0)
-    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                    help="fly with a SequenceConfig field changed (takeoff.FIELD for the "
-                         "take-off settings; repeatable), e.g. relax_after_cycles=None,None,None")
+    add_set_option(ap)
     args = ap.parse_args()
-    try:  # a typo fails here, not after the first tune
-        apply_overrides(SequenceConfig(), args.set)
-    except ValueError as err:
-        ap.error(str(err))
+    overrides = checked_overrides(ap, args.set)
     recs = []
     for vehicle in args.vehicles.split(","):
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             r = run_one(vehicle, seed, stalls=args.stalls, hover_factor=args.hover_factor,
                         gcs_delay_ms=seed % 4 if args.gcs_delay else None,
-                        overrides=tuple(args.set))
+                        overrides=overrides)
             recs.append(r)
             print(line(r), flush=True)
     done = [r["done_s"] for r in recs if r["done_s"] is not None]
