@@ -87,8 +87,9 @@ def tune_command(
     signing_key: Annotated[Path | None, typer.Option(
         "--signing-key", help="MAVLink 2 signing key file (32 bytes, or 64 hex digits)")] = None,
     baud: Annotated[int | None, typer.Option("--baud", help="serial baud rate")] = None,
-    altitude: Annotated[float, typer.Option("--altitude", help="test altitude above take-off, "
-                                            "m")] = 1.0,
+    altitude: Annotated[float, typer.Option("--altitude", help="climb set point above take-off, "
+                                            "m (the tests run there, or up to 0.3 m lower "
+                                            "where a slow climb is braked)")] = 1.0,
     max_tilt: Annotated[float | None, typer.Option("--max-tilt", help="deg (profile default)")]
     = None,
     max_altitude: Annotated[float | None, typer.Option("--max-altitude", help="m")] = None,
