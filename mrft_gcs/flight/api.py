@@ -358,7 +358,8 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
     limits : SafetyLimits, optional
         Default from the profile (command-line overrides already applied).
     z_ref_m : float
-        Test altitude above the take-off point (m).
+        Climb set point above the take-off point (m); the tests run there, or up to 0.3 m
+        lower where a slow climb is braked (``TakeoffSettings.brake_m``).
     dry_link : bool
         Connect and check the link and parameters, but do not arm (status ``dry-link``).
     tlog_path : path, optional
