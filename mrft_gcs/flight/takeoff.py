@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mrft_gcs.profiles import G_M_S2
 from mrft_gcs.relay import MRFT
 
 __all__ = ["TakeoffSettings", "TakeoffController", "TABLE_V"]
@@ -155,7 +156,6 @@ class TakeoffController:
         self.z_hold_m = self.z_ref_m  # where the climb brings the vehicle to rest
         self.braked = False
         self.recent: deque[tuple[float, float, float]] = deque()  # (t, thrust, climb rate)
-        self.hover_held = math.nan  # what held the vehicle over the last hover_check_s
         self.no_brake = False  # set by the caller: the climb may not be braked now
         self.switched = False
         self.u_z0 = math.nan
@@ -184,7 +184,7 @@ class TakeoffController:
         self.switched = False
         self.relay = None
         self.t_prev = self.t_climb = self.t_rest = None
-        self.z_hold_m, self.braked, self.hover_held = self.z_ref_m, False, math.nan
+        self.z_hold_m, self.braked = self.z_ref_m, False
         self.recent.clear()
         self.a_int = 0.0
         self.folded = False
@@ -220,7 +220,7 @@ class TakeoffController:
 
     def _climb(self, t_s: float, e: float, vz: float) -> float:
         st, guess = self.settings, float(self.relay_bias)  # type: ignore[arg-type]
-        g = 9.80665
+        g = G_M_S2
         if self.t_climb is None:
             self.t_climb = self.t_prev = t_s
         t0 = self.t_climb
@@ -268,13 +268,12 @@ class TakeoffController:
     def _thrust_held(self) -> float:
         """The thrust that held the vehicle over the last ``hover_check_s`` (force balance:
         mean command / (1 + a/g), ``a`` the least-squares slope of the climb rate; drag at
-        the near-rest speeds where this is asked is a percent or two), kept in
-        ``hover_held``; nan while that is not yet covered."""
+        the near-rest speeds where this is asked is a percent or two); nan while that is
+        not yet covered."""
         recent = self.recent
         if len(recent) < 5 or recent[-1][0] - recent[0][0] < 0.8 * self.settings.hover_check_s:
             return math.nan
         t, u, v = np.array(recent).T
         tc = t - t.mean()
         a = float(tc @ (v - v.mean()) / (tc @ tc))
-        self.hover_held = float(np.clip(u.mean() / (1.0 + a / 9.80665), 0.0, 1.0))
-        return self.hover_held
+        return float(np.clip(u.mean() / (1.0 + a / G_M_S2), 0.0, 1.0))
