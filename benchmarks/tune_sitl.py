@@ -152,6 +152,8 @@ def run_one(vehicle: str, seed: int, *, truth: bool = False, figure8: bool = Fal
     if r.stream is not None:
         rec["stream_hz"] = _num(r.stream.rate_hz_achieved)
         rec["jitter_p99_ms"] = _num(r.stream.jitter_p99_ms)
+        rec["stream_skipped"] = r.stream.skipped
+        rec["stream_period_max_ms"] = _num(r.stream.period_max_ms)
     rec["loops"] = {lp.value: {"state": lr.state, "h": _num(lr.h), "period_s": _num(lr.period_s),
                                "tuned_after_s": _num(lr.t_tuned_s),
                                "class": lr.identification.class_index

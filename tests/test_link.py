@@ -251,6 +251,53 @@ def test_streamer_shortens_the_switch_interval_only_while_it_runs():
     assert sys.getswitchinterval() == pytest.approx(before)
 
 
+def test_stream_workers_are_pinned_to_two_cpus_where_there_are_two(monkeypatch):
+    import os
+
+    from mrft_gcs.link.streamer import stream_cpus
+
+    allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    assert stream_cpus(1) == [None]
+    two = stream_cpus(2)
+    if len(allowed) >= 2:
+        assert two == allowed[-2:] and two[0] != two[1]
+    else:
+        assert two == [None]
+    monkeypatch.setenv("MRFT_STREAM_WORKERS", "1")
+    assert stream_cpus() == [None]
+    monkeypatch.setenv("MRFT_STREAM_WORKERS", "3")
+    with pytest.raises(ValueError, match="1 or 2"):
+        stream_cpus()
+
+
+def test_two_stream_workers_send_each_tick_once():
+    """The workers race for every tick: one sends it, the other skips it."""
+    import threading
+
+    sent: list[tuple[float, str]] = []
+
+    class Sink:
+        def send_setpoint(self, target):
+            sent.append((target, threading.current_thread().name))
+
+        def telemetry_age_s(self):
+            return 0.0
+
+        def land(self, **kw):
+            pass
+
+    s = SetpointStreamer(Sink(), lambda t: t, watchdog_s=None, workers=2)
+    with s:
+        time.sleep(1.0)
+    stats = s.stats()
+    assert stats.sent == len(sent)
+    assert all(b > a for (a, _), (b, _) in zip(sent, sent[1:]))  # in order
+    # one second: 250 ticks, each sent once or skipped (both sending would make ~500)
+    assert len(sent) + stats.skipped == pytest.approx(250, rel=0.05)
+    if s.workers == 2:
+        assert {name for _, name in sent} == {"setpoint-streamer-0", "setpoint-streamer-1"}
+
+
 def test_latency_hints_need_no_privilege():
     import sys
     import threading

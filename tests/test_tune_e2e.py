@@ -256,6 +256,7 @@ def test_tune_with_bundled_classifiers(bundled):
 
     result, _ = bundled
     assert result.status == "ok" and result.duration_s < 20
+    assert not any("worker process failed" in n for n in result.notes), result.notes
     gains = {lp: lr.gains for lp, lr in result.loops.items()}
     scores = score_gains(load_airframe("qdrone").linear_models(), gains)
     for lp in Loop:
@@ -269,6 +270,31 @@ def test_tune_with_bundled_classifiers(bundled):
     assert any(n.startswith("largest tilt by phase: take-off") for n in result.notes)
     for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE, Loop.X, Loop.Y):
         assert result.loops[lp].band > 0  # relay noise band from the measured noise
+
+
+def test_a_worker_that_dies_in_flight_leaves_identification_to_the_tune(tmp_path, monkeypatch):
+    """The identification worker killed before its first identification: the tune goes on
+    identifying in its own process and says so."""
+    import mrft_gcs.flight.api as api
+
+    why = _bundled_ready()
+    if why:
+        pytest.skip(why)
+
+    class Dying(api.IdentificationWorker):
+        def call(self, op, *args, **kw):
+            self._proc.kill()
+            self._proc.wait()
+            return super().call(op, *args, **kw)
+
+    monkeypatch.setattr(api, "IdentificationWorker", Dying)
+    with SitlProcess(vehicle="qdrone", port=None, seed=3) as sitl:
+        result = tune(sitl.connection_string, "sitl", backup_dir=tmp_path, relay=RELAY,
+                      loops=["altitude"], residuals=False)
+    assert result.status == "ok", result.notes
+    assert result.loops[Loop.ALTITUDE].state == "tuned"
+    assert sum("worker process failed (the identification worker exited" in n
+               for n in result.notes) == 1, [n for n in result.notes if "worker" in n]
 
 
 def test_dry_run_replays_the_live_tlog(bundled):

@@ -7,7 +7,9 @@ the hover thrust; get the relay settings of the bundled classifiers; stream
 setpoints at 250 Hz *before* switching to OFFBOARD; arm; run
 :class:`~mrft_gcs.flight.sequence.TuningSequence` (take-off, MRFT on altitude,
 roll and pitch at once, then x and y), identifying each loop as soon as its
-oscillation is steady and switching it to its PD at once; hover; write the gains
+oscillation is steady and switching it to its PD at once (the bundled identification
+runs in a process of its own, :mod:`mrft_gcs.identify.worker`, so that it never holds
+up the stream); hover; write the gains
 as autopilot parameters (clamped into the profile's ``[param_ranges]``, a note per
 clamp; backup first, every value read back); switch to the autopilot's position
 mode so it flies on them; check a short hover.
@@ -56,6 +58,8 @@ from mrft_gcs.identify.closed_loop import (
     closed_attitude_identification,
     side_relay_settings,
 )
+from mrft_gcs.identify.worker import AVAILABLE as worker_available
+from mrft_gcs.identify.worker import IdentificationWorker, WorkerError
 from mrft_gcs.link import (
     SetpointStreamer,
     StreamStats,
@@ -91,6 +95,10 @@ _ATTITUDE_LOOPS = (Loop.ROLL, Loop.PITCH)
 #: identifications of one loop that may fail on a numerical error (ValueError,
 #: ArithmeticError) and be retried on the next cycles before the tune stops
 NUMERIC_RETRIES = 2
+#: seconds the identification worker may take to load (else the tune identifies in its own
+#: process), and to answer one identification (60-120 ms measured; else likewise)
+WORKER_WARM_UP_S = 60.0
+WORKER_CALL_S = 20.0
 
 
 def requested_loops(loops: Collection[str | Loop] | None, actuation: Actuation) -> frozenset[Loop]:
@@ -273,7 +281,7 @@ class TuneResult:
 
 
 class _Telemetry:
-    """Latest ATTITUDE and LOCAL_POSITION_NED, drained from the link on the stream thread."""
+    """Latest ATTITUDE and LOCAL_POSITION_NED, drained from the link on the stream's ticks."""
 
     def __init__(self, link: VehicleLink) -> None:
         self.link = link
@@ -281,7 +289,7 @@ class _Telemetry:
         self.pos: LocalPosition | None = None
 
     def poll(self) -> FlightState | None:
-        """Drain the link's queue (stream thread only) and return the latest state."""
+        """Drain the link's queue (on the stream's ticks only) and return the latest state."""
         while (smp := self.link.next_sample(0.0)) is not None:
             if isinstance(smp, Attitude):
                 self.att = smp
@@ -301,7 +309,7 @@ class _Telemetry:
 
 class _AgeLog:
     """Per stream tick: the vehicle times of the ATTITUDE and LOCAL_POSITION_NED samples a
-    command answered, and when it left (monotonic); written by the stream thread only.
+    command answered, and when it left (monotonic); written on the stream's ticks only.
     The GCS delay re-targeted out of the written gains is measured on it
     (:func:`mrft_gcs.flight.onboard.retarget_delay_s`)."""
 
@@ -426,11 +434,12 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
     run.residuals = residuals
     run.requested = wanted
     try:
-        return run.execute(dry_link)
+        return run.execute(dry_link, own_worker=identifier is None)
     except MrftError as err:
         err.partial_result = run.result(_status(err), str(err))  # type: ignore[attr-defined]
         raise
     finally:
+        run.close_worker()
         link.close()
 
 
@@ -465,6 +474,8 @@ class _Run:
         self.hover_check_s = hover_check_s
         self.on_progress = on_progress
         self.ident_fn = ident_fn
+        #: the bundled identification's own process (None: identified in this one)
+        self.worker: IdentificationWorker | None = None
         self.relay: dict[LoopKind, RelaySettings] = relay
         self.seq: TuningSequence | None = None
         self.streamer: SetpointStreamer | None = None
@@ -520,8 +531,15 @@ class _Run:
                            if seq and seq.max_tilt_by_phase else [])))
 
     # ------------------------------------------------------------------ steps
-    def execute(self, dry_link: bool) -> TuneResult:
+    def execute(self, dry_link: bool, own_worker: bool = False) -> TuneResult:
+        """The tune: link check, parameters, flight, write-back.
+
+        ``own_worker``: identify in a process of its own (the bundled identification only),
+        started here so that it loads while the link is measured.
+        """
         link = self.link
+        if own_worker and not dry_link:
+            self._start_worker()
         self.quality = measure_link(link, rate_hz=self.rate_hz)
         require_relay_capable(self.quality, setpoint_hz=self.rate_hz, actuation=self.act.value,
                               signed=link.signed)
@@ -541,6 +559,7 @@ class _Run:
         # stream (racer250, the first tune of such a script: aborted at 48 deg of tilt)
         warm_up_identification(relay_settings(LoopKind.ATTITUDE),
                                relay_settings(LoopKind.ALTITUDE))
+        self._worker_ready()
         # Everything loaded so far lives as long as the process: out of the cyclic garbage
         # collector's sight, a full collection in flight takes ~0 ms instead of 95-165 ms
         # (measured after the warm-up), time in which no setpoint would go out.
@@ -565,6 +584,47 @@ class _Run:
         if self.residuals:
             self._residuals()
         return self.result("ok")
+
+    # ------------------------------------------------------------------ identification
+    def _start_worker(self) -> None:
+        if not worker_available:
+            return
+        try:
+            self.worker = IdentificationWorker()
+            self.worker.request("warm", relay_settings(LoopKind.ATTITUDE),
+                                relay_settings(LoopKind.ALTITUDE))
+        except (WorkerError, OSError) as err:
+            self._drop_worker(f"it did not start ({err})")
+
+    def _worker_ready(self) -> None:
+        """Wait for the worker's warm-up (before the stream starts)."""
+        if self.worker is None:
+            return
+        try:
+            self.worker.reply(timeout_s=WORKER_WARM_UP_S)
+        except WorkerError as err:
+            self._drop_worker(str(err))
+
+    def _drop_worker(self, why: str) -> None:
+        self.notes.append(f"identification ran in the ground station's own process, next to "
+                          f"the setpoint stream: its worker process failed ({why})")
+        self.close_worker()
+
+    def close_worker(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
+            self.worker = None
+
+    def _identifier(self, loop: Loop, snap: CycleSnapshot,
+                    inner: Identification | None) -> Identification:
+        """The tune's identifier: in the worker where there is one, else in this process."""
+        if self.worker is not None:
+            try:
+                return self.worker.call("identify", loop, snap, inner,
+                                        timeout_s=WORKER_CALL_S)
+            except WorkerError as err:
+                self._drop_worker(str(err))
+        return self.ident_fn(loop, snap, inner)
 
     def _residuals(self) -> None:
         """Residual analysis of each identified loop (after the flight: it takes seconds)."""
@@ -684,7 +744,7 @@ class _Run:
                 inner = seq.loops[_SIDE_INNER[snap.loop]].identification
                 if inner is None and self.act is Actuation.ATTITUDE:
                     inner = measured_attitude_loop(snap)
-            ident = self.ident_fn(snap.loop, snap, inner)
+            ident = self._identifier(snap.loop, snap, inner)
         except IdentificationError as err:
             self.notes.append(f"{snap.loop.value}: identification retried ({err})")
             seq.retry(snap.loop, restart="set point" in str(err))

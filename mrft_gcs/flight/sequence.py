@@ -8,7 +8,7 @@ loop on its identified PD) -> ``DONE``; ``LANDING``/``ABORTED`` on a safety stop
 
 :class:`TuningSequence` owns no I/O and no identification: its :meth:`~TuningSequence.step`
 turns the latest :class:`~mrft_gcs.flight.controllers.FlightState` into a setpoint
-(called on the setpoint-stream thread at 250 Hz), :meth:`~TuningSequence.ready`
+(called on each setpoint-stream tick at 250 Hz), :meth:`~TuningSequence.ready`
 hands the steady cycles to whoever identifies them (the tuning API, on its own
 thread) and :meth:`~TuningSequence.apply` switches a loop to its PD at once.
 

@@ -1,25 +1,29 @@
 """A setpoint stream at a steady rate, with the telemetry watchdog (SPEC 5).
 
-:class:`SetpointStreamer` runs a thread that, every ``1/rate_hz`` seconds on
-absolute deadlines of the monotonic clock, asks a callback for the next setpoint
-and sends it. Deadlines do not drift with late ticks: a late tick is followed by
-an early one; a tick more than one period late is skipped and counted rather
-than sent in a burst. Each achieved period is recorded for the jitter figures.
+:class:`SetpointStreamer` asks a callback for the next setpoint every ``1/rate_hz``
+seconds, on absolute deadlines of the monotonic clock, and sends it. Deadlines do not
+drift with late ticks: a late tick is followed by an early one; a tick more than one
+period late is skipped and counted rather than sent in a burst. Each achieved period is
+recorded for the jitter figures.
 
 Every tick also checks the link's telemetry age: past ``watchdog_s`` (0.5 s by
 SPEC 5) the stream stops, a landing is commanded and :attr:`abort_reason` says
 why; :meth:`raise_if_aborted` turns it into :class:`~mrft_gcs.errors.SafetyAbort`.
 
-Timing: the thread sleeps until a margin before each deadline and spins the rest,
-yielding the CPU and the GIL on each turn (``os.sched_yield``). The margin adapts to
-how late this machine's sleeps actually wake (:func:`spin_margin_s`: the 99th
-percentile of the last second's overshoots plus 0.2 ms, between 0.4 ms and 90 % of a
-period): on a bare-metal kernel a sleep wakes within ~0.1 ms and the stream costs a
-few per cent of a core; on a virtual machine whose sleeps wake up to several
-milliseconds late it spins more (measured in ``benchmarks/streamer_jitter.py``,
-with the CPU it costs) rather than miss its deadlines. While any stream runs, the interpreter's GIL switch interval is 0.5 ms instead of 5 ms
-(restored when the last stream stops). The thread asks the OS to wake it on time
-(:func:`~mrft_gcs.link.latency.latency_hints`: unprivileged, no priority change).
+Timing: where the process may use two CPUs (Linux), two worker threads, each pinned to
+a CPU of its own (:func:`stream_cpus`), race for every tick: each sleeps to 0.4 ms before
+the deadline and spins the rest (yielding the CPU and the GIL on each turn,
+``os.sched_yield``); the first awake takes the tick under a lock and sends it, the
+other finds it taken. On a virtual machine a late wake-up is mostly the hypervisor
+holding one virtual CPU, and the two are held at different moments (README, "Link":
+p99 lateness 2.2 ms on either CPU, 0.37 ms for the earlier of the two). One worker
+(``workers=1``, or one CPU) is unpinned and adapts its margin to how late this
+machine's sleeps wake (:func:`spin_margin_s`: the 99th percentile of the last second's
+overshoots plus 0.2 ms, between 0.4 ms and 90 % of a period), spinning more rather than
+missing deadlines. While any stream runs, the interpreter's GIL switch interval is
+0.5 ms instead of 5 ms (restored when the last stream stops). The workers ask the OS to
+wake them on time (:func:`~mrft_gcs.link.latency.latency_hints`: unprivileged, no
+priority change).
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ from mrft_gcs.link.latency import latency_hints
 from mrft_gcs.telemetry import ActuatorTarget, AttitudeTarget
 
 __all__ = ["SetpointStreamer", "StreamStats", "SetpointSink", "Setpoint", "period_stats",
-           "latency_hints", "spin_margin_s"]
+           "latency_hints", "spin_margin_s", "stream_cpus"]
 
 Setpoint = ActuatorTarget | AttitudeTarget
 #: The callback: monotonic seconds since the stream started -> setpoint, or None to skip a tick.
@@ -143,8 +147,29 @@ def period_stats(send_times_s: np.ndarray, rate_hz: float, skipped: int = 0) -> 
     )
 
 
+def stream_cpus(workers: int | None = None) -> list[int | None]:
+    """The CPU each stream worker is pinned to (``None``: not pinned).
+
+    Two workers on two different CPUs where this process may run on two or more and the
+    OS pins threads (Linux): the last two it may use (the first CPUs of a machine tend to
+    take more of its interrupts), else one unpinned. ``workers`` (or the environment
+    variable ``MRFT_STREAM_WORKERS``) forces 1 or 2.
+    """
+    if workers is None:
+        workers = int(os.environ.get("MRFT_STREAM_WORKERS", "2"))
+    if workers not in (1, 2):
+        raise ValueError(f"stream workers must be 1 or 2, not {workers}")
+    try:
+        allowed = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        allowed = []
+    if workers == 1 or len(allowed) < 2 or not hasattr(os, "sched_setaffinity"):
+        return [None]
+    return allowed[-2:]
+
+
 class SetpointStreamer:
-    """Stream setpoints from ``make_setpoint`` to ``link`` at ``rate_hz`` in a thread.
+    """Stream setpoints from ``make_setpoint`` to ``link`` at ``rate_hz`` from worker threads.
 
     Parameters
     ----------
@@ -152,7 +177,8 @@ class SetpointStreamer:
         Usually a :class:`~mrft_gcs.link.VehicleLink`.
     make_setpoint : callable
         ``f(t_s) -> ActuatorTarget | AttitudeTarget | None``; ``t_s`` is seconds since
-        :meth:`start`. Runs on the streamer thread: keep it short (well under a period).
+        :meth:`start`. Runs on a stream worker, one tick at a time (never two at once, but
+        not always on the same thread): keep it short (well under a period).
     rate_hz : float
         Default 250 Hz.
     watchdog_s : float or None
@@ -160,6 +186,8 @@ class SetpointStreamer:
         disables the watchdog (bench tests without a vehicle only).
     land_on_abort : bool
         Command a landing when the watchdog fires or the callback raises.
+    workers : int, optional
+        1 or 2 worker threads (default :func:`stream_cpus`: 2 where there are two CPUs).
 
     Examples
     --------
@@ -170,7 +198,7 @@ class SetpointStreamer:
 
     def __init__(self, link: SetpointSink, make_setpoint: SetpointFn, rate_hz: float = 250.0,
                  watchdog_s: float | None = 0.5, land_on_abort: bool = True,
-                 max_records: int = 1_000_000) -> None:
+                 max_records: int = 1_000_000, workers: int | None = None) -> None:
         if rate_hz <= 0:
             raise ValueError("rate_hz must be positive")
         self.link = link
@@ -182,13 +210,19 @@ class SetpointStreamer:
         self._n = 0
         self._skipped = 0
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._cpus = stream_cpus(workers)
+        self._threads: list[threading.Thread] = []
+        self._tick_lock = threading.Lock()
+        self._claimed = -1  # the last tick sent or skipped
+        self._t0 = 0.0
+        self._cpu = [0.0] * len(self._cpus)
         self.abort_reason: str | None = None
         self.landing_commanded = False
-        #: the OS latency hints the stream thread got (:func:`latency_hints`)
+        #: the OS latency hints the stream threads got (:func:`latency_hints`, and the CPU
+        #: each worker is pinned to)
         self.hints: list[str] = []
-        #: the current spin margin (s, :func:`spin_margin_s`) and the stream thread's CPU
-        #: seconds so far (what the precise pacing costs)
+        #: the current spin margin (s, :func:`spin_margin_s`; one worker only) and the stream
+        #: threads' CPU seconds so far (what the precise pacing costs)
         self.spin_margin_s = _SPIN_MIN_S
         self.cpu_s = 0.0
         self.wall_s = 0.0
@@ -205,21 +239,31 @@ class SetpointStreamer:
 
     @property
     def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+        return any(t.is_alive() for t in self._threads)
+
+    @property
+    def workers(self) -> int:
+        """Threads that race for each tick (1, or 2 pinned to different CPUs)."""
+        return len(self._cpus)
 
     def start(self) -> SetpointStreamer:
         if self.running:
             return self
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="setpoint-streamer", daemon=True)
-        self._thread.start()
+        self._claimed, self._t0 = -1, time.monotonic()
+        self._threads = [threading.Thread(target=self._run, args=(i, cpu), daemon=True,
+                                          name=f"setpoint-streamer-{i}")
+                         for i, cpu in enumerate(self._cpus)]
+        for t in self._threads:
+            t.start()
         return self
 
     def stop(self) -> None:
         """Stop streaming (no landing: the caller decides what comes next)."""
         self._stop.set()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=2.0)
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join(timeout=2.0)
 
     def __enter__(self) -> SetpointStreamer:
         return self.start()
@@ -250,53 +294,74 @@ class SetpointStreamer:
         self.abort_reason = reason
         self._stop.set()
 
-    def _run(self) -> None:
+    def _run(self, worker: int = 0, cpu: int | None = None) -> None:
         _shorten_switch_interval()
         try:
-            self.hints = latency_hints()
-            self._loop()
+            hints = latency_hints()
+            if cpu is not None:
+                try:
+                    os.sched_setaffinity(0, {cpu})  # this thread only (Linux)
+                    hints.append(f"CPU {cpu}")
+                except OSError:
+                    pass
+            self.hints = self.hints + hints if worker else hints
+            self._loop(worker)
         finally:
             _restore_switch_interval()
 
-    def _loop(self) -> None:
+    def _loop(self, worker: int) -> None:
         period = 1.0 / self.rate_hz
-        t0 = time.monotonic()
+        t0 = self._t0
         cpu0 = time.thread_time()
         overshoots = np.full(_OVERSHOOT_WINDOW, np.nan)
         n_sleeps = 0
         k = 0
+        margin = _SPIN_MIN_S
+        twin = len(self._threads) > 1
         while not self._stop.is_set():
             if k % _MARGIN_EVERY == 0:
-                self.spin_margin_s = spin_margin_s(overshoots, period)
-                self.cpu_s, self.wall_s = time.thread_time() - cpu0, time.monotonic() - t0
+                if not twin:  # one thread covers late wake-ups by spinning longer
+                    margin = self.spin_margin_s = spin_margin_s(overshoots, period)
+                self._cpu[worker] = time.thread_time() - cpu0
+                self.cpu_s, self.wall_s = sum(self._cpu), time.monotonic() - t0
+            k = max(k, self._claimed + 1)
             deadline = t0 + k * period
             now = time.monotonic()
-            if now - deadline > period:  # more than a whole period late: skip, do not burst
-                missed = int((now - deadline) / period)
-                self._skipped += missed
-                k += missed
-                continue
             left = deadline - now
-            if left > self.spin_margin_s:
-                asked = left - self.spin_margin_s
+            if left > margin:
+                asked = left - margin
                 time.sleep(asked)
                 overshoots[n_sleeps % _OVERSHOOT_WINDOW] = time.monotonic() - now - asked
                 n_sleeps += 1
             while time.monotonic() < deadline:
                 _yield_cpu()  # releases the GIL and the CPU to whoever else is ready
-            now = time.monotonic()
-            k += 1
-            if self.watchdog_s is not None and self.link.telemetry_age_s() > self.watchdog_s:
-                self._abort(f"no telemetry for {self.link.telemetry_age_s():.2f} s "
-                            f"(limit {self.watchdog_s:g} s): setpoint stream stopped")
-                return
-            try:
-                target = self.make_setpoint(now - t0)
-                if target is not None:
-                    self.link.send_setpoint(target)
-            except Exception as err:
-                self._abort(f"setpoint stream failed: {err}")
-                return
-            if self._n < len(self._times):
-                self._times[self._n] = now
-                self._n += 1
+            with self._tick_lock:
+                if self._claimed >= k or self._stop.is_set():
+                    continue  # the other worker sent this tick
+                now = time.monotonic()
+                if now - deadline > period:  # more than a whole period late: skip, no burst
+                    missed = int((now - deadline) / period)
+                    self._skipped += missed
+                    self._claimed = k + missed - 1
+                    continue
+                self._claimed = k
+                if not self._tick(now):
+                    return
+
+    def _tick(self, now: float) -> bool:
+        """Send one setpoint (the tick lock held); False when the stream must stop."""
+        if self.watchdog_s is not None and self.link.telemetry_age_s() > self.watchdog_s:
+            self._abort(f"no telemetry for {self.link.telemetry_age_s():.2f} s "
+                        f"(limit {self.watchdog_s:g} s): setpoint stream stopped")
+            return False
+        try:
+            target = self.make_setpoint(now - self._t0)
+            if target is not None:
+                self.link.send_setpoint(target)
+        except Exception as err:
+            self._abort(f"setpoint stream failed: {err}")
+            return False
+        if self._n < len(self._times):
+            self._times[self._n] = now
+            self._n += 1
+        return True
