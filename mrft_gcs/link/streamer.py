@@ -11,19 +11,19 @@ SPEC 5) the stream stops, a landing is commanded and :attr:`abort_reason` says
 why; :meth:`raise_if_aborted` turns it into :class:`~mrft_gcs.errors.SafetyAbort`.
 
 Timing: where the process may use two CPUs (Linux), two worker threads, each pinned to
-a CPU of its own (:func:`stream_cpus`), race for every tick: each sleeps to 0.4 ms before
-the deadline and spins the rest (yielding the CPU and the GIL on each turn,
-``os.sched_yield``); the first awake takes the tick under a lock and sends it, the
-other finds it taken. On a virtual machine a late wake-up is mostly the hypervisor
-holding one virtual CPU, and the two are held at different moments (README, "Link":
-p99 lateness 2.2 ms on either CPU, 0.37 ms for the earlier of the two). One worker
-(``workers=1``, or one CPU) is unpinned and adapts its margin to how late this
-machine's sleeps wake (:func:`spin_margin_s`: the 99th percentile of the last second's
-overshoots plus 0.2 ms, between 0.4 ms and 90 % of a period), spinning more rather than
-missing deadlines. While any stream runs, the interpreter's GIL switch interval is
-0.5 ms instead of 5 ms (restored when the last stream stops). The workers ask the OS to
-wake them on time (:func:`~mrft_gcs.link.latency.latency_hints`: unprivileged, no
-priority change).
+a CPU of its own (:func:`stream_cpus`), race for every tick: each sleeps right to the
+deadline (``clock_nanosleep`` on the monotonic clock), the first awake takes the tick
+under a lock and sends it, the other finds it taken. On a virtual machine a late wake-up
+is mostly the hypervisor holding one virtual CPU, and the two are held at different
+moments (README, "Link": p99 lateness 2.2 ms on either CPU, 0.37 ms for the earlier of
+the two). One worker (``workers=1``, or one CPU) is unpinned; it sleeps to a margin before
+each deadline and spins the rest, yielding the CPU and the GIL on each turn
+(``os.sched_yield``), the margin following how late this machine's sleeps wake
+(:func:`spin_margin_s`: the 99th percentile of the last second's overshoots plus 0.2 ms,
+between 0.4 ms and 90 % of a period). While any stream runs, the interpreter's GIL switch
+interval is 0.5 ms instead of 5 ms (restored when the last stream stops). The workers ask
+the OS to wake them on time (:func:`~mrft_gcs.link.latency.latency_hints`: unprivileged,
+no priority change).
 """
 
 from __future__ import annotations
@@ -49,6 +49,12 @@ Setpoint = ActuatorTarget | AttitudeTarget
 #: The callback: monotonic seconds since the stream started -> setpoint, or None to skip a tick.
 SetpointFn = Callable[[float], Setpoint | None]
 
+#: two workers sleep right to the deadline: the other covers a late wake-up, and spinning
+#: holds the GIL. Live racer250, 8 tunes a side, each batch against one unpinned spinning
+#: worker: two spinning the last 0.4 ms, 248.1 vs 249.3 Hz mean; two sleeping to the
+#: deadline, 249.3 vs 248.1 Hz, p99 jitter < 2 ms in 7 of 8 tunes vs 3 of 7
+#: (streamer_jitter.py, no tune: CPU 9-10 % of one core vs 28-59 %)
+_TWIN_MARGIN_S = 0.0
 _SPIN_MIN_S = 0.0004  # never sleep closer to a deadline than this (sleep() overshoots ~0.1 ms)
 _SPIN_PAD_S = 0.0002  # added to the measured overshoot percentile
 _SPIN_MAX_FRACTION = 0.9  # of a period: always sleep a little, so the stream never takes a core
@@ -316,8 +322,8 @@ class SetpointStreamer:
         overshoots = np.full(_OVERSHOOT_WINDOW, np.nan)
         n_sleeps = 0
         k = 0
-        margin = _SPIN_MIN_S
         twin = len(self._threads) > 1
+        margin = _TWIN_MARGIN_S if twin else _SPIN_MIN_S
         while not self._stop.is_set():
             if k % _MARGIN_EVERY == 0:
                 if not twin:  # one thread covers late wake-ups by spinning longer
