@@ -602,8 +602,9 @@ class _Run:
             return
         try:
             self.worker.reply(timeout_s=WORKER_WARM_UP_S)
-        except WorkerError as err:
-            self._drop_worker(str(err))
+        except Exception as err:  # noqa: BLE001 - whatever it was, identify here instead
+            self._drop_worker(str(err) if isinstance(err, WorkerError) else
+                              f"its warm-up raised {type(err).__name__}: {err}")
 
     def _drop_worker(self, why: str) -> None:
         self.notes.append(f"identification ran in the ground station's own process, next to "
