@@ -390,21 +390,33 @@ def _answer_order(log: TelemetryLog, order: dict[str, np.ndarray]) -> dict[str, 
         i = np.clip(latest - back, 0, None)
         return att_f[i, 3] + (tau + hold.Kd * att_f[i, 6]) / hold.Kc
 
-    est = ref(0)
-    centre = float(np.median(est[free]))
-
-    def off(e: np.ndarray) -> np.ndarray:
+    def off(e: np.ndarray, centre: float) -> np.ndarray:
         return np.abs((e - centre + np.pi) % (2 * np.pi) - np.pi)
 
-    if np.mean(off(est[free]) < 2e-6) < 0.5:
+    def told(centre: float) -> float:
+        """Share of the commands that give ``centre`` back from one of the last samples."""
+        hit = np.zeros(int(free.sum()), dtype=bool)
+        for b in range(_BACK):
+            hit |= off(ref(b)[free], centre) < 2e-6
+            if hit.all():
+                break
+        return float(hit.mean())
+
+    # the heading: the median of the commands' answers from the latest logged sample, or
+    # from the one before. Which of the two most commands answered depends on the phase
+    # between the telemetry and the stream, fixed per session by chance (seen: 63 / 37 %
+    # and 47 / 52 %); a median is exact where the share is near half or more.
+    centre = max((float(np.median(ref(b)[free])) for b in range(3)), key=told)
+    if told(centre) < 0.5:
         return out  # not mrft-tune's yaw hold
+    est = ref(0)
     out["yaw_ref"] = np.array([centre])  # the heading the yaw hold keeps (take-off heading)
     back = np.zeros(latest.size, dtype=np.int64)
-    undecided = free & (off(est) >= 2e-6)
+    undecided = free & (off(est, centre) >= 2e-6)
     for b in range(1, _BACK):
         if not undecided.any():
             break
-        hit = undecided & (latest - b >= 0) & (off(ref(b)) < 2e-6)
+        hit = undecided & (latest - b >= 0) & (off(ref(b), centre) < 2e-6)
         back[hit] = b
         undecided &= ~hit
     moved = back > 0
