@@ -56,6 +56,19 @@ def test_a_refused_identification_is_raised_again_in_the_caller(worker):
     assert worker.call("identify", Loop.ROLL, _roll_snapshot(), None).gains is not None
 
 
+def test_the_attitude_paths_closed_loop_is_measured_there_too(worker):
+    """``attitude_loop`` (:func:`mrft_gcs.flight.api.measured_attitude_loop`): a side
+    snapshot without a tilt record is refused there as here."""
+    from mrft_gcs.flight.api import measured_attitude_loop
+
+    snap = _roll_snapshot()  # no tilt record
+    with pytest.raises(IdentificationError, match="no measured tilt") as here:
+        measured_attitude_loop(snap)
+    with pytest.raises(IdentificationError) as there:
+        worker.call("attitude_loop", snap)
+    assert str(there.value) == str(here.value)
+
+
 def test_a_worker_that_died_is_a_worker_error_not_a_hang():
     w = IdentificationWorker()
     w._proc.kill()

@@ -616,16 +616,15 @@ class _Run:
             self.worker.close()
             self.worker = None
 
-    def _identifier(self, loop: Loop, snap: CycleSnapshot,
-                    inner: Identification | None) -> Identification:
-        """The tune's identifier: in the worker where there is one, else in this process."""
+    def _offload(self, op: str, here: Callable[..., Identification], *args: object
+                 ) -> Identification:
+        """``op`` in the worker where there is one, else ``here(*args)`` in this process."""
         if self.worker is not None:
             try:
-                return self.worker.call("identify", loop, snap, inner,
-                                        timeout_s=WORKER_CALL_S)
+                return self.worker.call(op, *args, timeout_s=WORKER_CALL_S)
             except WorkerError as err:
                 self._drop_worker(str(err))
-        return self.ident_fn(loop, snap, inner)
+        return here(*args)
 
     def _residuals(self) -> None:
         """Residual analysis of each identified loop (after the flight: it takes seconds)."""
@@ -744,8 +743,8 @@ class _Run:
             if snap.loop in _SIDE_INNER:
                 inner = seq.loops[_SIDE_INNER[snap.loop]].identification
                 if inner is None and self.act is Actuation.ATTITUDE:
-                    inner = measured_attitude_loop(snap)
-            ident = self._identifier(snap.loop, snap, inner)
+                    inner = self._offload("attitude_loop", measured_attitude_loop, snap)
+            ident = self._offload("identify", self.ident_fn, snap.loop, snap, inner)
         except IdentificationError as err:
             self.notes.append(f"{snap.loop.value}: identification retried ({err})")
             seq.retry(snap.loop, restart="set point" in str(err))

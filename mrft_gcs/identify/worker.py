@@ -41,7 +41,7 @@ class WorkerError(RuntimeError):
 
 
 class IdentificationWorker:
-    """A child process that runs :func:`mrft_gcs.flight.api.bundled_identifier` calls.
+    """A child process that runs the bundled identification's calls (:meth:`request`).
 
     Examples
     --------
@@ -69,7 +69,12 @@ class IdentificationWorker:
         return self._proc.poll() is None
 
     def request(self, op: str, *args: Any) -> None:
-        """Send one request (``"warm"`` or ``"identify"``); :meth:`reply` reads its answer."""
+        """Send one request; :meth:`reply` reads its answer.
+
+        ``"warm"`` (:func:`~mrft_gcs.flight.api.warm_up_identification`), ``"identify"``
+        (:func:`~mrft_gcs.flight.api.bundled_identifier`) or ``"attitude_loop"``
+        (:func:`~mrft_gcs.flight.api.measured_attitude_loop`, the attitude path).
+        """
         if self._waiting:
             raise WorkerError("the worker is still busy with the previous request")
         assert self._proc.stdin is not None
@@ -88,7 +93,7 @@ class IdentificationWorker:
         assert self._proc.stdout is not None
         out = self._proc.stdout
         deadline = time.monotonic() + timeout_s
-        while True:  # the length header first: select says when it has arrived
+        while True:  # select says when the answer starts to arrive
             left = deadline - time.monotonic()
             if left <= 0:
                 raise WorkerError(f"the identification worker did not answer within "
@@ -140,9 +145,14 @@ def _serve() -> None:
     """The child's loop: one pickled ``(op, args)`` in, one ``(status, value)`` out."""
     import gc
 
-    from mrft_gcs.flight.api import bundled_identifier, warm_up_identification
+    from mrft_gcs.flight.api import (
+        bundled_identifier,
+        measured_attitude_loop,
+        warm_up_identification,
+    )
 
-    ops = {"warm": warm_up_identification, "identify": bundled_identifier}
+    ops = {"warm": warm_up_identification, "identify": bundled_identifier,
+           "attitude_loop": measured_attitude_loop}
     inp = sys.stdin.buffer
     out = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # stray prints must not break replies
