@@ -258,7 +258,7 @@ class SetpointStreamer:
         if self.running:
             return self
         self._stop.clear()
-        self._claimed, self._t0 = -1, time.monotonic()
+        self._claimed, self._t0, self.hints = -1, time.monotonic(), []
         self._threads = [threading.Thread(target=self._run, args=(i, cpu), daemon=True,
                                           name=f"setpoint-streamer-{i}")
                          for i, cpu in enumerate(self._cpus)]
@@ -312,7 +312,8 @@ class SetpointStreamer:
                     hints.append(f"CPU {cpu}")
                 except OSError:
                     pass
-            self.hints = self.hints + hints if worker else hints
+            with self._tick_lock:
+                self.hints.extend(hints)
             self._loop(worker)
         finally:
             _restore_switch_interval()
