@@ -7,7 +7,8 @@ ground, disarmed) for ``--seconds`` and prints the achieved rate and the p50/p99
 period jitter. Target (issue 5): >= 250 Hz with p99 jitter < 2 ms.
 
 The stream races two worker threads pinned to different CPUs for each tick where this
-process may use two (``--workers 1``: one unpinned thread, as before; see
+process may use two, each sleeping right to the deadline (``--workers 1``: one unpinned
+thread that spins before each deadline, as before; see
 :func:`mrft_gcs.link.streamer.stream_cpus`). The floor is a fixed-margin pacing loop (sleep to 0.4 ms before each deadline, then
 spin) with nothing to send, in a thread with the same OS latency hints as the stream
 (:func:`mrft_gcs.link.latency.latency_hints`): what the scheduler's sleeps alone allow
@@ -89,7 +90,7 @@ def main() -> None:
         print(f"stream ({', '.join(streamer.hints) or 'no OS hints'}; {_load()}): "
               f"{stats.line()}")
         margin = (f"spin margin {streamer.spin_margin_s * 1e3:.2f} ms" if streamer.workers == 1
-                  else "spin margin 0.40 ms each")
+                  else "each sleeping right to the deadline")
         print(f"stream: {streamer.workers} worker thread(s), {margin}, CPU "
               f"{streamer.cpu_s / max(streamer.wall_s, 1e-9):.0%} of one core")
         ok = stats.rate_hz_achieved >= 0.99 * args.rate and stats.jitter_p99_ms < 2.0
