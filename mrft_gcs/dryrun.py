@@ -406,8 +406,9 @@ def _answer_order(log: TelemetryLog, order: dict[str, np.ndarray]) -> dict[str, 
     # from the one before. Which of the two most commands answered depends on the phase
     # between the telemetry and the stream, fixed per session by chance (seen: 63 / 37 %
     # and 47 / 52 %); a median is exact where the share is near half or more.
-    centre = max((float(np.median(ref(b)[free])) for b in range(3)), key=told)
-    if told(centre) < 0.5:
+    share, centre = max((told(c), c) for c in (float(np.median(ref(b)[free]))
+                                               for b in range(3)))
+    if share < 0.5:
         return out  # not mrft-tune's yaw hold
     est = ref(0)
     out["yaw_ref"] = np.array([centre])  # the heading the yaw hold keeps (take-off heading)

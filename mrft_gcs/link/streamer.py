@@ -340,8 +340,9 @@ class SetpointStreamer:
             if left > margin:
                 asked = left - margin
                 time.sleep(asked)
-                overshoots[n_sleeps % _OVERSHOOT_WINDOW] = time.monotonic() - now - asked
-                n_sleeps += 1
+                if not twin:  # what the single worker's margin follows
+                    overshoots[n_sleeps % _OVERSHOOT_WINDOW] = time.monotonic() - now - asked
+                    n_sleeps += 1
             while time.monotonic() < deadline:
                 _yield_cpu()  # releases the GIL and the CPU to whoever else is ready
             with self._tick_lock:
