@@ -3,6 +3,7 @@ the watchdog, signing, and the .tlog of both directions."""
 
 from __future__ import annotations
 
+import os
 import socket
 import time
 
@@ -312,3 +313,80 @@ def test_latency_hints_need_no_privilege():
         assert "timer slack 1 us" in got  # prctl works for any user
     else:
         assert got == []
+
+
+def test_cpu_wake_latency_request_is_written_held_and_released(tmp_path, monkeypatch):
+    import struct
+
+    from mrft_gcs.link.latency import CpuWakeLatency
+
+    dev = tmp_path / "qos"
+    dev.write_bytes(b"")
+    q = CpuWakeLatency(us=20, path=str(dev))
+    assert q.acquire() == "CPU wake-up latency <= 20 us" and q.held
+    assert struct.unpack("i", dev.read_bytes()) == (20,)  # the kernel's binary s32 form
+    fd = q._fd
+    q.release()
+    assert not q.held
+    with pytest.raises(OSError):
+        os.fstat(fd)  # closing the file is what ends the request
+    missing = CpuWakeLatency(us=0, path=str(tmp_path / "none"))
+    assert missing.acquire().startswith("CPU wake-up latency not bounded") and not missing.held
+    assert not missing.denied
+    monkeypatch.setenv("MRFT_CPU_LATENCY_US", "off")
+    off = CpuWakeLatency(path=str(dev))
+    assert "MRFT_CPU_LATENCY_US=off" in off.acquire() and not off.held
+    monkeypatch.setenv("MRFT_CPU_LATENCY_US", "-1")
+    with pytest.raises(ValueError, match=">= 0"):
+        CpuWakeLatency(path=str(dev))
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid"), reason="POSIX file permissions")
+def test_cpu_wake_latency_without_permission_says_how_to_grant_it(tmp_path):
+    import subprocess
+    import sys
+
+    dev = tmp_path / "qos"
+    dev.write_bytes(b"")
+    dev.chmod(0o444)
+    # root writes anywhere: the child drops to nobody first (the device's usual refusal)
+    code = ("import os\nfrom mrft_gcs.link.latency import CpuWakeLatency as Q\n"
+            "if os.geteuid() == 0: os.setuid(65534)\n"
+            f"q = Q(us=0, path={str(dev)!r}); print(q.acquire()); print(q.denied, q.held)")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    said, flags = run.stdout.strip().splitlines()
+    assert "no write access" in said and "run as root or grant it" in said
+    assert flags == "True False"
+
+
+@pytest.mark.skipif(not os.access("/dev/cpu_dma_latency", os.W_OK),
+                    reason="needs write access to /dev/cpu_dma_latency")
+def test_stream_bounds_cpu_wake_latency_only_while_it_runs():
+    import struct
+
+    def current() -> int:
+        fd = os.open("/dev/cpu_dma_latency", os.O_RDONLY)
+        try:
+            return struct.unpack("i", os.read(fd, 4))[0]
+        finally:
+            os.close(fd)
+
+    class Sink:
+        def send_setpoint(self, target):
+            pass
+
+        def telemetry_age_s(self):
+            return 0.0
+
+        def land(self, **kw):
+            pass
+
+    before = current()
+    s = SetpointStreamer(Sink(), lambda t: None, watchdog_s=None).start()
+    try:
+        assert s.hints[0] == "CPU wake-up latency <= 0 us"
+        assert current() == 0
+    finally:
+        s.stop()
+    assert current() == before

@@ -4,6 +4,14 @@ A relay test closes its loop through the ground station, so every wake-up latenc
 SITL's send, the GCS reader's receive, the stream's tick) adds delay to the loop. On a
 busy machine a waking thread waits for a CPU; :func:`latency_hints` asks, unprivileged,
 for less of that wait. It changes neither the thread's priority nor its share of CPU.
+
+An idle CPU waits in a sleep state, and leaving it takes time: on a virtual machine the
+host must schedule the halted virtual CPU again, which took up to 8-19 ms on the
+development box. :class:`CpuWakeLatency` holds Linux's PM QoS request
+(``/dev/cpu_dma_latency``, the mechanism real-time tools such as ``cyclictest`` use) so
+that CPUs only use idle states they leave within the bound (0 us: poll, never halt) while
+the setpoint stream runs. Writing it needs root or write access granted to the device (a
+udev rule); without it the stream runs as before and says so.
 """
 
 from __future__ import annotations
@@ -11,12 +19,17 @@ from __future__ import annotations
 import ctypes
 import os
 import platform
+import struct
 import sys
 
-__all__ = ["latency_hints"]
+__all__ = ["latency_hints", "CpuWakeLatency", "CPU_LATENCY_ENV"]
 
 _SLICE_NS = 100_000  # EEVDF custom slice (the kernel's minimum, 0.1 ms)
 _PR_SET_TIMERSLACK = 29
+_PM_QOS_DEVICE = "/dev/cpu_dma_latency"
+#: environment variable: the CPU wake-up bound the stream asks for, in microseconds
+#: (default 0), or ``off`` to ask for none
+CPU_LATENCY_ENV = "MRFT_CPU_LATENCY_US"
 
 
 class _SchedAttr(ctypes.Structure):
@@ -60,3 +73,70 @@ def latency_hints() -> list[str]:
             if libc.syscall(calls[0], 0, ctypes.byref(attr), 0) == 0:
                 done.append(f"scheduler slice {_SLICE_NS / 1e6:g} ms")
     return done
+
+
+class CpuWakeLatency:
+    """A PM QoS request on CPU wake-up latency, held from :meth:`acquire` to :meth:`release`.
+
+    The kernel honours the smallest bound any open request asks for and drops a request
+    when its file is closed, including when the process dies: nothing outlives the stream.
+
+    Parameters
+    ----------
+    us : int, optional
+        Largest acceptable wake-up latency in microseconds; default from the environment
+        variable ``MRFT_CPU_LATENCY_US`` (``off``: no request), else 0.
+    path : str
+        The PM QoS device (tests point it elsewhere).
+
+    Examples
+    --------
+    >>> q = CpuWakeLatency(path="/nonexistent")
+    >>> q.acquire().startswith("CPU wake-up latency not bounded")
+    True
+    >>> q.held
+    False
+    """
+
+    def __init__(self, us: int | None = None, path: str = _PM_QOS_DEVICE) -> None:
+        if us is None:
+            raw = os.environ.get(CPU_LATENCY_ENV, "0").strip().lower()
+            us = None if raw in ("off", "none", "") else int(raw)
+        if us is not None and us < 0:
+            raise ValueError(f"CPU wake-up latency must be >= 0 us, not {us}")
+        self.us = us
+        self.path = path
+        #: True when the request was refused for want of permission (worth telling the user)
+        self.denied = False
+        self._fd: int | None = None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def acquire(self) -> str:
+        """Open the request; returns what happened, in words (for the stream's hints)."""
+        if self.us is None:
+            return f"CPU wake-up latency not bounded ({CPU_LATENCY_ENV}=off)"
+        if self._fd is not None:
+            return f"CPU wake-up latency <= {self.us} us"
+        try:
+            fd = os.open(self.path, os.O_WRONLY)
+        except PermissionError:
+            self.denied = True
+            return (f"CPU wake-up latency not bounded (no write access to {self.path}: run as "
+                    f"root or grant it, e.g. by a udev rule, for steadier stream timing)")
+        except OSError as err:
+            return f"CPU wake-up latency not bounded ({self.path}: {err.strerror or err})"
+        try:
+            os.write(fd, struct.pack("i", self.us))
+        except OSError as err:
+            os.close(fd)
+            return f"CPU wake-up latency not bounded ({self.path}: {err.strerror or err})"
+        self._fd = fd
+        return f"CPU wake-up latency <= {self.us} us"
+
+    def release(self) -> None:
+        if self._fd is not None:
+            fd, self._fd = self._fd, None
+            os.close(fd)

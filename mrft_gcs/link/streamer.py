@@ -23,7 +23,10 @@ each deadline and spins the rest, yielding the CPU and the GIL on each turn
 between 0.4 ms and 90 % of a period). While any stream runs, the interpreter's GIL switch
 interval is 0.5 ms instead of 5 ms (restored when the last stream stops). The workers ask
 the OS to wake them on time (:func:`~mrft_gcs.link.latency.latency_hints`: unprivileged,
-no priority change).
+no priority change). While the stream runs it holds a PM QoS request that keeps the CPUs
+out of slow idle states (:class:`~mrft_gcs.link.latency.CpuWakeLatency`, where the
+process may write ``/dev/cpu_dma_latency``): on the development VM a halted virtual CPU
+was woken up to 8-19 ms late, and with the request live tunes stopped skipping ticks.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from typing import Protocol
 import numpy as np
 
 from mrft_gcs.errors import SafetyAbort
-from mrft_gcs.link.latency import latency_hints
+from mrft_gcs.link.latency import CpuWakeLatency, latency_hints
 from mrft_gcs.telemetry import ActuatorTarget, AttitudeTarget
 
 __all__ = ["SetpointStreamer", "StreamStats", "SetpointSink", "Setpoint", "period_stats",
@@ -224,6 +227,8 @@ class SetpointStreamer:
         self._claimed = -1  # the last tick sent or skipped
         self._t0 = 0.0
         self._cpu = [0.0] * len(self._cpus)
+        #: the PM QoS request held while the stream runs (:class:`CpuWakeLatency`)
+        self.cpu_latency = CpuWakeLatency() if sys.platform.startswith("linux") else None
         self.abort_reason: str | None = None
         self.landing_commanded = False
         #: the OS latency hints the stream threads got (:func:`latency_hints`, and the CPU
@@ -258,7 +263,8 @@ class SetpointStreamer:
         if self.running:
             return self
         self._stop.clear()
-        self._claimed, self._t0, self.hints = -1, time.monotonic(), []
+        self.hints = [self.cpu_latency.acquire()] if self.cpu_latency is not None else []
+        self._claimed, self._t0 = -1, time.monotonic()
         self._threads = [threading.Thread(target=self._run, args=(i, cpu), daemon=True,
                                           name=f"setpoint-streamer-{i}")
                          for i, cpu in enumerate(self._cpus)]
@@ -272,6 +278,8 @@ class SetpointStreamer:
         for t in self._threads:
             if t is not threading.current_thread():
                 t.join(timeout=2.0)
+        if self.cpu_latency is not None:
+            self.cpu_latency.release()
 
     def __enter__(self) -> SetpointStreamer:
         return self.start()
