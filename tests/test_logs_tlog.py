@@ -207,3 +207,60 @@ def test_file_order_follows_the_rows_it_was_logged_with():
     dropped = replace(d, attitude=bad).cleaned()
     assert len(dropped.file_order["attitude"]) == len(dropped.attitude) == len(d.attitude) - 1
     assert d.file_order["attitude"][3] not in dropped.file_order["attitude"]
+
+
+def test_sink_queues_frames_while_the_file_is_stuck(tmp_path):
+    """The stream's ticks log their frames through the sink: a write to disk that blocks
+    (a journal commit, dirty-page throttling) must hold up the writer thread, not them."""
+    import threading
+
+    from mrft_gcs.link.tlog import TlogSink
+
+    sink = TlogSink(tmp_path / "s.tlog", every_s=0.001)
+    real = sink._writer
+    stuck, entered = threading.Event(), threading.Event()
+
+    class StuckFile:  # the real writer behind a write that blocks until released
+        def write(self, frame, t, flush=True):
+            entered.set()
+            stuck.wait()
+            real.write(frame, t, flush=flush)
+
+        def flush(self):
+            real.flush()
+
+        def close(self):
+            real.close()
+
+    sink._writer = StuckFile()
+    frames = [bytes.fromhex("fe09") + bytes([k]) + bytes.fromhex("0101000000000002030451040300")
+              for k in range(100)]
+    sink.write(frames[0])
+    assert entered.wait(5.0)  # the writer thread is now stuck inside the file write
+    writer = threading.Thread(target=lambda: [sink.write(f) for f in frames[1:]])
+    writer.start()
+    writer.join(5.0)
+    assert not writer.is_alive()  # every write returned while the file was stuck
+    stuck.set()
+    sink.close()
+    data = (tmp_path / "s.tlog").read_bytes()
+    assert sink.frames == 100 and len(data) == 100 * (8 + len(frames[0]))
+    assert [data[k * 25 + 10] for k in range(100)] == list(range(100))  # in order
+
+
+def test_sink_frames_reach_the_file_before_close(tmp_path):
+    import time
+
+    from mrft_gcs.link.tlog import TlogSink
+
+    t, frame = _records(SAMPLE)[0]
+    sink = TlogSink(tmp_path / "live.tlog")
+    sink.write(frame)
+    deadline = time.monotonic() + 5.0
+    while (tmp_path / "live.tlog").stat().st_size == 0 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert (tmp_path / "live.tlog").stat().st_size == 8 + len(frame)  # a crash keeps it
+    sink.close()
+    sink.close()  # idempotent
+    sink.write(frame)  # after close: dropped, no error
+    assert sink.frames == 1

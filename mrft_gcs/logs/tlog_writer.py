@@ -3,8 +3,9 @@
 Each record is the time the frame passed (microseconds since the Unix epoch,
 8-byte big-endian unsigned) followed by the raw frame bytes, the format
 QGroundControl and MAVProxy write and :mod:`mrft_gcs.logs.tlog` reads. Every
-record is flushed to the operating system as it is written, so a session that
-crashes leaves a log that is readable up to its last frame.
+record (or batch, see ``flush``) is flushed to the operating system as it is
+written, so a session that crashes leaves a log that is readable up to its last
+frame.
 
 Examples
 --------
@@ -65,7 +66,7 @@ class TlogWriter:
         """True once :meth:`close` has run."""
         return self._file.closed
 
-    def write(self, msg_bytes: bytes, t_unix_s: float) -> None:
+    def write(self, msg_bytes: bytes, t_unix_s: float, *, flush: bool = True) -> None:
         """Log one MAVLink frame.
 
         Parameters
@@ -75,6 +76,9 @@ class TlogWriter:
             through its checksum (and signature, if signed).
         t_unix_s : float
             When the frame was sent or received, seconds since the Unix epoch.
+        flush : bool
+            Hand the record to the operating system now (default); a caller writing a
+            batch passes False and calls :meth:`flush` after the last.
 
         Raises
         ------
@@ -89,8 +93,14 @@ class TlogWriter:
         if not (math.isfinite(t_unix_s) and t_unix_s >= 0.0):
             raise ValueError(f"t_unix_s must be finite and >= 0, got {t_unix_s!r}")
         self._file.write(_STAMP.pack(round(t_unix_s * 1e6)) + bytes(msg_bytes))
-        self._file.flush()
+        if flush:
+            self._file.flush()
         self.frames += 1
+
+    def flush(self) -> None:
+        """Hand what was written to the operating system."""
+        if not self._file.closed:
+            self._file.flush()
 
     def close(self) -> None:
         """Flush and close the file (idempotent)."""
