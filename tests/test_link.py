@@ -228,22 +228,25 @@ def test_links_speak_mavlink2():  # signing needs it
     assert mavlink_module().mavlink.WIRE_PROTOCOL_VERSION == "2.0"
 
 
+class _NullSink:
+    """A link that takes setpoints and always has fresh telemetry (stream timing tests)."""
+
+    def send_setpoint(self, target):
+        pass
+
+    def telemetry_age_s(self):
+        return 0.0
+
+    def land(self, **kw):
+        pass
+
+
 def test_streamer_shortens_the_switch_interval_only_while_it_runs():
-    class Sink:
-        def send_setpoint(self, target):
-            pass
-
-        def telemetry_age_s(self):
-            return 0.0
-
-        def land(self, **kw):
-            pass
-
     import sys
 
     before = sys.getswitchinterval()
-    a = SetpointStreamer(Sink(), lambda t: None, watchdog_s=None).start()
-    b = SetpointStreamer(Sink(), lambda t: None, watchdog_s=None).start()
+    a = SetpointStreamer(_NullSink(), lambda t: None, watchdog_s=None).start()
+    b = SetpointStreamer(_NullSink(), lambda t: None, watchdog_s=None).start()
     time.sleep(0.1)
     assert sys.getswitchinterval() == pytest.approx(min(before, 0.0005))
     a.stop()
@@ -372,18 +375,8 @@ def test_stream_bounds_cpu_wake_latency_only_while_it_runs():
         finally:
             os.close(fd)
 
-    class Sink:
-        def send_setpoint(self, target):
-            pass
-
-        def telemetry_age_s(self):
-            return 0.0
-
-        def land(self, **kw):
-            pass
-
     before = current()
-    s = SetpointStreamer(Sink(), lambda t: None, watchdog_s=None).start()
+    s = SetpointStreamer(_NullSink(), lambda t: None, watchdog_s=None).start()
     try:
         assert s.hints[0] == "CPU wake-up latency <= 0 us"
         assert current() == 0
