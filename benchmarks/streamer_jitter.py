@@ -4,7 +4,10 @@ Starts the bundled SITL, connects a :class:`~mrft_gcs.link.VehicleLink`, measure
 link (telemetry rate after asking 250 Hz, round-trip time), then streams
 SET_ACTUATOR_CONTROL_TARGET (zero torque, zero thrust: the vehicle stays on the
 ground, disarmed) for ``--seconds`` and prints the achieved rate and the p50/p99
-period jitter. Target (issue 5): >= 250 Hz with p99 jitter < 2 ms.
+period jitter. Target (issue 5): >= 250 Hz (every tick sent) with p99 jitter < 2 ms.
+While the stream runs it holds the PM QoS request on CPU wake-up latency where it may
+(:class:`mrft_gcs.link.latency.CpuWakeLatency`; ``MRFT_CPU_LATENCY_US=off`` to compare
+without); the floor is measured before it, without.
 
 The stream races two worker threads pinned to different CPUs for each tick where this
 process may use two, each sleeping right to the deadline (``--workers 1``: one unpinned
@@ -93,8 +96,12 @@ def main() -> None:
                   else "each sleeping right to the deadline")
         print(f"stream: {streamer.workers} worker thread(s), {margin}, CPU "
               f"{streamer.cpu_s / max(streamer.wall_s, 1e-9):.0%} of one core")
-        ok = stats.rate_hz_achieved >= 0.99 * args.rate and stats.jitter_p99_ms < 2.0
-        print(f"target (>= {args.rate:g} Hz, p99 jitter < 2 ms): {'met' if ok else 'NOT met'}")
+        # the full rate is every tick sent: the measured rate of a gap-free stream can still
+        # read a hair under nominal (the last period on a clock ratio)
+        missed = [f"{stats.skipped} ticks skipped"] if stats.skipped else []
+        missed += [f"p99 jitter {stats.jitter_p99_ms:.2f} ms"] if stats.jitter_p99_ms >= 2.0 else []
+        print(f"target (>= {args.rate:g} Hz, p99 jitter < 2 ms): "
+              f"{'NOT met (' + ', '.join(missed) + ')' if missed else 'met'}")
 
 
 if __name__ == "__main__":
