@@ -340,7 +340,10 @@ def test_cpu_wake_latency_request_is_written_held_and_released(tmp_path, monkeyp
     off = CpuWakeLatency(path=str(dev))
     assert "MRFT_CPU_LATENCY_US=off" in off.acquire() and not off.held
     monkeypatch.setenv("MRFT_CPU_LATENCY_US", "-1")
-    with pytest.raises(ValueError, match=">= 0"):
+    with pytest.raises(UsageError, match=">= 0"):
+        CpuWakeLatency(path=str(dev))
+    monkeypatch.setenv("MRFT_CPU_LATENCY_US", "fast")
+    with pytest.raises(UsageError, match="whole microseconds"):
         CpuWakeLatency(path=str(dev))
 
 

@@ -264,3 +264,30 @@ def test_sink_frames_reach_the_file_before_close(tmp_path):
     sink.close()  # idempotent
     sink.write(frame)  # after close: dropped, no error
     assert sink.frames == 1
+
+
+def test_sink_that_cannot_write_stops_logging_and_says_why(tmp_path):
+    """A full disk must not stop the flight whose frames it logs: the sink keeps taking
+    frames, drops them, and keeps the reason (the tune puts it in its notes)."""
+    from mrft_gcs.link.tlog import TlogSink
+
+    t, frame = _records(SAMPLE)[0]
+    sink = TlogSink(tmp_path / "full.tlog", every_s=0.001)
+    real = sink._writer
+
+    class FullDisk:
+        def write(self, frame, t, flush=True):
+            raise OSError(28, "No space left on device")
+
+        def flush(self):
+            pass
+
+        def close(self):
+            real.close()
+
+    sink._writer = FullDisk()
+    for _ in range(50):
+        sink.write(frame)
+    sink.close()
+    assert sink.error == "No space left on device" and sink.frames == 0
+    sink.write(frame)  # still no error to the caller

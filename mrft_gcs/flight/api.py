@@ -526,9 +526,17 @@ class _Run:
             max_tilt_deg=self.monitor.max_tilt_seen_deg if self.monitor else math.nan,
             max_tilt_by_phase=dict(seq.max_tilt_by_phase) if seq is not None else {},
             limits=self.lim, hover_error_m=self.hover_error_m,
-            notes=tuple([YAW_NOTE] + self.notes + (list(seq.events) if seq else [])
+            notes=tuple([YAW_NOTE] + self.notes + self._log_notes()
+                        + (list(seq.events) if seq else [])
                         + ([tilt_note(seq.max_tilt_by_phase)]
                            if seq and seq.max_tilt_by_phase else [])))
+
+    def _log_notes(self) -> list[str]:
+        error = self.link.tlog_error
+        if error is None:
+            return []
+        return [f"session log {self.link.tlog_path} is incomplete: writing it failed ({error}); "
+                f"the rest of the session was not logged"]
 
     # ------------------------------------------------------------------ steps
     def execute(self, dry_link: bool, own_worker: bool = False) -> TuneResult:

@@ -22,6 +22,8 @@ import platform
 import struct
 import sys
 
+from mrft_gcs.errors import UsageError
+
 __all__ = ["latency_hints", "CpuWakeLatency", "CPU_LATENCY_ENV"]
 
 _SLICE_NS = 100_000  # EEVDF custom slice (the kernel's minimum, 0.1 ms)
@@ -101,9 +103,14 @@ class CpuWakeLatency:
     def __init__(self, us: int | None = None, path: str = _PM_QOS_DEVICE) -> None:
         if us is None:
             raw = os.environ.get(CPU_LATENCY_ENV, "0").strip().lower()
-            us = None if raw in ("off", "none", "") else int(raw)
+            try:
+                us = None if raw in ("off", "none", "") else int(raw)
+            except ValueError:
+                raise UsageError(f"{CPU_LATENCY_ENV}={raw!r}: give whole microseconds "
+                                 f"(e.g. 0 or 10) or 'off'") from None
         if us is not None and us < 0:
-            raise ValueError(f"CPU wake-up latency must be >= 0 us, not {us}")
+            raise UsageError(f"CPU wake-up latency must be >= 0 us, not {us} "
+                             f"({CPU_LATENCY_ENV})")
         self.us = us
         self.path = path
         #: True when the request was refused for want of permission (worth telling the user)

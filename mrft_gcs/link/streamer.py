@@ -26,7 +26,7 @@ the OS to wake them on time (:func:`~mrft_gcs.link.latency.latency_hints`: unpri
 no priority change). While the stream runs it holds a PM QoS request that keeps the CPUs
 out of slow idle states (:class:`~mrft_gcs.link.latency.CpuWakeLatency`, where the
 process may write ``/dev/cpu_dma_latency``): on the development VM a halted virtual CPU
-was woken up to 8-19 ms late, and with the request live tunes stopped skipping ticks.
+was woken up to 8-19 ms late; with the request most live tunes sent every tick.
 """
 
 from __future__ import annotations

@@ -67,12 +67,14 @@ class TlogSink:
         self._closing = threading.Event()
         self.every_s = every_s
         self.frames = 0  # written to the file so far
+        #: why writing the file failed (the disk full, say); the session goes on unlogged
+        self.error: str | None = None
         self._thread = threading.Thread(target=self._run, daemon=True, name="tlog-writer")
         self._thread.start()
 
     def write(self, frame: bytes) -> None:
         """Queue one frame (cheap: safe on the stream's ticks)."""
-        if not self._closing.is_set():
+        if not self._closing.is_set() and self.error is None:
             self._queue.append((time.time(), bytes(frame)))
 
     def _run(self) -> None:
@@ -83,14 +85,18 @@ class TlogSink:
         with self._lock:
             if self._writer is None or not self._queue:
                 return
-            while self._queue:
-                t, frame = self._queue.popleft()
-                try:
-                    self._writer.write(frame, t, flush=False)
-                except ValueError:  # not a whole frame (never expected from pymavlink): skip it
-                    continue
-                self.frames += 1
-            self._writer.flush()
+            try:
+                while self._queue:
+                    t, frame = self._queue.popleft()
+                    try:
+                        self._writer.write(frame, t, flush=False)
+                    except ValueError:  # not a whole frame (never expected from pymavlink)
+                        continue
+                    self.frames += 1
+                self._writer.flush()
+            except OSError as err:  # a log must not stop a flight: say so and stop logging
+                self.error = f"{err.strerror or err}"
+                self._queue.clear()
 
     def close(self) -> None:
         """Write what is queued and close the file (idempotent)."""
@@ -100,5 +106,8 @@ class TlogSink:
         self._drain()
         with self._lock:
             if self._writer is not None:
-                self._writer.close()
-                self._writer = None
+                writer, self._writer = self._writer, None
+                try:
+                    writer.close()
+                except OSError as err:  # the last flush
+                    self.error = self.error or f"{err.strerror or err}"

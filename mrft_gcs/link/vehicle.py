@@ -267,6 +267,11 @@ class VehicleLink:
     def tlog_path(self) -> Path | None:
         return self._tlog.path if self._tlog is not None else None
 
+    @property
+    def tlog_error(self) -> str | None:
+        """Why the session log stopped being written (None: it is complete so far)."""
+        return self._tlog.error if self._tlog is not None else None
+
     # ------------------------------------------------------------------ receiving
     def next_sample(self, timeout_s: float = 1.0) -> Sample | None:
         """Next telemetry sample (oldest first), or None if none arrives in ``timeout_s``."""
