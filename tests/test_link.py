@@ -386,3 +386,12 @@ def test_stream_bounds_cpu_wake_latency_only_while_it_runs():
     finally:
         s.stop()
     assert current() == before
+
+
+def test_bad_cpu_latency_setting_fails_one_line_before_connecting(capsys, monkeypatch):
+    monkeypatch.setenv("MRFT_CPU_LATENCY_US", "fast")
+    port = free_udp_port()  # nothing listens: connecting first would fail with exit 3
+    assert main(["tune", "-c", f"udp:127.0.0.1:{port}", "-p", "sitl", "--yes",
+                 "--timeout", "0.3"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "MRFT_CPU_LATENCY_US='fast'" in err

@@ -67,6 +67,7 @@ from mrft_gcs.link import (
     measure_link,
     require_relay_capable,
 )
+from mrft_gcs.link.latency import CpuWakeLatency
 from mrft_gcs.link.quality import LinkQuality
 from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.params import ParamChange, ParamClient
@@ -415,6 +416,7 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
     prof = load_profile(profile) if isinstance(profile, str | os.PathLike) else profile
     act = parse_actuation(actuation) if actuation is not None else prof.actuation
     wanted = requested_loops(loops, act)
+    CpuWakeLatency()  # a bad MRFT_CPU_LATENCY_US fails here, before the vehicle is touched
     lim = limits or prof.safety
     ident_fn = identifier or bundled_identifier
     started = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
