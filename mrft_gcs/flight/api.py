@@ -692,8 +692,9 @@ class _Run:
         link.drain()
         self.streamer = SetpointStreamer(link, self._setpoint(telemetry), rate_hz=self.rate_hz)
         self.streamer.start()
-        if self.streamer.cpu_latency is not None and self.streamer.cpu_latency.denied:
-            self.notes.append(f"setpoint stream: {self.streamer.hints[0]}")
+        qos = self.streamer.cpu_latency
+        if qos is not None and qos.denied:
+            self.notes.append(f"setpoint stream: {qos.outcome}")
         time.sleep(0.3)  # PX4 needs the stream before OFFBOARD
         self._check_stream()
         link.set_mode(self.prof.modes["offboard"])

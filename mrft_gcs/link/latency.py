@@ -115,6 +115,8 @@ class CpuWakeLatency:
         self.path = path
         #: True when the request was refused for want of permission (worth telling the user)
         self.denied = False
+        #: what the last :meth:`acquire` did, in words ("" before)
+        self.outcome = ""
         self._fd: int | None = None
 
     @property
@@ -122,7 +124,11 @@ class CpuWakeLatency:
         return self._fd is not None
 
     def acquire(self) -> str:
-        """Open the request; returns what happened, in words (for the stream's hints)."""
+        """Open the request; returns what happened, in words (also kept in :attr:`outcome`)."""
+        self.outcome = self._acquire()
+        return self.outcome
+
+    def _acquire(self) -> str:
         if self.us is None:
             return f"CPU wake-up latency not bounded ({CPU_LATENCY_ENV}=off)"
         if self._fd is not None:
