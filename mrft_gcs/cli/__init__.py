@@ -11,27 +11,43 @@ import sys
 
 import typer
 from rich.console import Console
+from rich.text import Text
 
 from mrft_gcs.errors import MrftError
 
-__all__ = ["app", "main", "console", "err_console"]
+__all__ = ["app", "main", "console", "err_console", "styled"]
 
 app = typer.Typer(
     name="mrft-tune",
     help=(
         "Tune a multirotor from take-off in seconds: relay tests (MRFT) on altitude, roll,\n"
-        "pitch, then x and y; neural-network identification; PD gains written back over MAVLink.\n\n"
+        "pitch, then x and y; neural-network identification; PD gains written back over "
+        "MAVLink.\n\n"
         "Start with:  mrft-tune demo   (tunes the bundled simulated vehicle, no hardware)."
     ),
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    # Plain help: rich markup mode would eat "[design]" in help texts and label flags <bool>.
+    rich_markup_mode=None,
+    context_settings={"max_content_width": 120},  # click's default wraps help at 80
 )
 #: exit code when the user answers no to a take-off or write question (as an interruption)
 DECLINED = 130
 
-console = Console()
-err_console = Console(stderr=True)
+#: Markup is off: notes, errors, paths and table cells carry user text with square brackets
+#: ("[[vehicle]]", ".[design]"); styled words are built as :class:`rich.text.Text`.
+console = Console(markup=False)
+err_console = Console(stderr=True, markup=False)
+
+
+def styled(text: str, style: str) -> Text:
+    """``text`` in ``style`` (markup is off on both consoles, so style with this)."""
+    return Text(text, style=style)
+
+
+def _error_line(message: str) -> Text:
+    return Text.assemble(("error:", "bold red"), " ", message)
 
 
 def _register() -> None:
@@ -43,12 +59,12 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script; returns the process exit code."""
     _register()
     try:
-        code = app(args=argv, standalone_mode=False)  # a typer.Exit(n) comes back as n
+        code = app(args=argv, prog_name="mrft-tune", standalone_mode=False)  # a typer.Exit(n) comes back as n
     except MrftError as err:
-        err_console.print(f"[bold red]error:[/] {err}", highlight=False, soft_wrap=True)
+        err_console.print(_error_line(str(err)), highlight=False, soft_wrap=True)
         return err.exit_code
     except KeyboardInterrupt:
-        err_console.print("[bold red]interrupted[/]")
+        err_console.print(styled("interrupted", "bold red"))
         return 130
     except SystemExit as exc:  # typer/click usage errors
         return int(exc.code or 0)
@@ -58,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         if name == "Exit":
             return int(getattr(exc, "exit_code", 0))
         if name == "Abort":
-            err_console.print("[bold red]aborted[/]")
+            err_console.print(styled("aborted", "bold red"))
             return 130
         if hasattr(exc, "show") and hasattr(exc, "exit_code"):
             exc.show()

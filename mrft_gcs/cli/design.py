@@ -24,11 +24,13 @@ design_app = typer.Typer(
     "  mrft-tune design dataset --loop attitude\n\n"
     "  mrft-tune design train --loop attitude   (needs pip install -e '.[design]')",
     no_args_is_help=True,
+    rich_markup_mode=None,  # as the app's: brackets in help are text
 )
 app.add_typer(design_app, name="design")
 
 LoopOpt = Annotated[str, typer.Option("--loop", help="attitude | altitude | side")]
-ModelsOpt = Annotated[Path | None, typer.Option("--models", help="models folder (default: bundled)")]
+ModelsOpt = Annotated[Path | None, typer.Option("--models",
+                                                help="models folder (default: bundled)")]
 
 
 def _kind(loop: str) -> LoopKind:
@@ -40,7 +42,7 @@ def _kind(loop: str) -> LoopKind:
 
 def _side_design_only(models: Path | None) -> None:
     """Side motion: classes, phase and zeta come out of one step per attitude shape."""
-    from mrft_gcs.design import step_side
+    from mrft_gcs.design.pipeline import step_side
 
     with console.status("side classes, distinguishing phase and zeta per attitude shape"):
         infos = step_side(_models(models), train=False)
@@ -50,7 +52,7 @@ def _side_design_only(models: Path | None) -> None:
 
 
 def _models(models: Path | None) -> Path:
-    from mrft_gcs.design import MODELS_DIR
+    from mrft_gcs.design.pipeline import MODELS_DIR
 
     return models or MODELS_DIR
 
@@ -102,7 +104,7 @@ def discretize_cmd(loop: LoopOpt = "attitude", J_target: Annotated[float, typer.
 
     For --loop side this runs Algorithm 3 (classes, phase and zeta per attitude shape).
     """
-    from mrft_gcs.design import step_discretize
+    from mrft_gcs.design.pipeline import step_discretize
 
     if _kind(loop) is LoopKind.SIDE:
         return _side_design_only(models)
@@ -122,7 +124,7 @@ def discretize_cmd(loop: LoopOpt = "attitude", J_target: Annotated[float, typer.
 @design_app.command("phase")
 def phase_cmd(loop: LoopOpt = "attitude", models: ModelsOpt = None) -> None:
     """Distinguishing phase by Algorithm 1 (writes phase.json); side: see 'design side'."""
-    from mrft_gcs.design import step_phase
+    from mrft_gcs.design.pipeline import step_phase
 
     if _kind(loop) is LoopKind.SIDE:
         return _side_design_only(models)
@@ -136,7 +138,7 @@ def phase_cmd(loop: LoopOpt = "attitude", models: ModelsOpt = None) -> None:
 @design_app.command("zeta")
 def zeta_cmd(loop: LoopOpt = "attitude", models: ModelsOpt = None) -> None:
     """Exact gain scaling table zeta (writes zeta.json); side: see 'design side'."""
-    from mrft_gcs.design import step_zeta
+    from mrft_gcs.design.pipeline import step_zeta
 
     if _kind(loop) is LoopKind.SIDE:
         return _side_design_only(models)
@@ -152,7 +154,7 @@ def zeta_cmd(loop: LoopOpt = "attitude", models: ModelsOpt = None) -> None:
 def dataset_cmd(loop: LoopOpt = "attitude", n_train: int = 6000, n_val: int = 2000, seed: int = 0,
                 models: ModelsOpt = None) -> None:
     """Simulated training and validation sets (noise, bias up to h/2)."""
-    from mrft_gcs.design import step_dataset
+    from mrft_gcs.design.pipeline import step_dataset
 
     with _progress() as p:
         task = p.add_task("simulating", total=n_train + n_val)
@@ -171,7 +173,7 @@ def dataset_cmd(loop: LoopOpt = "attitude", n_train: int = 6000, n_val: int = 20
 def train_cmd(loop: LoopOpt = "attitude", epochs: int = 60, seed: int = 0,
               models: ModelsOpt = None) -> None:
     """Train the classifier, export ONNX and the class table (needs the design extra)."""
-    from mrft_gcs.design import step_train
+    from mrft_gcs.design.pipeline import step_train
 
     with _progress() as p:
         task = p.add_task("architecture search", total=None)
@@ -194,13 +196,14 @@ def evaluate_cmd(
 
     Example:  mrft-tune evaluate --loop attitude --n 500 --worst 10
     """
-    from mrft_gcs.evaluate import evaluate, evaluate_side
+    from mrft_gcs.design.evaluate import evaluate, evaluate_side
 
     kind = _kind(loop)
     with _progress() as p:
         task = p.add_task("identifying", total=n)
         prog = lambda a, b: p.update(task, completed=a)  # noqa: E731
-        ev = evaluate_side(n, seed, prog) if kind is LoopKind.SIDE else evaluate(kind, n, seed, prog)
+        ev = (evaluate_side(n, seed, prog) if kind is LoopKind.SIDE
+              else evaluate(kind, n, seed, prog))
     acc = "" if np.isnan(ev.accuracy) else f", classifier accuracy {ev.accuracy:.1%}"
     t = Table(title=f"{ev.kind}: {n} random processes (seed {seed}){acc}")
     for col in ("method", "J avg %", "J p95 %", "J max %", "PM avg", "PM min", "unstable",
@@ -249,7 +252,7 @@ def side_cmd(
 
     Example:  mrft-tune design side --workers 2
     """
-    from mrft_gcs.design import step_side
+    from mrft_gcs.design.pipeline import step_side
 
     with console.status("designing side classes for every attitude shape"):
         infos = step_side(_models(models), grid, rows, seed, workers, dask, not no_train)

@@ -13,8 +13,9 @@ from typing import Annotated, Any
 import typer
 from rich.live import Live
 from rich.table import Table
+from rich.text import Text
 
-from mrft_gcs.cli import DECLINED, app, console, err_console
+from mrft_gcs.cli import DECLINED, app, console, err_console, styled
 from mrft_gcs.errors import FleetError
 from mrft_gcs.fleet import FleetResult, FleetSpec, VehicleOutcome, load_fleet, tune_fleet
 from mrft_gcs.loops import Loop
@@ -22,14 +23,14 @@ from mrft_gcs.loops import Loop
 __all__ = ["fleet", "FleetBoard", "status_table", "summary_table"]
 
 _LOOP_ORDER = (Loop.ALTITUDE, Loop.ROLL, Loop.PITCH, Loop.X, Loop.Y)
-_SHORT = {"waiting": "-", "oscillating": "osc", "identifying": "ident", "tuned": "[green]tuned[/]",
+_SHORT = {"waiting": "-", "oscillating": "osc", "identifying": "ident", "tuned": "tuned",
           "left alone": "left"}
 
 
 @dataclass
 class _Row:
     phase: str = "waiting"
-    loops: dict[Loop, str] = field(default_factory=dict)
+    loops: dict[Loop, str] = field(default_factory=dict)  # plain text (consoles have no markup)
     started: float | None = None
     ended: float | None = None
     outcome: VehicleOutcome | None = None
@@ -67,6 +68,10 @@ class FleetBoard:
                     for n, r in self.rows.items()}
 
 
+def _loop_cell(text: str) -> Text | str:
+    return styled(text, "green") if text == "tuned" else text
+
+
 def status_table(board: FleetBoard) -> Table:
     """Live view: per vehicle its phase, each loop's state, elapsed time and outcome."""
     t = Table(title="fleet (live)")
@@ -78,9 +83,9 @@ def status_table(board: FleetBoard) -> Table:
         if r.outcome is None:
             result = "" if r.started is None else "running"
         else:
-            result = "[green]ok[/]" if r.outcome.ok else f"[red]{r.outcome.status}[/]"
-        t.add_row(name, r.phase, *(r.loops.get(lp, "-") for lp in _LOOP_ORDER), elapsed,
-                  result)
+            result = styled("ok", "green") if r.outcome.ok else styled(r.outcome.status, "red")
+        t.add_row(name, r.phase, *(_loop_cell(r.loops.get(lp, "-")) for lp in _LOOP_ORDER),
+                  elapsed, result)
     return t
 
 
@@ -99,8 +104,8 @@ def summary_table(res: FleetResult) -> Table:
         t.add_column(col, overflow="fold")
     for v in res.vehicles:
         tune_s = getattr(v.result, "duration_s", math.nan)
-        t.add_row(v.name, v.connect, "[green]" + v.status + "[/]" if v.ok
-                  else f"[red]{v.status}[/]", str(v.exit_code), f"{v.duration_s:.0f}",
+        t.add_row(v.name, v.connect, styled(v.status, "green" if v.ok else "red"),
+                  str(v.exit_code), f"{v.duration_s:.0f}",
                   f"{tune_s:.1f}" if math.isfinite(tune_s) else "-", _loops_tuned(v),
                   str(len(getattr(v.result, "parameters", ()) or ())), v.error or "")
     return t

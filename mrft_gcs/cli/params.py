@@ -15,7 +15,7 @@ from mrft_gcs.params import ParamClient, WriteResult, read_params_file, write_pa
 from mrft_gcs.profiles import load_profile
 
 params_app = typer.Typer(help="Show, back up and restore autopilot parameters (QGC .params files).",
-                         no_args_is_help=True)
+                         no_args_is_help=True, rich_markup_mode=None)
 app.add_typer(params_app, name="params")
 
 Connect = Annotated[str, typer.Option("--connect", "-c", help="udp:HOST:PORT, udpin:, udpout:, "

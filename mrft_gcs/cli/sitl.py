@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.text import Text
 
 from mrft_gcs.cli import app, console
 from mrft_gcs.sitl.process import DEFAULT_PORT, SitlConfig, make_server, parse_effects
@@ -37,12 +38,14 @@ def sitl(
     server = make_server(cfg)
     previous = signal.signal(signal.SIGTERM, lambda *_: server.stop())
     af = server.vehicle.airframe
-    console.print(f"SITL [bold]{af.name}[/] ({af.description}) serving MAVLink 2 over UDP")
+    console.print(Text.assemble("SITL ", (af.name, "bold"),
+                                f" ({af.description}) serving MAVLink 2 over UDP"))
     active = af.effects.active()
     if active:
         console.print("effects: " + ", ".join(f"{k}={v:g}" for k, v in active.items()))
-    console.print(f"connect with:  [bold]{cfg.connection_string}[/]   "
-                  f"(MAVSDK: udpin://{cfg.host}:{cfg.port})   Ctrl-C to stop", highlight=False)
+    console.print(Text.assemble("connect with:  ", (cfg.connection_string, "bold"),
+                                f"   (MAVSDK: udpin://{cfg.host}:{cfg.port})   Ctrl-C to stop"),
+                  highlight=False)
     try:
         server.serve_forever()
     except KeyboardInterrupt:

@@ -10,7 +10,7 @@ import typer
 from rich.progress import Progress
 from rich.table import Table
 
-from mrft_gcs.cli import app, console
+from mrft_gcs.cli import app, console, styled
 from mrft_gcs.errors import UsageError
 from mrft_gcs.verify import VerifyResult, load_models, plot_verify, verify_figure8
 
@@ -37,7 +37,7 @@ def _table(r: VerifyResult) -> Table:
                     f"{r.laps} lap(s) measured")
     for col in ("", "mean (m)", "max (m)", "x (m)", "y (m)", "z (m)"):
         t.add_column(col, justify="right" if col else "left")
-    t.add_row("[bold]this vehicle[/]", f"{e.mean_m:.3f}", f"{e.max_m:.3f}",
+    t.add_row(styled("this vehicle", "bold"), f"{e.mean_m:.3f}", f"{e.max_m:.3f}",
               *(f"{m:.3f} / {x:.3f}" for m, x in zip(e.axis_mean_m, e.axis_max_m, strict=True)))
     for name, value in PAPER_FIGURES:
         t.add_row(name, f"{value:.3f}", "", "", "", "")
@@ -93,8 +93,8 @@ def verify(
             altitude_m=altitude, models=models, land=not hold, timeout_s=timeout,
             progress=lambda phase, frac: bar.update(task, completed=frac, description=phase))
     console.print(_table(result))
-    console.print(f"[dim]how: {result.method}[/]")
-    console.print(f"[dim]feed-forward: {result.feedforward}[/]")
+    console.print(styled(f"how: {result.method}", "dim"))
+    console.print(styled(f"feed-forward: {result.feedforward}", "dim"))
     for note in result.notes:
         console.print(f"note: {note}")
     if plot:
