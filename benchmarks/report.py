@@ -4,7 +4,7 @@ Per airframe and seed (``benchmarks/tune_sitl.py``'s ``run_one``): a full tune o
 loopback UDP with the bundled classifiers, J of each loop's written gains against the
 optimal PD of the airframe's true linear model, then the figure-eight (2 x 1 m, 5.5 s)
 flown on the tuned gains with the identified models as feed-forward. Then the Table VI
-evaluation (``mrft_gcs.evaluate``: random processes of each inner domain, with noise and
+evaluation (``mrft_gcs.design.evaluate``: random processes of each inner domain, with noise and
 bias; normalised / DF / exact gain scaling and the classic relay + describing-function
 baseline). The markdown goes to stdout, and with ``--write-readme`` into README.md between
 the ``benchmark-table`` markers.
@@ -118,7 +118,7 @@ def evaluation_table(evals: list[dict]) -> str:
 
 def run_evaluations(n: int, seed: int = 1, n_side: int = 0) -> list[dict]:
     """Table VI for attitude and altitude (``n`` processes each) and, if asked, side motion."""
-    from mrft_gcs import evaluate as ev_mod
+    from mrft_gcs.design import evaluate as ev_mod
 
     out = []
     jobs = [(k.value, lambda k=k: ev_mod.evaluate(k, n, seed), n)

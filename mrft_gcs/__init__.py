@@ -2,8 +2,10 @@
 
 The numerical core is made of pure functions on numpy arrays returning frozen
 dataclasses (:mod:`mrft_gcs.plant`, :mod:`mrft_gcs.simulate`,
-:mod:`mrft_gcs.pd_design`, :mod:`mrft_gcs.discretize`); runtime identification
-is :mod:`mrft_gcs.identify`. The scripting API, one function per command::
+:mod:`mrft_gcs.pd_design`); runtime identification
+is :mod:`mrft_gcs.identify`; the offline design of the bundled classifiers is
+:mod:`mrft_gcs.design` (never imported by the runtime). The scripting API, one function per
+command::
 
     import mrft_gcs
     result = mrft_gcs.tune("udp:127.0.0.1:14540", "px4")       # mrft-tune tune

@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mrft_gcs.discretize import (
+from mrft_gcs.design.discretize import (
     Discretisation,
     _grid_for,
     discretize_inner,
     reachable_scales,
     shape_grid,
 )
+from mrft_gcs.design.phase import distinguishing_phase, hb_period, unit_cycles, zeta_table
 from mrft_gcs.domains import D_ATT, Domain
 from mrft_gcs.loops import LoopKind
-from mrft_gcs.phase import distinguishing_phase, hb_period, unit_cycles, zeta_table
 
 # A small box of the attitude domain: few shapes, seconds to discretise.
 TINY = Domain("attitude", ("T_prop", "T1", "tau"), (0.03, 0.3, 0.004), (0.08, 0.6, 0.012))
@@ -81,7 +81,7 @@ def test_distinguishing_phase_is_interior_and_beats_the_relay(tiny):
 
 def test_tiny_end_to_end_design_and_identify(tmp_path, monkeypatch):
     """discretize -> phase -> zeta -> dataset -> (train -> ONNX -> identify) in a tiny box."""
-    from mrft_gcs import design as dz
+    from mrft_gcs.design import pipeline as dz
 
     monkeypatch.setattr(dz, "domain_for", lambda kind: TINY)
     monkeypatch.setattr(dz, "BETA_GRID", np.array([-0.7, -0.6, -0.5]))
@@ -111,8 +111,8 @@ def test_cascade_structure_closes_the_attitude_loop_first():
     # Algorithm 2 on the side chain: a relay on attitude (rate dynamics open) is practical;
     # a relay on velocity with the attitude open is not, so attitude and side motion
     # become the two loops of the cascade (paper: "met only when i = 2").
+    from mrft_gcs.design.phase import cascade_structure
     from mrft_gcs.domains import D_SIDE
-    from mrft_gcs.phase import cascade_structure
 
     steps = cascade_structure(D_ATT.vertices(), D_SIDE.vertices(), beta=-0.5)
     assert [s.split for s in steps] == [False, True]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mrft_gcs.design.executor import LocalExecutor, make_executor
 from mrft_gcs.errors import UsageError
-from mrft_gcs.executor import LocalExecutor, make_executor
 
 
 def seeded_cycle_period(seed: int) -> float:

@@ -129,7 +129,7 @@ def test_incomplete_class_table_is_an_identification_error(tmp_path):
 def test_evaluation_lists_its_worst_trials():
     """Each identified loop is kept with its true and fitted model; the worst come first and
     their J is the exact-gain column's."""
-    from mrft_gcs.evaluate import evaluate
+    from mrft_gcs.design.evaluate import evaluate
 
     ev = evaluate(LoopKind.ATTITUDE, n=6, seed=5)
     exact = next(s for s in ev.scores if s.name == "exact gain")

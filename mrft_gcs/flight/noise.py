@@ -2,7 +2,7 @@
 
 The classifiers were trained on relay cycles simulated with white measurement
 noise of standard deviation ``sigma`` and a relay noise band of ``4 sigma``
-(:mod:`mrft_gcs.dataset`). The live relays are therefore given the same band,
+(:mod:`mrft_gcs.design.dataset`). The live relays are therefore given the same band,
 ``4 sigma`` of each signal as measured before the test: on the ground (motors
 idle or spinning up), where the vehicle does not move, each signal's samples
 are detrended (least-squares line per signal, so a slow drift or the start of

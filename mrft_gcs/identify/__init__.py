@@ -27,10 +27,10 @@ from __future__ import annotations
 
 from mrft_gcs.identify.api import (
     CycleDetector,
-    attach_residual,
     CycleStatus,
     Identification,
     RelaySettings,
+    attach_residual,
     identify,
     relay_settings,
 )

@@ -41,6 +41,7 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError
 from mrft_gcs.identify.api import Identification, RelaySettings
+from mrft_gcs.identify.side import SIDE_H
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.plant import PD, InnerModel, closed_inner_response, inner_response
 
@@ -205,8 +206,6 @@ def side_relay_settings() -> RelaySettings:
     IdentificationError
         No bundled side classifiers.
     """
-    from mrft_gcs.side_design import SIDE_H
-
     betas = _side_betas()
     if not betas:
         raise IdentificationError(

@@ -46,6 +46,7 @@ import numpy as np
 from mrft_gcs.errors import IdentificationError
 from mrft_gcs.features import cycle_features
 from mrft_gcs.identify.api import Identification, RelaySettings
+from mrft_gcs.identify.side import SIDE_H, side_features, side_plant_response
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.plant import PD, InnerModel, inner_response
 
@@ -234,8 +235,6 @@ def _inner_shape(inner: Identification | None) -> tuple[int, float]:
 
 def relay_settings(kind: LoopKind, inner: Identification | None = None) -> RelaySettings:
     if kind is LoopKind.SIDE:
-        from mrft_gcs.side_design import SIDE_H
-
         k, _ = _inner_shape(inner)
         return RelaySettings(beta=load_side_bundle(k).beta, h=SIDE_H)
     b = load_bundle(kind)
@@ -432,7 +431,6 @@ def _measured_t_att(t, u, tilt, pts, modelled: np.ndarray):
 def _classify_side(t, u, y, beta, b: SideBundle, k: int, c: float,
                    setpoint=None) -> Identification:
     from mrft_gcs.plant import SideModel
-    from mrft_gcs.side_design import side_features, side_plant_response
 
     f, x = side_features(t, u, y, c, setpoint)
     probs = _softmax(b.logits(x)[0])

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mrft_gcs.dataset import Dataset
+from mrft_gcs.design.dataset import Dataset
 from mrft_gcs.errors import MissingDependency
 
 __all__ = ["TrainResult", "train_classifier", "export_onnx", "SEARCH_SPACE"]

@@ -10,8 +10,9 @@ attitude scale range), one distinguishing phase, one zeta table and one
 classifier; at run time the attitude identification supplies ``k`` and ``c``.
 
 Functions here reuse the inner-loop machinery: the greedy net
-(:func:`mrft_gcs.discretize.greedy_net`), optimal PD design, the non-parametric
-tuning rules of Algorithm 1 and the simulator.
+(:func:`mrft_gcs.design.discretize.greedy_net`), optimal PD design, the non-parametric
+tuning rules of Algorithm 1 and the simulator. The side features and the side plant's
+response, which the runtime needs too, live in :mod:`mrft_gcs.identify.side`.
 """
 
 from __future__ import annotations
@@ -24,35 +25,22 @@ from typing import Any
 
 import numpy as np
 
-from mrft_gcs.dataset import BIAS_MAX, NOISE_MAX, Dataset
-from mrft_gcs.discretize import J_FAR, greedy_net
-from mrft_gcs.domains import D_SIDE
-from mrft_gcs.features import N_POINTS, cycle_features
+from mrft_gcs.design.dataset import BIAS_MAX, NOISE_MAX, Dataset
+from mrft_gcs.design.discretize import J_FAR, greedy_net, reachable_scales
+from mrft_gcs.design.phase import rule_cost
+from mrft_gcs.domains import D_ATT, D_SIDE
+from mrft_gcs.features import N_POINTS
+from mrft_gcs.identify.api import identify
+from mrft_gcs.identify.runtime import load_bundle
+from mrft_gcs.identify.side import SIDE_H, side_features, side_plant_response
+from mrft_gcs.loops import LoopKind
 from mrft_gcs.pd_design import PDDesign, ise, margins, optimal_pd
-from mrft_gcs.phase import rule_cost
-from mrft_gcs.plant import closed_inner_response, inner_response, side_response
-from mrft_gcs.simulate import find_cycle, simulate_side_mrft
+from mrft_gcs.simulate import find_cycle, simulate_mrft, simulate_side_mrft
 
 __all__ = ["SideClasses", "side_plant_response", "design_side_for_shape", "side_dataset",
            "SIDE_BETAS", "SIDE_H", "side_features"]
 
 SIDE_BETAS = np.round(np.arange(-0.7, 0.21, 0.1), 3)  # see phase.BETA_GRID
-#: Default side relay amplitude: tilt set point in rad (about 4.6 deg).
-SIDE_H = 0.08
-
-
-def side_plant_response(att: np.ndarray, att_pd: tuple[float, float], T2, tau, w) -> np.ndarray:
-    """Closed unit attitude loop times the unit-gain side part, shape ``(n, m)``."""
-    T_prop, T1, att_tau = att
-    G = inner_response(1.0, T_prop, T1, att_tau, w)
-    T = closed_inner_response(att_pd[0], att_pd[1], G, w)
-    return T * side_response(1.0, T2, tau, w)
-
-
-def side_features(t, u, y, att_scale: float, setpoint=None):
-    """Inner features plus the log of the period over the attitude scale (side is not scale-free)."""
-    f = cycle_features(t, u, y, setpoint=setpoint)
-    return f, np.concatenate([f.x, [np.log(f.period_s / att_scale)]]).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -255,13 +243,6 @@ def side_dataset_realistic(sc: SideClasses, disc, n: int, seed: int, dt: float =
     returned, and the side test then runs on the real cascade. Labels are the side
     regions of ``(T2 / c, tau / c)`` as in :func:`side_dataset`.
     """
-    from mrft_gcs.discretize import reachable_scales
-    from mrft_gcs.domains import D_ATT
-    from mrft_gcs.identify import identify
-    from mrft_gcs.identify.runtime import load_bundle
-    from mrft_gcs.loops import LoopKind
-    from mrft_gcs.simulate import simulate_mrft
-
     rng = np.random.default_rng(seed)
     ab = load_bundle(LoopKind.ATTITUDE)
     k = sc.att_shape

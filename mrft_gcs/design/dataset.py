@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mrft_gcs.discretize import Discretisation
+from mrft_gcs.design.discretize import Discretisation
+from mrft_gcs.design.phase import hb_period
 from mrft_gcs.domains import Domain
 from mrft_gcs.features import N_POINTS, cycle_features
-from mrft_gcs.phase import hb_period
 from mrft_gcs.simulate import simulate_mrft
 
 __all__ = ["Dataset", "make_dataset", "NOISE_MAX", "BIAS_MAX"]
@@ -29,7 +29,7 @@ __all__ = ["Dataset", "make_dataset", "NOISE_MAX", "BIAS_MAX"]
 NOISE_MAX = 0.01
 #: Largest relay bias, as a fraction of ``h``. The paper trains with up to h/2, but an
 #: MRFT with the distinguishing lead does not keep a proper cycle at that bias (see
-#: :data:`mrft_gcs.phase.BETA_GRID`); 0.3 h is what the test survives, and live tuning
+#: :data:`mrft_gcs.design.phase.BETA_GRID`); 0.3 h is what the test survives, and live tuning
 #: keeps the relay centred on the hover command.
 BIAS_MAX = 0.3
 

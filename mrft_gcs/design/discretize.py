@@ -32,7 +32,7 @@ from scipy.optimize import brentq, minimize_scalar
 
 from mrft_gcs.domains import Domain
 from mrft_gcs.pd_design import PDDesign, ise, margins, optimal_pd
-from mrft_gcs.plant import inner_response
+from mrft_gcs.plant import PD, inner_response
 
 #: Joint cost (%) recorded for candidate/representative pairs too far apart to evaluate.
 J_FAR = 200.0
@@ -333,6 +333,4 @@ def _adjacent_costs(reps, rep_pd, rep_shape, chosen, designs, params, w) -> np.n
 
 
 def _scaled_design(d: PDDesign, c: float) -> PDDesign:
-    from mrft_gcs.plant import PD
-
     return PDDesign(PD(d.pd.Kc / c, d.pd.Kd), d.ise * c, d.margins, d.evaluations)

@@ -21,18 +21,27 @@ from typing import Any
 
 import numpy as np
 
-from mrft_gcs.dataset import Dataset, make_dataset
-from mrft_gcs.discretize import Discretisation, _grid_for, discretize_inner
-from mrft_gcs.domains import domain_for
-from mrft_gcs.errors import UsageError
-from mrft_gcs.loops import LoopKind
-from mrft_gcs.phase import (
+from mrft_gcs.design.dataset import Dataset, make_dataset
+from mrft_gcs.design.discretize import (
+    Discretisation,
+    _grid_for,
+    discretize_inner,
+    reachable_scales,
+)
+from mrft_gcs.design.executor import make_executor
+from mrft_gcs.design.phase import (
     BETA_GRID,
     distinguishing_phase,
     rule_cost_table,
     unit_cycles,
     zeta_table,
 )
+from mrft_gcs.design.side import design_side_for_shape, side_dataset_realistic
+from mrft_gcs.design.train import SEARCH_SPACE, export_onnx, train_classifier
+from mrft_gcs.domains import domain_for
+from mrft_gcs.errors import UsageError
+from mrft_gcs.identify.runtime import MODELS_DIR
+from mrft_gcs.loops import LoopKind
 
 __all__ = [
     "MODELS_DIR",
@@ -46,7 +55,6 @@ __all__ = [
     "INNER_KINDS",
 ]
 
-MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 INNER_KINDS = (LoopKind.ATTITUDE, LoopKind.ALTITUDE)
 
 #: Default relay amplitudes per loop kind (paper Table V): attitude 5 % of the
@@ -185,8 +193,6 @@ def step_train(kind: LoopKind, models: Path = MODELS_DIR, seed: int = 0, epochs:
                search=None, progress=None) -> dict:
     """Train, export ``classifier.onnx`` and write the runtime class table ``classes.json``."""
     _check_inner(kind)
-    from mrft_gcs.train import SEARCH_SPACE, export_onnx, train_classifier
-
     t0 = time.perf_counter()
     disc = Discretisation.from_json(load_json(kind, "discretisation", models))
     z = load_json(kind, "zeta", models)
@@ -216,8 +222,6 @@ def step_train(kind: LoopKind, models: Path = MODELS_DIR, seed: int = 0, epochs:
 def _side_task(args: tuple) -> dict:
     """Design, data and classifier for one attitude shape (a picklable executor task)."""
     k, att, att_pd, lo, hi, grid_n, n_rows, seed, out_dir, train = args
-    from mrft_gcs.side_design import design_side_for_shape
-
     sc = design_side_for_shape(k, np.asarray(att), np.asarray(att_pd), lo, hi, grid_n=grid_n)
     d = Path(out_dir) / f"shape_{k:02d}"
     d.mkdir(parents=True, exist_ok=True)
@@ -226,10 +230,6 @@ def _side_task(args: tuple) -> dict:
             "zeta_min": float(sc.zeta.min()), "zeta_max": float(sc.zeta.max()),
             "design_s": sc.seconds}
     if train:
-        from mrft_gcs.train import export_onnx, train_classifier
-
-        from mrft_gcs.side_design import side_dataset_realistic
-
         disc = Discretisation.from_json(load_json(LoopKind.ATTITUDE, "discretisation",
                                                   Path(out_dir).parent))
         tr = side_dataset_realistic(sc, disc, n_rows, seed + 2 * k)
@@ -249,9 +249,6 @@ def step_side(models: Path = MODELS_DIR, grid_n: int = 6, n_rows: int = 900, see
               workers: int = 1, dask: str | None = None, train: bool = True,
               shapes: list[int] | None = None) -> list[dict]:
     """Algorithm 3 for every attitude shape: side classes, phase, zeta, data and classifier."""
-    from mrft_gcs.discretize import reachable_scales
-    from mrft_gcs.executor import make_executor
-
     t0 = time.perf_counter()
     disc = Discretisation.from_json(load_json(LoopKind.ATTITUDE, "discretisation", models))
     dom = domain_for(LoopKind.ATTITUDE)

@@ -17,10 +17,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mrft_gcs.dataset import BIAS_MAX, NOISE_MAX
-from mrft_gcs.domains import domain_for
+from mrft_gcs.design.dataset import BIAS_MAX, NOISE_MAX
+from mrft_gcs.design.discretize import Discretisation
+from mrft_gcs.design.pipeline import load_json
+from mrft_gcs.domains import D_ATT, D_SIDE, domain_for
 from mrft_gcs.errors import IdentificationError
 from mrft_gcs.features import cycle_features
+from mrft_gcs.identify.api import identify, relay_settings
 from mrft_gcs.identify.runtime import (
     MODELS_DIR,
     GainScaling,
@@ -32,8 +35,14 @@ from mrft_gcs.identify.runtime import (
 )
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.pd_design import frequency_grid, ise, margins, optimal_pd
-from mrft_gcs.plant import InnerModel, SideModel, inner_response
-from mrft_gcs.simulate import simulate_mrft
+from mrft_gcs.plant import (
+    InnerModel,
+    SideModel,
+    closed_inner_response,
+    inner_response,
+    side_response,
+)
+from mrft_gcs.simulate import simulate_mrft, simulate_side_mrft
 
 __all__ = ["MethodScore", "Trial", "Evaluation", "evaluate", "evaluate_side"]
 
@@ -151,9 +160,6 @@ def evaluate(kind: LoopKind, n: int = 500, seed: int = 1, progress=None) -> Eval
     PM = {m: np.full(n, np.nan) for m in METHODS}
     trials = []
     hits = 0
-    from mrft_gcs.design import load_json
-    from mrft_gcs.discretize import Discretisation
-
     disc = Discretisation.from_json(load_json(kind, "discretisation"))
     truth = disc.owner_of(params)
     for i in range(n):
@@ -215,11 +221,6 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
     loop*. Noise and relay bias as in training. The DF variant uses 4/pi; the
     baseline is a classic relay on position with Ziegler-Nichols DF tuning.
     """
-    from mrft_gcs.domains import D_ATT, D_SIDE
-    from mrft_gcs.identify import identify, relay_settings
-    from mrft_gcs.plant import closed_inner_response, side_response
-    from mrft_gcs.simulate import simulate_side_mrft
-
     b = load_bundle(LoopKind.ATTITUDE)
     rng = np.random.default_rng(seed)
     att = D_ATT.sample_log_uniform(n, rng)
