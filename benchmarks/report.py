@@ -27,6 +27,7 @@ import math
 import os
 import platform
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -224,12 +225,17 @@ def regenerate_command(runs_path: Path | None, evals_path: Path | None) -> str:
     return f"python benchmarks/report.py{args} --write-readme"
 
 
+def _wrap(text: str) -> str:
+    """A paragraph wrapped as the rest of the page is (100 columns)."""
+    return textwrap.fill(text, width=95, break_long_words=False, break_on_hyphens=False)
+
+
 def markdown(runs: list[dict], evals: list[dict], where: str, command: str) -> str:
     """README's block: the one summary table, the machine, how to regenerate."""
     return "\n".join([
         START,
-        f"Live tunes measured on {where}. Written by `{command}`; per airframe and per "
-        "method in [docs/benchmarks.md](docs/benchmarks.md).",
+        _wrap(f"Live tunes measured on {where}. Written by `{command}`; per airframe and per "
+              "method in [docs/benchmarks.md](docs/benchmarks.md)."),
         "",
         summary_table(runs, evals),
         END,
@@ -240,7 +246,7 @@ def detail_markdown(runs: list[dict], evals: list[dict], where: str, command: st
     """docs/benchmarks.md's block: the live tunes per airframe and the whole Table VI."""
     return "\n".join([
         DETAIL_START,
-        f"Written by `{command}`. Live tunes measured on {where}.",
+        _wrap(f"Written by `{command}`. Live tunes measured on {where}."),
         "",
         "Live tunes (J of the written gains, mean / max over the tunes, %):",
         "",
