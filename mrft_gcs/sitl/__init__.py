@@ -9,11 +9,13 @@ from mrft_gcs.sitl.airframe import (
     EFFECT_NAMES,
     Airframe,
     Effects,
+    OnboardSpec,
     available_vehicles,
     load_airframe,
 )
 from mrft_gcs.sitl.onboard import CommandResult, FlightMode
 from mrft_gcs.sitl.physics import Measurement, Multirotor
+from mrft_gcs.sitl.population import DomainCheck, domain_check, random_airframe
 from mrft_gcs.sitl.process import DEFAULT_PORT, SitlProcess
 from mrft_gcs.sitl.vehicle import SimVehicle
 
@@ -21,6 +23,10 @@ __all__ = [
     "Airframe",
     "Effects",
     "EFFECT_NAMES",
+    "OnboardSpec",
+    "random_airframe",
+    "domain_check",
+    "DomainCheck",
     "load_airframe",
     "available_vehicles",
     "Multirotor",

@@ -46,6 +46,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--speedup", type=float, default=1.0)
     ap.add_argument("--effect", action="append", default=[], metavar="NAME=VALUE")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--random", type=int, default=None, metavar="SEED",
+                    help="fly the random vehicle of SEED instead of --vehicle")
     ap.add_argument("--signing-key", default=None, metavar="FILE")
     ap.add_argument("--wind", type=_wind, default=(0.0, 0.0, 0.0), metavar="N,E,D")
     ap.add_argument("--exit-with-parent", action="store_true",
@@ -54,7 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = SitlConfig(vehicle=args.vehicle, port=args.port, speedup=args.speedup,
                          effects=parse_effects(args.effect), seed=args.seed,
-                         signing_key_file=args.signing_key, wind_m_s=args.wind)
+                         signing_key_file=args.signing_key, wind_m_s=args.wind,
+                         random_seed=args.random)
         server = make_server(cfg)
     except (MrftError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)

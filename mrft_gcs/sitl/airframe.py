@@ -45,6 +45,8 @@ from mrft_gcs.errors import UsageError
 __all__ = [
     "Airframe",
     "Effects",
+    "OnboardSpec",
+    "ONBOARD_STYLES",
     "EFFECT_NAMES",
     "GRAVITY_M_S2",
     "load_airframe",
@@ -117,6 +119,56 @@ class Effects:
                 raise UsageError(f"bad effect value: {msg}")
 
 
+#: Onboard cascade structures the simulated autopilot can run (see :class:`OnboardSpec`).
+ONBOARD_STYLES = ("px4", "ardupilot")
+
+
+@dataclass(frozen=True)
+class OnboardSpec:
+    """How the simulated autopilot closes its loops: structure, rates and filters.
+
+    Not parameters a ground station can read: firmware internals that decide the loop the
+    written gains end up in (:func:`mrft_gcs.flight.scoring.score_written`).
+
+    Attributes
+    ----------
+    style : str
+        ``"px4"``: rate loop ``K (P e + I - D d(rate)/dt) + FF rate_sp``, D on the measured
+        rate. ``"ardupilot"``: a square-root angle controller (linear for errors below
+        ``accel_max / P^2``), the rate target low-passed at ``target_cutoff_hz``, rate loop
+        ``P e + I + D de/dt + FF target`` with D on the error (ArduPilot's AC_PID), no K.
+    loop_hz : float
+        Attitude and rate loop rate (the motor command is held between updates), Hz.
+    position_loop_hz : float
+        Position and velocity loop rate (attitude set point and thrust held between), Hz.
+    dgyro_cutoff_hz : float
+        Low-pass on the rate loop's D term (PX4 IMU_DGYRO_CUTOFF, ArduPilot FLTD), Hz.
+    target_cutoff_hz : float
+        ArduPilot's rate target filter (FLTT), Hz; 0 = off.
+    accel_max_rad_s2 : float
+        ArduPilot's ATC_ACCEL_R/P_MAX, the square-root controller's limit; 0 = linear.
+    """
+
+    style: str = "px4"
+    loop_hz: float = 1000.0
+    position_loop_hz: float = 1000.0
+    dgyro_cutoff_hz: float = 30.0
+    target_cutoff_hz: float = 0.0
+    accel_max_rad_s2: float = 0.0
+
+    def validate(self) -> None:
+        """Raise :class:`UsageError` for a structure the simulator cannot run."""
+        if self.style not in ONBOARD_STYLES:
+            raise UsageError(f"onboard style '{self.style}': use one of {ONBOARD_STYLES}")
+        if not 10.0 <= self.position_loop_hz <= self.loop_hz <= 1000.0:
+            raise UsageError("onboard loop rates: need 10 <= position_loop_hz <= loop_hz "
+                             "<= 1000 Hz")
+        if not (self.dgyro_cutoff_hz > 0 and self.target_cutoff_hz >= 0
+                and self.accel_max_rad_s2 >= 0):
+            raise UsageError("onboard filters: dgyro_cutoff_hz > 0, target_cutoff_hz >= 0, "
+                             "accel_max_rad_s2 >= 0")
+
+
 def motor_layout(frame: str, arm_length_m: float) -> tuple[tuple[float, float, float], ...]:
     """Motor positions and spin: ``((x_m, y_m, spin), ...)`` in the body frame FRD.
 
@@ -172,6 +224,14 @@ class Airframe:
     effects : Effects
         Unmodelled effects (off by default).
     description : str
+    onboard : OnboardSpec
+        The autopilot's loop structure and rates (default: PX4-style, everything at 1 kHz).
+    link_delay_s : float
+        One-way delay of the MAVLink link, each direction, s.
+    telemetry_max_hz : float
+        Fastest rate the vehicle streams a message at, Hz.
+    hover_estimate_factor : float
+        The autopilot's hover-thrust estimate (``MPC_THR_HOVER``) over the true one.
     """
 
     name: str
@@ -194,6 +254,10 @@ class Airframe:
     torque_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
     effects: Effects = field(default_factory=Effects)
     description: str = ""
+    onboard: OnboardSpec = field(default_factory=OnboardSpec)
+    link_delay_s: float = 0.0
+    telemetry_max_hz: float = 1000.0
+    hover_estimate_factor: float = 1.0
 
     # ----------------------------------------------------------------- derived
     @property
@@ -291,6 +355,12 @@ class Airframe:
             raise UsageError(f"vehicle profile '{self.name}': torque_bias needs 3 values "
                              "within +-0.5")
         self.effects._validate()
+        self.onboard.validate()
+        if not (0.0 <= self.link_delay_s <= 0.5 and 1.0 <= self.telemetry_max_hz <= 1000.0
+                and 0.5 <= self.hover_estimate_factor <= 2.0):
+            raise UsageError(f"vehicle profile '{self.name}': link_delay_s must be in "
+                             "[0, 0.5], telemetry_max_hz in [1, 1000], hover_estimate_factor "
+                             "in [0.5, 2]")
 
 
 # --------------------------------------------------------------------------- loading

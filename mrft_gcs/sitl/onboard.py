@@ -44,7 +44,7 @@ import enum
 import math
 from dataclasses import dataclass
 
-from mrft_gcs.sitl.airframe import GRAVITY_M_S2
+from mrft_gcs.sitl.airframe import GRAVITY_M_S2, OnboardSpec
 
 __all__ = [
     "FlightMode",
@@ -54,6 +54,7 @@ __all__ = [
     "ParamStore",
     "Autopilot",
     "StatusEvent",
+    "sqrt_controller",
 ]
 
 
@@ -191,21 +192,33 @@ def _clip(v: float, lo: float, hi: float) -> float:
 
 
 class _RateAxis:
-    """One axis of the PX4 rate controller (D on the measured rate, filtered)."""
+    """One axis of the rate controller.
 
-    def __init__(self, prefix: str, dt: float) -> None:
+    PX4: ``K (P e + I - D d(rate)/dt) + FF rate_sp``, D on the measured rate, low-passed.
+    ArduPilot (AC_PID): the target low-passed (FLTT), ``P e + I + D de/dt + FF target`` with D
+    on the error, low-passed (FLTD); ``MC_*RATE_K`` is not used (ArduPilot has none).
+    """
+
+    def __init__(self, prefix: str, dt: float, spec: OnboardSpec | None = None) -> None:
+        spec = spec or OnboardSpec()
         self.p, self.i, self.d = f"{prefix}_P", f"{prefix}_I", f"{prefix}_D"
         self.k, self.ff = f"{prefix}_K", f"{prefix}_FF"
         self.dt = dt
-        self.alpha = 1.0 - math.exp(-2 * math.pi * 30.0 * dt)
+        self.ardupilot = spec.style == "ardupilot"
+        self.alpha = 1.0 - math.exp(-2 * math.pi * spec.dgyro_cutoff_hz * dt)
+        self.alpha_t = (1.0 - math.exp(-2 * math.pi * spec.target_cutoff_hz * dt)
+                        if spec.target_cutoff_hz > 0 else 1.0)
         self.reset()
 
     def reset(self) -> None:
         self.integral = 0.0
         self.prev_rate: float | None = None
         self.rate_dot = 0.0
+        self.target: float | None = None
 
     def update(self, prm: ParamStore, rate_sp: float, rate: float, integrate: bool) -> float:
+        if self.ardupilot:
+            return self._update_ardupilot(prm, rate_sp, rate, integrate)
         if self.prev_rate is not None:
             self.rate_dot += self.alpha * ((rate - self.prev_rate) / self.dt - self.rate_dot)
         self.prev_rate = rate
@@ -215,6 +228,47 @@ class _RateAxis:
             self.integral = _clip(self.integral + prm[self.i] * err * self.dt, -lim, lim)
         out = prm[self.k] * (prm[self.p] * err + self.integral - prm[self.d] * self.rate_dot)
         return out + prm[self.ff] * rate_sp
+
+    def _update_ardupilot(self, prm: ParamStore, rate_sp: float, rate: float,
+                          integrate: bool) -> float:
+        tgt = rate_sp if self.target is None else self.target + self.alpha_t * (
+            rate_sp - self.target)
+        self.target = tgt
+        err = tgt - rate
+        if self.prev_rate is not None:  # prev_rate holds the previous error here
+            self.rate_dot += self.alpha * ((err - self.prev_rate) / self.dt - self.rate_dot)
+        self.prev_rate = err
+        if integrate:
+            lim = prm["MC_RR_INT_LIM"]
+            self.integral = _clip(self.integral + prm[self.i] * err * self.dt, -lim, lim)
+        return (prm[self.p] * err + self.integral + prm[self.d] * self.rate_dot
+                + prm[self.ff] * tgt)
+
+
+def sqrt_controller(error: float, p: float, accel_max: float, dt: float) -> float:
+    """ArduPilot's square-root controller (AP_Math ``sqrt_controller``), rad/s.
+
+    Linear (``p error``) for ``|error| <= accel_max / p^2``, beyond that the rate that
+    stops at the target under ``accel_max``; never more than ``|error| / dt``.
+
+    >>> sqrt_controller(0.01, 10.0, 20.0, 0.0025)
+    0.1
+    >>> round(sqrt_controller(0.5, 10.0, 20.0, 0.0025), 3)  # sqrt(2 * 20 * (0.5 - 0.1))
+    4.0
+    """
+    if accel_max <= 0.0:
+        rate = p * error
+    elif p == 0.0:
+        rate = math.copysign(math.sqrt(2.0 * accel_max * abs(error)), error)
+    else:
+        lin = accel_max / (p * p)
+        if abs(error) > lin:
+            rate = math.copysign(math.sqrt(2.0 * accel_max * (abs(error) - 0.5 * lin)), error)
+        else:
+            rate = p * error
+    if dt > 0.0:
+        rate = _clip(rate, -abs(error) / dt, abs(error) / dt)
+    return rate
 
 
 class _VelAxis:
@@ -264,13 +318,19 @@ class Autopilot:
     normalised ``(roll, pitch, yaw, thrust)`` command for the mixer.
     """
 
-    def __init__(self, dt_s: float, hover_thrust: float | None = None) -> None:
+    def __init__(self, dt_s: float, hover_thrust: float | None = None,
+                 spec: OnboardSpec | None = None, position_every: int = 1) -> None:
         self.dt = dt_s
+        self.spec = spec or OnboardSpec()
+        #: the position loop runs on every ``position_every``-th update (its set points held)
+        self.position_every = max(1, int(position_every))
         self.params = ParamStore(hover_thrust)
-        self._rate = [_RateAxis("MC_ROLLRATE", dt_s), _RateAxis("MC_PITCHRATE", dt_s),
-                      _RateAxis("MC_YAWRATE", dt_s)]
-        self._vel = [_VelAxis("MPC_XY_VEL", dt_s), _VelAxis("MPC_XY_VEL", dt_s),
-                     _VelAxis("MPC_Z_VEL", dt_s)]
+        sp = self.spec
+        self._rate = [_RateAxis("MC_ROLLRATE", dt_s, sp), _RateAxis("MC_PITCHRATE", dt_s, sp),
+                      _RateAxis("MC_YAWRATE", dt_s, sp)]
+        pdt = dt_s * self.position_every
+        self._vel = [_VelAxis("MPC_XY_VEL", pdt), _VelAxis("MPC_XY_VEL", pdt),
+                     _VelAxis("MPC_Z_VEL", pdt)]
         self._axes: tuple[_RateAxis | _VelAxis, ...] = (*self._rate, *self._vel)
         self.reset()
 
@@ -288,6 +348,8 @@ class Autopilot:
         self._hold_pos = (0.0, 0.0, 0.0)  # north, east, up
         self._hold_yaw = 0.0
         self._last_meas: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+        self._pos_count = 0
+        self._pos_out: tuple[float, float, float] | None = None  # roll_sp, pitch_sp, thrust
         for ax in self._axes:
             ax.reset()
 
@@ -337,6 +399,7 @@ class Autopilot:
         self._capture_hold()
         for ax in self._vel:
             ax.reset()
+        self._pos_out = None
         name = {FlightMode.AUTO_LAND: "LAND"}.get(mode, mode.name)
         self._event(6, f"Mode changed to {name}")
 
@@ -430,20 +493,21 @@ class Autopilot:
         gains = (prm["MC_ROLL_P"], prm["MC_PITCH_P"], prm["MC_YAW_P"])
         limits = (prm["MC_ROLLRATE_MAX"], prm["MC_PITCHRATE_MAX"], prm["MC_YAWRATE_MAX"])
         integrate = not self.landed
+        sq = self.spec.style == "ardupilot" and self.spec.accel_max_rad_s2 > 0
         out = []
         for i in range(3):
             lim = limits[i] * _DEG
-            rate_sp = _clip(gains[i] * err[i], -lim, lim)
+            raw = (sqrt_controller(err[i], gains[i], self.spec.accel_max_rad_s2, self.dt)
+                   if sq and i < 2 else gains[i] * err[i])
+            rate_sp = _clip(raw, -lim, lim)
             u = self._rate[i].update(prm, rate_sp, att[3 + i], integrate)
             out.append(_clip(u, -1.0, 1.0))
         return out[0], out[1], out[2]
 
     def _position(self, mode: FlightMode, att: tuple[float, ...],
                   posv: tuple[float, ...]) -> tuple[float, float, float, float]:
-        prm, g = self.params, GRAVITY_M_S2
-        north, east, up = posv[0], posv[1], -posv[2]
-        vn, ve, vup = posv[3], posv[4], -posv[5]
-        hn, he, hup = self._hold_pos
+        prm = self.params
+        up, hup = -posv[2], self._hold_pos[2]
         if mode is FlightMode.AUTO_LAND:
             vup_sp = -prm["MPC_LAND_SPEED"]
         else:
@@ -452,7 +516,23 @@ class Autopilot:
         if self.landed and (mode is FlightMode.AUTO_LAND or hup - up < 0.3):
             for ax in self._axes:
                 ax.reset()
+            self._pos_out = None
             return (0.0, 0.0, 0.0, 0.0)  # idle on the ground
+        self._pos_count += 1
+        if self._pos_out is None or self._pos_count >= self.position_every:
+            self._pos_count = 0
+            self._pos_out = self._velocity(mode, att, posv, vup_sp)
+        roll_sp, pitch_sp, thrust = self._pos_out
+        q_sp = _quat_euler(roll_sp, pitch_sp, self._hold_yaw)
+        return (*self._attitude(q_sp, att), thrust)
+
+    def _velocity(self, mode: FlightMode, att: tuple[float, ...], posv: tuple[float, ...],
+                  vup_sp: float) -> tuple[float, float, float]:
+        """The position loop's outputs: roll and pitch set points (rad) and thrust."""
+        prm, g = self.params, GRAVITY_M_S2
+        north, east = posv[0], posv[1]
+        vn, ve, vup = posv[3], posv[4], -posv[5]
+        hn, he, _ = self._hold_pos
         integrate = not self.landed
         acc_up = self._vel[2].update(prm, vup_sp, vup, integrate)
         thrust = _clip(prm["MPC_THR_HOVER"] * (1.0 + acc_up / g), 0.0, 1.0)
@@ -469,5 +549,4 @@ class Autopilot:
             tilt = prm["MPC_TILTMAX_AIR"] * _DEG
             roll_sp = _clip(a_right / g, -tilt, tilt)
             pitch_sp = _clip(-a_fwd / g, -tilt, tilt)
-        q_sp = _quat_euler(roll_sp, pitch_sp, self._hold_yaw)
-        return (*self._attitude(q_sp, att), thrust)
+        return roll_sp, pitch_sp, thrust

@@ -223,14 +223,15 @@ class Multirotor:
             tq = [math.copysign(max(abs(u) - dz, 0.0), u) for u in tq]
         if eff.torque_rate_limit:
             lim = eff.torque_rate_limit * dt
-            tq = [p + min(max(u - p, -lim), lim) for u, p in zip(tq, self._torque_prev)]
+            tq = [p + min(max(u - p, -lim), lim)
+                  for u, p in zip(tq, self._torque_prev, strict=True)]
         self._torque_prev = tuple(tq)
         b = self._bias
         tr, tp, ty = tq[0] + b[0], tq[1] + b[1], tq[2] + b[2]
         thrust = min(max(thrust, 0.0), 1.0)
         sat = eff.motor_saturation
         cmd = tuple(min(max(thrust + tr * a + tp * c + ty * d, 0.0), sat)
-                    for a, c, d in zip(self._mix_roll, self._mix_pitch, self._mix_yaw))
+                    for a, c, d in zip(self._mix_roll, self._mix_pitch, self._mix_yaw, strict=True))
         self.motor_cmd = cmd
         delayed = self._act_delay.push(cmd)
 
@@ -317,12 +318,12 @@ class Multirotor:
         posv = self._pos_delay.push(posv)
         if self._noisy:
             nz = self.rng.standard_normal(15).tolist()
-            att = tuple(a + n * s for a, n, s in zip(att, nz[:9], self._att_noise))
-            posv = tuple(a + n * s for a, n, s in zip(posv, nz[9:], self._pos_noise))
+            att = tuple(a + n * s for a, n, s in zip(att, nz[:9], self._att_noise, strict=True))
+            posv = tuple(a + n * s for a, n, s in zip(posv, nz[9:], self._pos_noise, strict=True))
         if self._lpf < 1.0:
             k = self._lpf
-            att = tuple(f + k * (a - f) for a, f in zip(att, self.meas_att))
-            posv = tuple(f + k * (a - f) for a, f in zip(posv, self.meas_posv))
+            att = tuple(f + k * (a - f) for a, f in zip(att, self.meas_att, strict=True))
+            posv = tuple(f + k * (a - f) for a, f in zip(posv, self.meas_posv, strict=True))
         self.meas_att, self.meas_posv = att, posv
 
     @property

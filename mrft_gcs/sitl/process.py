@@ -26,7 +26,8 @@ from pathlib import Path
 from types import TracebackType
 
 from mrft_gcs.errors import LinkError, UsageError
-from mrft_gcs.sitl.airframe import load_airframe
+from mrft_gcs.sitl.airframe import Airframe, load_airframe
+from mrft_gcs.sitl.population import random_airframe
 
 __all__ = [
     "DEFAULT_PORT",
@@ -36,6 +37,7 @@ __all__ = [
     "parse_effects",
     "read_signing_key",
     "free_udp_port",
+    "vehicle_airframe",
 ]
 
 DEFAULT_PORT = 14540
@@ -92,11 +94,20 @@ class SitlConfig:
     signing_key_file: str | None = None
     wind_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     host: str = "127.0.0.1"
+    #: draw the vehicle at random from this seed (:func:`random_airframe`) instead
+    random_seed: int | None = None
 
     @property
     def connection_string(self) -> str:
         """What the ground station should connect to (pymavlink syntax)."""
         return f"udp:{self.host}:{self.port}"
+
+
+def vehicle_airframe(vehicle: str, random_seed: int | None = None) -> Airframe:
+    """The bundled or TOML vehicle ``vehicle``, or the random one of ``random_seed``."""
+    if random_seed is not None:
+        return random_airframe(random_seed)
+    return load_airframe(vehicle)
 
 
 def make_server(cfg: SitlConfig):  # -> SitlServer (imported lazily: pymavlink is heavy)
@@ -110,7 +121,7 @@ def make_server(cfg: SitlConfig):  # -> SitlServer (imported lazily: pymavlink i
         raise UsageError(f"speedup {cfg.speedup} must be in (0, 100]")
     if len(cfg.wind_m_s) != 3:
         raise UsageError("wind needs 3 components (north, east, down) in m/s")
-    airframe = load_airframe(cfg.vehicle).with_effects(dict(cfg.effects))
+    airframe = vehicle_airframe(cfg.vehicle, cfg.random_seed).with_effects(dict(cfg.effects))
     key = read_signing_key(cfg.signing_key_file) if cfg.signing_key_file else None
     vehicle = SimVehicle(airframe, seed=cfg.seed, wind_m_s=cfg.wind_m_s)
     return SitlServer(vehicle, port=cfg.port, host=cfg.host, speedup=cfg.speedup,
@@ -144,6 +155,9 @@ class SitlProcess:
         Constant wind, NED.
     startup_timeout_s : float
         How long to wait for the subprocess to report ready.
+    random_seed : int or None
+        Fly the random vehicle of this seed (:func:`mrft_gcs.sitl.random_airframe`)
+        instead of ``vehicle``.
 
     Raises
     ------
@@ -157,8 +171,10 @@ class SitlProcess:
                  speedup: float = 1.0, effects: Mapping[str, float] | None = None,
                  seed: int = 0, signing_key: bytes | None = None,
                  wind_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                 startup_timeout_s: float = 20.0) -> None:
-        load_airframe(vehicle).with_effects(dict(effects or {}))  # fail early, in this process
+                 startup_timeout_s: float = 20.0, random_seed: int | None = None) -> None:
+        # fail early, in this process
+        self.airframe = vehicle_airframe(vehicle, random_seed).with_effects(dict(effects or {}))
+        self.random_seed = random_seed
         if signing_key is not None and len(signing_key) != 32:
             raise UsageError("signing_key must be exactly 32 bytes")
         self.vehicle = str(vehicle)
@@ -193,6 +209,8 @@ class SitlProcess:
                "--port", str(self.port), "--speedup", repr(self.speedup),
                "--seed", str(self.seed), "--wind", ",".join(repr(w) for w in self.wind_m_s),
                "--exit-with-parent"]
+        if self.random_seed is not None:
+            cmd += ["--random", str(self.random_seed)]
         for name, value in self.effects.items():
             cmd += ["--effect", f"{name}={value!r}"]
         return cmd

@@ -18,12 +18,16 @@ Timing: simulated time follows a monotonic clock times ``speedup``; physics runs
 steps caught up on each wake, telemetry is sent when simulated time crosses its due time, and
 the loop sleeps in ``select`` until the next message is due or a datagram arrives.
 
+A vehicle's ``link_delay_s`` holds every frame that long in simulated time, each way;
+its ``telemetry_max_hz`` caps every stream (asking faster gives that rate).
+
 Malformed input (garbage, truncated frames, bad CRC, bad signature, NaN or out-of-range
 setpoints) is dropped and counted; it never stops the server.
 """
 
 from __future__ import annotations
 
+import collections
 import math
 import select
 import socket
@@ -67,12 +71,29 @@ class ServerStats:
 
 
 class _UdpWriter:
-    """File-like sink that pymavlink writes packed frames to."""
+    """File-like sink that pymavlink writes packed frames to.
 
-    def __init__(self, sock: socket.socket, addr: tuple[str, int], stats: ServerStats) -> None:
+    With a link delay, frames wait in :attr:`queue` (due simulated time, bytes) until
+    :meth:`flush` finds them due.
+    """
+
+    def __init__(self, sock: socket.socket, addr: tuple[str, int], stats: ServerStats,
+                 delay_s: float = 0.0, clock: Any = None) -> None:
         self.sock, self.addr, self.stats = sock, addr, stats
+        self.delay_s, self.clock = delay_s, clock
+        self.queue: collections.deque[tuple[float, bytes]] = collections.deque()
 
     def write(self, buf: bytes) -> None:
+        if self.delay_s > 0:
+            self.queue.append((self.clock() + self.delay_s, bytes(buf)))
+            return
+        self._send(buf)
+
+    def flush(self, t: float) -> None:
+        while self.queue and self.queue[0][0] <= t + 1e-9:
+            self._send(self.queue.popleft()[1])
+
+    def _send(self, buf: bytes) -> None:
         try:
             self.sock.sendto(buf, self.addr)
             self.stats.sent += 1
@@ -113,8 +134,14 @@ class SitlServer:
         except OSError:
             pass
         self.sock.setblocking(False)
-        self.mav = M.MAVLink(_UdpWriter(self.sock, self.addr, self.stats), srcSystem=1,
-                             srcComponent=1)
+        af = vehicle.airframe
+        #: the vehicle's link: one-way delay (s) each direction, fastest stream (Hz)
+        self.link_delay_s = float(af.link_delay_s)
+        self.max_stream_hz = min(MAX_STREAM_HZ, float(af.telemetry_max_hz))
+        self._writer = _UdpWriter(self.sock, self.addr, self.stats, self.link_delay_s,
+                                  lambda: self.vehicle.time_s)
+        self._inbox: collections.deque[tuple[float, Any]] = collections.deque()
+        self.mav = M.MAVLink(self._writer, srcSystem=1, srcComponent=1)
         self.mav.robust_parsing = True
         if signing_key is not None:
             if len(signing_key) != 32:
@@ -125,7 +152,7 @@ class SitlServer:
             sg.link_id = 0
             sg.timestamp = int((time.time() - 1420070400) * 1e5)
             sg.allow_unsigned_callback = lambda _mav, msg_id: msg_id in _UNSIGNED_OK
-        self._interval = {mid: (1.0 / hz if hz > 0 else 0.0)
+        self._interval = {mid: (1.0 / min(hz, self.max_stream_hz) if hz > 0 else 0.0)
                           for mid, hz in DEFAULT_STREAM_HZ.items()}
         self._due = {mid: 0.0 for mid in self._interval}
         self._next_heartbeat = 0.0
@@ -157,11 +184,17 @@ class SitlServer:
                 target = v.steps + 1
             while v.steps < target:
                 v.step()
+                if self._inbox or self._writer.queue:
+                    self._link_due(v.time_s)
                 if v.time_s >= self._next_any - 1e-9:
                     self._send_due(v.time_s)
             self._send_events()
             self._receive()
-            wake = wall0 + self._next_any / self.speedup
+            nxt = self._next_any
+            if self._inbox or self._writer.queue:
+                self._link_due(v.time_s)
+                nxt = min([nxt] + [q[0][0] for q in (self._inbox, self._writer.queue) if q])
+            wake = wall0 + nxt / self.speedup
             timeout = min(max(0.0, wake - time.monotonic()), 0.004)
             try:
                 select.select([self.sock], [], [], timeout)
@@ -223,6 +256,16 @@ class SitlServer:
                       else M.MAV_LANDED_STATE_IN_AIR)
             self.mav.extended_sys_state_send(M.MAV_VTOL_STATE_UNDEFINED, landed)
 
+    def _link_due(self, t: float) -> None:
+        """Deliver what the delayed link has carried by simulated time ``t``."""
+        self._writer.flush(t)
+        while self._inbox and self._inbox[0][0] <= t + 1e-9:
+            msg = self._inbox.popleft()[1]
+            try:
+                self._dispatch(msg)
+            except Exception:  # as in _parse: never stop the vehicle
+                self.stats.rejected += 1
+
     def _send_events(self) -> None:
         for ev in self.vehicle.autopilot.drain_events():
             self.mav.statustext_send(ev.severity, ev.text.encode()[:50])
@@ -263,6 +306,9 @@ class SitlServer:
                 self.stats.rejected += 1
                 continue
             self.stats.received += 1
+            if self.link_delay_s > 0:
+                self._inbox.append((self.vehicle.time_s + self.link_delay_s, msg))
+                continue
             try:
                 self._dispatch(msg)
             except Exception:  # a message we cannot interpret must not stop the vehicle
@@ -361,10 +407,10 @@ class SitlServer:
         if interval_us < 0:
             self._interval[mid] = 0.0
         elif interval_us == 0:
-            hz = DEFAULT_STREAM_HZ[mid]
+            hz = min(DEFAULT_STREAM_HZ[mid], self.max_stream_hz)
             self._interval[mid] = 1.0 / hz if hz > 0 else 0.0
         else:
-            self._interval[mid] = max(interval_us * 1e-6, 1.0 / MAX_STREAM_HZ)
+            self._interval[mid] = max(interval_us * 1e-6, 1.0 / self.max_stream_hz)
         t = self.vehicle.time_s
         self._due[mid] = t
         self._next_any = min(self._next_any, t)

@@ -30,7 +30,7 @@ class SimVehicle:
     wind_m_s : (3,) float
         Constant wind, NED.
     dt_s : float
-        Physics and control step (1 ms).
+        Physics step (1 ms); the autopilot runs at ``airframe.onboard.loop_hz``.
     """
 
     def __init__(self, airframe: Airframe, seed: int = 0,
@@ -39,8 +39,16 @@ class SimVehicle:
         self.airframe = airframe
         self.dt = dt_s
         self.physics = Multirotor(airframe, dt_s=dt_s, seed=seed, wind_m_s=wind_m_s)
-        self.autopilot = Autopilot(dt_s, hover_thrust=airframe.hover_thrust)
+        spec = airframe.onboard
+        #: the autopilot runs on every ``control_every``-th physics step, its command held
+        self.control_every = max(1, int(round(1.0 / (spec.loop_hz * dt_s))))
+        pos_every = max(1, int(round(spec.loop_hz / spec.position_loop_hz)))
+        self.autopilot = Autopilot(dt_s * self.control_every,
+                                   hover_thrust=airframe.hover_thrust
+                                   * airframe.hover_estimate_factor,
+                                   spec=spec, position_every=pos_every)
         self.steps = 0
+        self._cmd = (0.0, 0.0, 0.0, 0.0)
 
     def reset(self, position_ned: tuple[float, float, float] = (0.0, 0.0, 0.0),
               airborne: bool = False) -> None:
@@ -50,16 +58,18 @@ class SimVehicle:
         self.autopilot.reset()
         self.autopilot.params = params
         self.steps = 0
+        self._cmd = (0.0, 0.0, 0.0, 0.0)
 
     @property
     def time_s(self) -> float:
         return self.physics.t
 
     def step(self) -> None:
-        """One control step and one physics step."""
+        """One physics step, after a control step where the autopilot's loop is due."""
         ph = self.physics
-        cmd = self.autopilot.update(ph.t, ph.meas_att, ph.meas_posv, ph.on_ground)
-        ph.step(*cmd)
+        if self.steps % self.control_every == 0:
+            self._cmd = self.autopilot.update(ph.t, ph.meas_att, ph.meas_posv, ph.on_ground)
+        ph.step(*self._cmd)
         self.steps += 1
 
     def run(self, duration_s: float) -> None:
