@@ -7,12 +7,22 @@ computed exactly. For x and y the process is the true cascade: the closed
 attitude loop under the attitude gains *actually in use*, then the side part. On
 the attitude path that closed loop is the autopilot's own cascade under its own
 parameters (:func:`onboard_attitude_response`, the SITL's PX4-style structure).
+
+:func:`score_written` scores what a tune *wrote*: the parameter set on the loop the
+autopilot closes with it (its onboard delays, its loop rates as a sample-and-hold, its
+controller structure: PX4's rate K and D-on-measurement low-pass, or ArduPilot's square-root
+angle controller linearised, rate target filter and D on the error), per vehicle
+(:class:`mrft_gcs.sitl.OnboardSpec`), beside the ground-station-side figures of the gains
+identified there. The general controller ``u = Cr r - Cy y`` is scored as a PD is: the
+ISE of the unit-step error ``E = (1 + G (Cy - Cr)) / (s (1 + G Cy))`` against that of the
+optimal PD of the same true process, and the margins of ``L = Cy G``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,8 +30,12 @@ from mrft_gcs.loops import Loop
 from mrft_gcs.pd_design import deterioration, frequency_grid, margins, optimal_pd
 from mrft_gcs.plant import PD, closed_inner_response, inner_response, side_response
 
+if TYPE_CHECKING:
+    from mrft_gcs.sitl.airframe import Airframe, OnboardSpec
+
 __all__ = ["LoopScore", "StepFigures", "true_response", "score_gains", "step_figures",
-           "onboard_attitude_response"]
+           "onboard_attitude_response", "WrittenScore", "score_written", "onboard_process",
+           "onboard_controller", "general_ise"]
 
 _SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 
@@ -116,6 +130,206 @@ def score_gains(models: Mapping[str, Mapping[str, float]],
         J = deterioration(pd, G, w, best.ise)
         m = margins((pd.Kc + pd.Kd * 1j * w) * G, w)
         out[loop] = LoopScore(loop, pd, best.pd, J, float(m.pm_deg), bool(m.stable))
+    return out
+
+
+# ----------------------------------------------------------------- written gains, onboard
+#: the SITL's velocity-D low-pass (MPC_VELD_LP), Hz
+_VELD_CUTOFF_HZ = 5.0
+#: the SITL's physics step, s: the linear models already stand for a loop closed at it
+_PHYSICS_DT_S = 0.001
+_AXIS = {Loop.ROLL: "ROLL", Loop.PITCH: "PITCH"}
+
+
+@dataclass(frozen=True)
+class WrittenScore:
+    """One written loop scored two ways.
+
+    Attributes
+    ----------
+    onboard : LoopScore
+        The written parameters on the loop the autopilot closes (``gains`` is their PD
+        equivalent, ``optimal`` the optimal PD of the true onboard process).
+    gcs : LoopScore or None
+        The identified PD on the true ground-station-side process (the model with the
+        ground station's delay added): the loop the tune flew; None where not asked.
+    """
+
+    loop: Loop
+    onboard: LoopScore
+    gcs: LoopScore | None
+
+
+def _lowpass(s: np.ndarray, hz: float) -> np.ndarray | float:
+    return 1.0 / (1.0 + s / (2 * np.pi * hz)) if hz > 0 else 1.0
+
+
+def _hold(s: np.ndarray, period_s: float) -> np.ndarray:
+    """Sample-and-hold at ``period_s`` beyond the physics step the models already hold."""
+    def zoh(t: float) -> np.ndarray:
+        return (1.0 - np.exp(-s * t)) / (s * t)
+
+    return zoh(period_s) / zoh(_PHYSICS_DT_S) if period_s > _PHYSICS_DT_S * 1.0001 else \
+        np.ones_like(s)
+
+
+def general_ise(Cr: np.ndarray, Cy: np.ndarray, G: np.ndarray, w: np.ndarray) -> float:
+    """ISE of the unit-step error under ``u = Cr r - Cy y`` (stability not checked).
+
+    Equals :func:`mrft_gcs.pd_design.ise` for a PD (``Cr = Kc``, ``Cy = Kc + Kd s``).
+    """
+    s = 1j * w
+    e2 = np.abs((1.0 + G * (Cy - Cr)) / (s * (1.0 + G * Cy))) ** 2
+    body = np.trapezoid(e2 * w, np.log(w))
+    return float((body + e2[0] * w[0] + 1.0 / w[-1]) / np.pi)
+
+
+def _attitude_controller(spec: OnboardSpec, params: Mapping[str, float], axis: str,
+                         s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pa = params[f"MC_{axis}_P"]  # ArduPilot's square root, linearised: P for small errors
+    pre = f"MC_{axis}RATE"
+    p, i, d = (params[f"{pre}_{k}"] for k in ("P", "I", "D"))
+    ff = params.get(f"{pre}_FF", 0.0)
+    Fd = _lowpass(s, spec.dgyro_cutoff_hz)
+    if spec.style == "ardupilot":
+        c = p + i / s + d * s * Fd  # on the error of the filtered target; no K
+        Cr = (c + ff) * _lowpass(s, spec.target_cutoff_hz) * pa
+        return Cr, Cr + c * s
+    kr = params[f"{pre}_K"]
+    c = kr * (p + i / s)
+    Cr = (c + ff) * pa
+    return Cr, Cr + c * s + kr * d * s * s * Fd
+
+
+def _position_controller(params: Mapping[str, float], prefix: str, gain: float,
+                         s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pos_p = params[f"{prefix}_P"]
+    vp, vi, vd = (params[f"{prefix}_VEL_{k}_ACC"] for k in ("P", "I", "D"))
+    c = gain * (vp + vi / s)
+    Cr = c * pos_p
+    return Cr, Cr + c * s + gain * vd * s * s * _lowpass(s, _VELD_CUTOFF_HZ)
+
+
+def onboard_controller(airframe: Airframe, loop: Loop, params: Mapping[str, float],
+                       w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Cr, Cy)`` of the autopilot's loop ``loop`` under ``params``: ``u = Cr r - Cy y``.
+
+    Units: roll/pitch normalised torque per rad, altitude normalised thrust per m, x/y
+    attitude set point (rad) per m. Linearised (no limits; square root as its slope at 0).
+    """
+    s = 1j * np.asarray(w, float)
+    g = 9.80665
+    if loop in _AXIS:
+        return _attitude_controller(airframe.onboard, params, _AXIS[loop], s)
+    if loop is Loop.ALTITUDE:
+        return _position_controller(params, "MPC_Z", params["MPC_THR_HOVER"] / g, s)
+    return _position_controller(params, "MPC_XY", 1.0 / g, s)
+
+
+def onboard_process(airframe: Airframe, loop: Loop, params: Mapping[str, float]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """``(G(jw), w)``: the true process the autopilot's ``loop`` controls.
+
+    The airframe's linear model with its onboard delays, held at the loop's rate
+    (attitude: ``loop_hz``; altitude and x/y: ``position_loop_hz``); x and y through the
+    onboard closed attitude loop under ``params`` (pitch for x, roll for y).
+    """
+    models = airframe.linear_models()
+    spec = airframe.onboard
+    if loop in _SIDE_INNER:
+        mi, ms = models[_SIDE_INNER[loop].value], models[loop.value]
+        w = frequency_grid(mi["T_prop"], mi["T1"], mi["tau"], extra_T=(ms["T2"], ms["tau"]))
+        s = 1j * w
+        gi = inner_response(mi["K"], mi["T_prop"], mi["T1"], mi["tau"], w)[0] \
+            * _hold(s, 1.0 / spec.loop_hz)
+        Cr, Cy = onboard_controller(airframe, _SIDE_INNER[loop], params, w)
+        t_att = gi * Cr / (1.0 + gi * Cy)
+        G = t_att * side_response(ms["K"], ms["T2"], ms["tau"], w)[0]
+        return G * _hold(s, 1.0 / spec.position_loop_hz), w
+    m = models[loop.value]
+    w = frequency_grid(m["T_prop"], m["T1"], m["tau"])
+    rate = spec.loop_hz if loop in _AXIS else spec.position_loop_hz
+    G = inner_response(m["K"], m["T_prop"], m["T1"], m["tau"], w)[0] * _hold(1j * w, 1.0 / rate)
+    return G, w
+
+
+def _pd_equivalent(loop: Loop, params: Mapping[str, float]) -> PD:
+    """The PD a parameter set amounts to (SPEC 4.2), ignoring I, D, FF and filters."""
+    if loop in _AXIS:
+        a = _AXIS[loop]
+        kd = params[f"MC_{a}RATE_P"] * params.get(f"MC_{a}RATE_K", 1.0)
+        return PD(params[f"MC_{a}_P"] * kd, kd)
+    if loop is Loop.ALTITUDE:
+        kd = params["MPC_Z_VEL_P_ACC"] * params["MPC_THR_HOVER"] / 9.80665
+        return PD(params["MPC_Z_P"] * kd, kd)
+    kd = params["MPC_XY_VEL_P_ACC"] / 9.80665
+    return PD(params["MPC_XY_P"] * kd, kd)
+
+
+def _score(loop: Loop, gains: PD, Cr: np.ndarray, Cy: np.ndarray, G: np.ndarray,
+           w: np.ndarray) -> LoopScore:
+    best = optimal_pd(G, w)
+    m = margins(Cy * G, w)
+    J = ((general_ise(Cr, Cy, G, w) - best.ise) / best.ise * 100.0 if m.stable else np.inf)
+    return LoopScore(loop, gains, best.pd, float(J), float(m.pm_deg), bool(m.stable))
+
+
+def _gcs_score(airframe: Airframe, loop: Loop, pd: PD, identified: Mapping[Loop, PD],
+               delay_s: float) -> LoopScore | None:
+    models = {k: dict(v) for k, v in airframe.linear_models().items()}
+    # the GCS sees angle and position equally late: the side part keeps its relative delay
+    for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE):
+        models[lp.value]["tau"] += delay_s
+    inner = identified.get(_SIDE_INNER[loop]) if loop in _SIDE_INNER else None
+    if loop in _SIDE_INNER and inner is None:
+        return None
+    G, w = true_response(models, loop, inner)
+    s = 1j * w
+    return _score(loop, pd, pd.Kc + 0 * s, pd.Kc + pd.Kd * s, G, w)
+
+
+def score_written(airframe: Airframe, params: Mapping[str, float], loops=None,
+                  identified: Mapping[Loop, PD] | None = None,
+                  gcs_delay_s: float | Mapping[Loop, float] = 0.0) -> dict[Loop, WrittenScore]:
+    """Score written parameters on the vehicle's true onboard loops (and the GCS side).
+
+    Parameters
+    ----------
+    airframe : Airframe
+        The simulated vehicle (its linear models and :class:`OnboardSpec`).
+    params : mapping
+        The vehicle's parameter values after the write (every ``MC_*``/``MPC_*`` name the
+        loops use; :attr:`mrft_gcs.sitl.onboard.ParamStore.values` has them all).
+    loops : iterable of Loop, optional
+        The loops to score (default: roll, pitch, altitude, x, y).
+    identified : mapping, optional
+        The PDs the ground station flew (identified); with them each loop also gets its
+        ``gcs`` score: that PD on the true process with ``gcs_delay_s`` more delay (s,
+        one value or per loop; x/y through the identified attitude PD).
+
+    Returns
+    -------
+    dict
+        ``{Loop: WrittenScore}``; ``onboard.J_pct`` is ``inf`` for an unstable loop.
+
+    Examples
+    --------
+    >>> from mrft_gcs.sitl import load_airframe
+    >>> from mrft_gcs.sitl.onboard import ParamStore
+    >>> sc = score_written(load_airframe("qdrone"), ParamStore(0.45).values, [Loop.ROLL])
+    >>> sc[Loop.ROLL].onboard.stable
+    True
+    """
+    out: dict[Loop, WrittenScore] = {}
+    for loop in loops or (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE, Loop.X, Loop.Y):
+        G, w = onboard_process(airframe, loop, params)
+        Cr, Cy = onboard_controller(airframe, loop, params, w)
+        onboard = _score(loop, _pd_equivalent(loop, params), Cr, Cy, G, w)
+        gcs = None
+        if identified is not None and loop in identified:
+            d = gcs_delay_s.get(loop, 0.0) if isinstance(gcs_delay_s, Mapping) else gcs_delay_s
+            gcs = _gcs_score(airframe, loop, identified[loop], identified, float(d))
+        out[loop] = WrittenScore(loop, onboard, gcs)
     return out
 
 
