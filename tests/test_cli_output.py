@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
 
 import pytest
 
@@ -45,3 +48,39 @@ def test_help_shows_value_types_and_no_type_for_flags(capsys):
     assert "<bool>" not in out
     # a flag takes no value: nothing between its name and its help
     assert re.search(r"--dry-link\s+connect and check", _option_line(out, "--dry-link"))
+
+
+@pytest.fixture(scope="module")
+def roll_relay_tlog(tmp_path_factory):
+    """A .tlog of a roll relay test on the simulated vehicle (the bundled classifier's beta)."""
+    from mrft_gcs.identify import relay_settings
+    from mrft_gcs.loops import LoopKind
+    from mrft_gcs.residual.synth import sitl_relay_record, write_relay_tlog
+
+    rec = sitl_relay_record("roll", seed=4, beta=relay_settings(LoopKind.ATTITUDE).beta, h=0.08,
+                            duration_s=6.0)
+    path = tmp_path_factory.mktemp("cli") / "relay.tlog"
+    write_relay_tlog(path, "roll", rec.t, rec.u, rec.y)
+    return path
+
+
+def _run_piped(*args: str, cwd) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
+    return subprocess.run([sys.executable, "-m", "mrft_gcs.cli", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_piped_output_keeps_table_rows_and_notes_whole(roll_relay_tlog, tmp_path):
+    from mrft_gcs.dryrun import dry_run
+
+    res = dry_run(roll_relay_tlog)
+    ident = res.loops[0].identification
+    model = ", ".join(f"{k}={v:.3g}" for k, v in ident.model.as_dict().items())
+    assert len(model) > 30
+    proc = _run_piped("dry-run", str(roll_relay_tlog), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    rows = [ln for ln in proc.stdout.splitlines() if ln.startswith("│ roll")]
+    assert rows and model in rows[0], proc.stdout
+    assert max(len(ln) for ln in proc.stdout.splitlines()) > 100
+    for line in res.explanation().splitlines():
+        assert line in proc.stdout.splitlines(), line

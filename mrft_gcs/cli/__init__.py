@@ -7,10 +7,11 @@ and an exit code in exactly one place: :func:`main`.
 
 from __future__ import annotations
 
+import os
 import sys
 
 import typer
-from rich.console import Console
+from rich.console import Console, ConsoleDimensions
 from rich.text import Text
 
 from mrft_gcs.errors import MrftError
@@ -35,10 +36,30 @@ app = typer.Typer(
 #: exit code when the user answers no to a take-off or write question (as an interruption)
 DECLINED = 130
 
+#: columns of output that is not a terminal (a pipe, a file) and has no COLUMNS: wide enough
+#: that a table row or a note stays on one line for grep and for scripts
+PIPED_WIDTH = 1000
+
+
+class _Console(Console):
+    """A rich console that cuts nothing when its output is a pipe or a file."""
+
+    @property
+    def size(self) -> ConsoleDimensions:
+        size = super().size
+        if self._width is None and not self.is_terminal and "COLUMNS" not in os.environ:
+            return ConsoleDimensions(PIPED_WIDTH, size.height)
+        return size
+
+    @size.setter
+    def size(self, new_size: tuple[int, int]) -> None:
+        self._width, self._height = new_size
+
+
 #: Markup is off: notes, errors, paths and table cells carry user text with square brackets
 #: ("[[vehicle]]", ".[design]"); styled words are built as :class:`rich.text.Text`.
-console = Console(markup=False)
-err_console = Console(stderr=True, markup=False)
+console = _Console(markup=False)
+err_console = _Console(stderr=True, markup=False)
 
 
 def styled(text: str, style: str) -> Text:
@@ -59,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script; returns the process exit code."""
     _register()
     try:
-        code = app(args=argv, prog_name="mrft-tune", standalone_mode=False)  # a typer.Exit(n) comes back as n
+        # a typer.Exit(n) comes back as n
+        code = app(args=argv, prog_name="mrft-tune", standalone_mode=False)
     except MrftError as err:
         err_console.print(_error_line(str(err)), highlight=False, soft_wrap=True)
         return err.exit_code

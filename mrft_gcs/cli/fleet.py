@@ -80,6 +80,7 @@ def status_table(board: FleetBoard) -> Table:
     now = time.monotonic()
     for name, r in board.snapshot().items():
         elapsed = "-" if r.started is None else f"{(r.ended or now) - r.started:.0f}"
+        result: str | Text
         if r.outcome is None:
             result = "" if r.started is None else "running"
         else:
