@@ -48,7 +48,7 @@ def test_cli_on_real_logs_exits_cleanly(path, tmp_path, capsys):
     if not path.exists():
         pytest.skip(f"{path} not found")
     report = tmp_path / "r.json"
-    assert main(["dry-run", str(path), "--report", str(report)]) == 0
+    assert main(["dry-run", str(path), "--report", str(report)]) == 6  # nothing identified
     assert "no relay test found" in capsys.readouterr().out
     data = json.loads(report.read_text())
     assert data["loops"] == {} and data["status"] == "no_identification"

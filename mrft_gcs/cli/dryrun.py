@@ -9,14 +9,16 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from mrft_gcs.cli import app, console
+from mrft_gcs.cli import app, console, err_console
 from mrft_gcs.dryrun import DryRunResult, dry_run
-from mrft_gcs.errors import MissingDependency, UsageError
+from mrft_gcs.errors import IdentificationError, UsageError
 from mrft_gcs.loops import Loop
 
-__all__ = ["dry_run_command", "render", "report_dict"]
+__all__ = ["dry_run_command", "render", "report_dict", "outcome_error"]
 
 SCHEMA = "mrft-gcs/dry-run/1"
+#: what "written" means in dry-run's tables (dry-run itself writes nothing)
+WRITTEN_CAPTION = "written: the gains a tune writes (onboard loop, SI units; parameters below)"
 
 
 def _f(x: float | None, fmt: str = ".3g") -> str:
@@ -29,22 +31,35 @@ def render(res: DryRunResult) -> list:
     if not res.loops:
         out.append(res.explanation())
         return out
+    retargeted = any(r.gains is not None and r.identification is not None
+                     and r.gains != r.identification.gains for r in res.loops)
     ident = Table(title="identified loops")
     for col in ("loop", "source", "beta", "h", "bias", "period s", "model", "class", "conf.",
-                "Kc", "Kd"):
+                "written Kc", "written Kd"):
         ident.add_column(col)
+    if retargeted:
+        ident.add_column("identified Kc, Kd")
     for r in res.loops:
         s, i, g = r.segment, r.identification, r.gains
         model = ", ".join(f"{k}={v:.3g}" for k, v in i.model.as_dict().items()) if i else "-"
-        ident.add_row(r.loop.value, s.source, f"{s.beta:+.3f}", f"{s.h:.3g}", f"{s.bias:+.3g}",
-                      _f(i.period_s if i else None), model, str(i.class_index) if i else "-",
-                      _f(i.confidence if i else None, ".2f"), _f(g.Kc if g else None),
-                      _f(g.Kd if g else None))
+        row = [r.loop.value, s.source, f"{s.beta:+.3f}", f"{s.h:.3g}", f"{s.bias:+.3g}",
+               _f(i.period_s if i else None), model, str(i.class_index) if i else "-",
+               _f(i.confidence if i else None, ".2f"), _f(g.Kc if g else None),
+               _f(g.Kd if g else None)]
+        if retargeted:
+            row.append(f"{i.gains.Kc:.3g}, {i.gains.Kd:.3g}" if i else "-")
+        ident.add_row(*row)
+    ident.caption = WRITTEN_CAPTION + ("; identified: for the loop as the relay test ran it "
+                                       "(through the ground station)" if retargeted else "")
+    ident.caption_justify = "left"
     out.append(ident)
     resid = Table(title="residual (simulated model under the same relay vs measured cycle)")
     for col in ("loop", "rms before", "period err", "ampl. err", "duty err", "effect",
-                "value", "rms after", "gains with effect"):
+                "value", "rms after", "model's optimal PD, without -> with effect"):
         resid.add_column(col)
+    resid.caption = ("the last column: what the effect would change in the identified model's "
+                     "design; not written (written gains: table above)")
+    resid.caption_justify = "left"
     for r in res.loops:
         rr = r.residual
         if rr is None:
@@ -88,33 +103,17 @@ def report_dict(res: DryRunResult, profile: str | None) -> dict:
     }
 
 
-def _plot(res: DryRunResult, path: Path) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError as err:  # pragma: no cover - matplotlib is a dependency
-        raise MissingDependency("--plot needs matplotlib: pip install matplotlib") from err
-    n = max(len(res.loops), 1)
-    fig, axes = plt.subplots(n, 1, figsize=(8, 2.6 * n), squeeze=False)
-    for ax, r in zip(axes[:, 0], res.loops, strict=False):
-        s = r.segment
-        ax.plot(s.t - s.t[0], s.y, lw=0.8, label="measured y")
-        ax2 = ax.twinx()
-        ax2.step(s.t - s.t[0], s.u, where="post", color="gray", lw=0.6, label="relay u")
-        title = f"{r.loop.value}: relay from {s.source}, beta {s.beta:+.2f}, h {s.h:.3g}"
-        if r.residual:
-            title += f"; residual {r.residual.rms_before:.3f}"
-            if r.residual.effect:
-                title += f" -> {r.residual.rms_after:.3f} with {r.residual.effect}"
-        ax.set_title(title, fontsize=9)
-        ax.set_xlabel("t (s)")
+def outcome_error(res: DryRunResult, log: Path) -> IdentificationError | None:
+    """The error a dry-run ends with (exit code 6) when it identified nothing, else None."""
     if not res.loops:
-        axes[0, 0].text(0.5, 0.5, "no relay test found", ha="center")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+        return IdentificationError(f"{log}: no relay test found, nothing identified (the lines "
+                                   "above say what the log holds); dry-run needs a log of a "
+                                   "tune ('mrft-tune tune' writes a .tlog)")
+    if not any(r.identification for r in res.loops):
+        return IdentificationError(
+            f"{log}: relay tests on {', '.join(r.loop.value for r in res.loops)} but none "
+            "identified (see the notes above)")
+    return None
 
 
 @app.command("dry-run")
@@ -126,13 +125,21 @@ def dry_run_command(
         help="autopilot profile for the parameters it would write (px4, ardupilot, sitl or a "
              "path)")] = "px4",
     report: Annotated[Path | None, typer.Option(help="write a JSON report here")] = None,
-    plot: Annotated[Path | None, typer.Option(help="write a PNG of the relay tests here")] = None,
+    json_out: Annotated[bool, typer.Option(
+        "--json", help="print the JSON report to stdout instead of the tables (for scripts)")]
+    = False,
+    plot: Annotated[Path | None, typer.Option(
+        help="write a PNG here: per loop the relay test, and the predicted step response and "
+             "open-loop Bode plot (with margins) of the gains a tune would write")] = None,
     beta: Annotated[float | None, typer.Option(help="the relay's beta (else inferred)")] = None,
     h: Annotated[float | None, typer.Option(help="the relay's amplitude (else from the "
                                                  "levels)")] = None,
 ) -> None:
     """Identify the relay tests in a log, as a live tune would; print models, residuals and
     the parameter changes it would write. Never opens a link.
+
+    Exit code 6 when nothing was identified (no relay test in the log, or none identified);
+    the report is still written.
 
     Example:  mrft-tune dry-run session.tlog --loop roll --report dry.json
     """
@@ -147,13 +154,24 @@ def dry_run_command(
 
         prof = load_profile(profile)
     meta = {k: str(v) for k, v in (("beta", beta), ("h", h)) if v is not None}
-    with console.status(f"reading and analysing {log} ..."):
+    with err_console.status(f"reading and analysing {log} ..."):
         res = dry_run(log, loops=loops, profile=prof, meta=meta)
-    for item in render(res):
-        console.print(item, highlight=False)
+    data = report_dict(res, profile)
+    if json_out:
+        console.print_json(json.dumps(data))
+    else:
+        for item in render(res):
+            console.print(item, highlight=False)
+    say = err_console if json_out else console
     if report:
-        report.write_text(json.dumps(report_dict(res, profile), indent=2))
-        console.print(f"report written to {report}")
+        report.write_text(json.dumps(data, indent=2))
+        say.print(f"report written to {report}")
     if plot:
-        _plot(res, plot)
-        console.print(f"plot written to {plot}")
+        from mrft_gcs.plots import plot_dry_run
+
+        written = plot_dry_run(res, plot)
+        say.print(f"plot written to {written}" if written else
+                  f"no plot written to {plot}: no relay test to show")
+    error = outcome_error(res, log)
+    if error is not None:
+        raise error
