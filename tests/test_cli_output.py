@@ -84,3 +84,20 @@ def test_piped_output_keeps_table_rows_and_notes_whole(roll_relay_tlog, tmp_path
     assert max(len(ln) for ln in proc.stdout.splitlines()) > 100
     for line in res.explanation().splitlines():
         assert line in proc.stdout.splitlines(), line
+
+
+def test_verify_defaults_to_the_profile_tune_defaults_to(capsys):
+    import typer.main
+
+    from mrft_gcs.cli import _register, app
+
+    _register()
+    group = typer.main.get_command(app)
+    defaults = {name: next(p.default for p in group.commands[name].params if p.name == "profile")
+                for name in ("tune", "verify")}
+    assert defaults["tune"] == defaults["verify"] == "px4"
+    for name in ("tune", "verify"):
+        assert main([name, "--help"]) == 0
+        options = capsys.readouterr().out.split("Options:", 1)[1]
+        entry = re.split(r"\n  -", options.split("--profile", 1)[1], maxsplit=1)[0]
+        assert "[default: px4]" in " ".join(entry.split()), entry

@@ -170,7 +170,7 @@ def test_badly_tuned_gains_give_a_larger_error_cli(sitl, good_flight, tmp_path):
 
     _write(sitl, reference_params("qdrone", scale=0.3))
     png, out = tmp_path / "f8.png", tmp_path / "f8.json"
-    code = main(["verify", "-c", sitl.connection_string, "--figure8", "--size", "2x1",
+    code = main(["verify", "-c", sitl.connection_string, "-p", "sitl", "--figure8", "--size", "2x1",
                  "--period", "5.5", "--laps", "1", "--settle-laps", "0",
                  "--sitl-models", "qdrone", "--plot", str(png), "--json", str(out)])
     assert code == 0

@@ -55,7 +55,9 @@ def verify(
     period: Annotated[float, typer.Option(help="seconds per lap")] = 5.5,
     laps: Annotated[int, typer.Option(help="laps measured (after one settling lap)")] = 2,
     settle_laps: Annotated[int, typer.Option(help="unmeasured laps before")] = 1,
-    profile: Annotated[str, typer.Option(help="autopilot profile: px4, sitl or a .toml")] = "sitl",
+    profile: Annotated[str, typer.Option(
+        "--profile", "-p", help="autopilot profile: px4, ardupilot, sitl or a .toml path (the "
+        "same default as tune)")] = "px4",
     altitude: Annotated[float, typer.Option(help="take-off height of the figure (m)")] = 1.0,
     report: Annotated[Path | None, typer.Option(
         help="tuning report JSON: its loop models give the attitude feed-forward")] = None,
