@@ -10,7 +10,8 @@ ArduPilot-like) and rates (250 Hz-1 kHz), a misestimated hover thrust, a centre-
 bias, and in about a third of the draws one undeclared effect.
 
 :func:`domain_check` says whether a vehicle lies in Table I's domain (its true linear
-models in the boxes of :mod:`mrft_gcs.domains`, thrust-to-weight in 1.5-5), so a
+models in the boxes of :mod:`mrft_gcs.domains`, thrust-to-weight in 1.5-5, telemetry of
+200 Hz or more as a relay test needs), so a
 benchmark can count in-domain vehicles tuned and out-of-domain ones refused.
 
 >>> a, b = random_airframe(7), random_airframe(7)
@@ -34,7 +35,7 @@ from mrft_gcs.sitl.airframe import GRAVITY_M_S2, Airframe, Effects, OnboardSpec
 
 __all__ = ["random_airframe", "domain_check", "DomainCheck", "MASS_RANGE_KG",
            "THRUST_TO_WEIGHT_RANGE", "MOTOR_TAU_RANGE_S", "TELEMETRY_RANGE_HZ",
-           "LOOP_RATES_HZ", "TABLE1_THRUST_TO_WEIGHT"]
+           "LOOP_RATES_HZ", "TABLE1_THRUST_TO_WEIGHT", "RELAY_TELEMETRY_HZ"]
 
 MASS_RANGE_KG = (0.03, 3.0)
 THRUST_TO_WEIGHT_RANGE = (1.8, 6.0)
@@ -44,6 +45,8 @@ TELEMETRY_RANGE_HZ = (50.0, 500.0)
 LOOP_RATES_HZ = (250.0, 1000.0 / 3.0, 500.0, 1000.0)
 #: Table I's peak thrust-to-weight range
 TABLE1_THRUST_TO_WEIGHT = (1.5, 5.0)
+#: telemetry a relay test needs (mrft_gcs.link.quality.require_relay_capable's default)
+RELAY_TELEMETRY_HZ = 200.0
 #: share of draws with one undeclared effect
 _EFFECT_SHARE = 0.3
 
@@ -110,7 +113,10 @@ def random_airframe(seed: int) -> Airframe:
     att = _logu(rng, 0.0005, 0.012)
     pos = att + _logu(rng, 0.003, 0.12)
     link = float(rng.uniform(0.0, 0.012))
-    telemetry = float(round(_logu(rng, *TELEMETRY_RANGE_HZ)))
+    # most links carry a relay test (>= 200 Hz), some do not and must be refused
+    lo, hi = TELEMETRY_RANGE_HZ
+    telemetry = float(round(_logu(rng, RELAY_TELEMETRY_HZ, hi) if rng.random() < 0.8
+                            else _logu(rng, lo, RELAY_TELEMETRY_HZ)))
     style = "ardupilot" if rng.random() < 0.5 else "px4"
     loop_hz = float(rng.choice(LOOP_RATES_HZ))
     pos_every = int(rng.choice([k for k in (1, 2, 4, 5) if loop_hz / k >= 50.0]))
@@ -163,7 +169,8 @@ class DomainCheck:
     Attributes
     ----------
     in_domain : bool
-        Every true linear model in its Table I box and thrust-to-weight in 1.5-5.
+        Every true linear model in its Table I box, thrust-to-weight in 1.5-5, and
+        telemetry fast enough for a relay test (200 Hz).
     reasons : tuple of str
         What lies outside (empty when in the domain).
     effects : tuple of str
@@ -202,4 +209,7 @@ def domain_check(af: Airframe) -> DomainCheck:
     lo, hi = TABLE1_THRUST_TO_WEIGHT
     if not lo <= af.thrust_to_weight <= hi:
         reasons.append(f"thrust/weight {af.thrust_to_weight:.2f} outside {lo:g}-{hi:g}")
+    if af.telemetry_max_hz < RELAY_TELEMETRY_HZ:
+        reasons.append(f"telemetry {af.telemetry_max_hz:.0f} Hz, under the "
+                       f"{RELAY_TELEMETRY_HZ:g} Hz a relay test needs")
     return DomainCheck(not reasons, tuple(reasons), tuple(af.effects.active()))
