@@ -14,7 +14,7 @@ A fleet file is TOML::
     actuation = "torque"            # optional: torque | attitude
     loops = ["altitude", "roll", "pitch"]   # optional: default all the path can tune
     max_tilt_deg = 30.0             # optional safety overrides (SafetyLimits fields)
-    baud = 57600                    # optional, serial links only
+    baud = 921600                   # optional, serial links only
     signing_key = "alpha.key"       # optional MAVLink 2 signing key file
     heartbeat_timeout_s = 5.0       # optional
     dry_link = false                # connect and check only, do not fly

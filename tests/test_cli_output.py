@@ -101,3 +101,29 @@ def test_verify_defaults_to_the_profile_tune_defaults_to(capsys):
         options = capsys.readouterr().out.split("Options:", 1)[1]
         entry = re.split(r"\n  -", options.split("--profile", 1)[1], maxsplit=1)[0]
         assert "[default: px4]" in " ".join(entry.split()), entry
+
+
+def _all_help(capsys) -> str:
+    texts = []
+    for args in (["--help"], ["tune", "--help"], ["params", "--help"], ["fleet", "--help"],
+                 ["verify", "--help"], ["dry-run", "--help"], ["demo", "--help"],
+                 ["sitl", "--help"]):
+        assert main(args) == 0
+        texts.append(capsys.readouterr().out)
+    for sub in ("restore", "backup", "show"):
+        assert main(["params", sub, "--help"]) == 0
+        texts.append(capsys.readouterr().out)
+    return "\n".join(texts)
+
+
+def test_example_serial_rates_carry_a_relay_test(capsys):
+    """Every baud rate the tool shows as an example is one it accepts for a relay test."""
+    import mrft_gcs.fleet
+    from mrft_gcs.link.connection import ACCEPTED_FORMS
+    from mrft_gcs.link.quality import check_serial_baud
+
+    text = "\n".join([_all_help(capsys), ACCEPTED_FORMS, mrft_gcs.fleet.__doc__ or ""])
+    rates = [int(r) for r in re.findall(r"(?:tty\w*,|baud\s*=\s*|--baud\s+)(\d{4,})", text)]
+    assert len(rates) >= 2, text  # the connection forms and the fleet file show one each
+    for rate in rates:
+        check_serial_baud(rate)  # raises LinkError for a rate too slow for a relay test

@@ -20,7 +20,8 @@ app.add_typer(params_app, name="params")
 
 Connect = Annotated[str, typer.Option("--connect", "-c", help="udp:HOST:PORT, udpin:, udpout:, "
                                       "tcp:HOST:PORT, tcpin:, or a serial device")]
-Baud = Annotated[int | None, typer.Option("--baud", help="serial baud rate")]
+Baud = Annotated[int | None, typer.Option(
+    "--baud", help="serial baud rate (default 57600)")]
 SigningKey = Annotated[Path | None, typer.Option(
     "--signing-key", help="MAVLink 2 signing key file (32 bytes, or 64 hex digits)")]
 Timeout = Annotated[float, typer.Option("--timeout", help="seconds to wait for a heartbeat")]

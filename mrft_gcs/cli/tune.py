@@ -86,7 +86,8 @@ def tune_command(
                                            "parameters, never arm")] = False,
     signing_key: Annotated[Path | None, typer.Option(
         "--signing-key", help="MAVLink 2 signing key file (32 bytes, or 64 hex digits)")] = None,
-    baud: Annotated[int | None, typer.Option("--baud", help="serial baud rate")] = None,
+    baud: Annotated[int | None, typer.Option(
+    "--baud", help="serial baud rate (default 57600; a relay test needs 460800 or more)")] = None,
     altitude: Annotated[float, typer.Option("--altitude", help="climb set point above take-off, "
                                             "m (the tests run there, or up to 0.3 m lower "
                                             "where a slow climb is braked)")] = 1.0,

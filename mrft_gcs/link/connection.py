@@ -44,8 +44,10 @@ __all__ = [
 
 ACCEPTED_FORMS = (
     "udp:HOST:PORT, udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT, "
-    "or a serial device such as /dev/ttyUSB0 (with --baud) or /dev/ttyUSB0,57600"
+    "or a serial device such as /dev/ttyUSB0 (with --baud) or /dev/ttyUSB0,921600"
 )
+#: a telemetry radio's usual rate: enough for ``params``, too slow for a relay test
+#: (:func:`mrft_gcs.link.quality.check_serial_baud` says so before the test)
 DEFAULT_SERIAL_BAUD = 57600
 
 # MAV_AUTOPILOT values (common.xml) and MAV_TYPE values that are never the vehicle.
@@ -54,7 +56,8 @@ _MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 _MAV_AUTOPILOT_INVALID = 8
 _MAV_AUTOPILOT_PX4 = 12
 _MAV_TYPE_GCS = 6
-_NOT_A_VEHICLE_TYPES = frozenset({_MAV_TYPE_GCS, 18, 26, 27})  # GCS, ONBOARD_CONTROLLER, GIMBAL, ADSB
+# GCS, ONBOARD_CONTROLLER, GIMBAL, ADSB
+_NOT_A_VEHICLE_TYPES = frozenset({_MAV_TYPE_GCS, 18, 26, 27})
 
 
 class LinkKind(enum.Enum):
@@ -115,8 +118,8 @@ def parse_connection_string(text: str, baud: int | None = None) -> ConnectionSpe
     --------
     >>> parse_connection_string("udp:127.0.0.1:14540").kind
     <LinkKind.UDP_IN: 'udpin'>
-    >>> parse_connection_string("/dev/ttyUSB0,57600").baud_bps
-    57600
+    >>> parse_connection_string("/dev/ttyUSB0,921600").baud_bps
+    921600
     """
     text = text.strip()
     m = _NET.match(text)
@@ -157,8 +160,9 @@ def mavlink_module() -> Any:
     return mavutil
 
 
-def open_mavlink(spec: ConnectionSpec, source_system: int = 255, source_component: int = 190) -> Any:
-    """Open the pymavlink connection object for ``spec`` (component 190: MAV_COMP_ID_MISSIONPLANNER).
+def open_mavlink(spec: ConnectionSpec, source_system: int = 255,
+                 source_component: int = 190) -> Any:
+    """Open the pymavlink connection object for ``spec`` (component 190: MISSIONPLANNER).
 
     Raises
     ------
