@@ -25,7 +25,8 @@ altitude (``u``: normalised collective-thrust deviation; ``Kc`` [1/m], ``Kd`` [s
     PX4: thrust = MPC_THR_HOVER (1 + acc/g), so velocity P = Kd g / hover,
     position P = Kc/Kd, velocity I = D = 0.
     ArduPilot (``accel_p`` set): throttle = hover + 0.001 ACCZ_P (a_sp - a) with
-    accelerations in cm/s^2, i.e. ``A = 0.1 ACCZ_P`` of throttle per m/s^2; with the
+    accelerations in cm/s^2, i.e. ``A = 0.1 ACCZ_P`` of throttle per m/s^2 (the
+    metre-based PSC_D_ACC_P is that 0.1 ACCZ_P itself: ``accel_p_per_m_s2`` 1); with the
     measured acceleration a = g du / hover fed straight back, du = A/(1 + A g/hover)
     a_sp. So VELZ_P = Kd (1 + A g / hover) / A and POSZ_P = Kc/Kd. Assumes the
     acceleration feedback is fast next to the altitude loop and ACCZ_I small.
@@ -37,15 +38,18 @@ import enum
 import math
 import os
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from mrft_gcs.errors import UsageError
+from mrft_gcs.errors import ParameterError, UsageError
 from mrft_gcs.link.modes import CustomMode
 from mrft_gcs.loops import Loop
 from mrft_gcs.telemetry import AutopilotFamily
+
+if TYPE_CHECKING:
+    from mrft_gcs.link.firmware import Firmware
 
 __all__ = [
     "Actuation",
@@ -66,6 +70,7 @@ __all__ = [
     "clamp_to_ranges",
     "clamp_note",
     "params_in_range",
+    "fit_profile",
 ]
 
 G_M_S2 = 9.80665
@@ -133,6 +138,9 @@ class AltitudeParams:
     hover_thrust: str
     accel_p: str | None = None
     accel_p_value: float = 0.5  # ACCZ_P written (ArduPilot default 0.5)
+    #: throttle per m/s^2 of acceleration error per unit of ``accel_p``: 0.1 where the
+    #: loop works in cm/s^2 (PSC_ACCZ_P), 1 where it works in m/s^2 (PSC_D_ACC_P)
+    accel_p_per_m_s2: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -152,6 +160,23 @@ class AutopilotProfile:
     source: str = ""
     #: ``name -> (min, max)`` of the values a tune may write (``[param_ranges]``)
     param_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    #: firmware versions (major, minor), both inclusive, whose parameter names these are;
+    #: None: not tied to a version
+    versions: tuple[tuple[int, int], tuple[int, int]] | None = None
+    #: bundled profiles of the same autopilot with other parameter names (another version)
+    alternatives: tuple[str, ...] = ()
+
+    def fits_version(self, version: tuple[int, ...] | None) -> bool:
+        """True if ``version`` is in :attr:`versions` (or either is unknown)."""
+        if self.versions is None or version is None:
+            return True
+        return self.versions[0] <= tuple(version[:2]) <= self.versions[1]
+
+    def versions_text(self) -> str:
+        if self.versions is None:
+            return "any version"
+        (a, b), (c, d) = self.versions
+        return f"{a}.{b} to {c}.{d}"
 
     def parameter_names(self) -> list[str]:
         """Every parameter a full tune writes or needs (hover thrust), in write order."""
@@ -209,6 +234,22 @@ def _ranges(data: Mapping[str, Any], source: str,
     return out
 
 
+def _versions(ap: Mapping[str, Any], where: str
+              ) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """``versions = ["4.3", "4.7"]``: major.minor, both inclusive."""
+    if "versions" not in ap:
+        return None
+    pair = ap["versions"]
+    try:
+        lo, hi = (tuple(int(n) for n in str(v).split(".")) for v in pair)
+        if len(pair) != 2 or len(lo) != 2 or len(hi) != 2 or lo > hi:
+            raise ValueError
+    except (TypeError, ValueError):
+        raise UsageError(f"{where}: 'versions' must be [\"MAJOR.MINOR\", \"MAJOR.MINOR\"], "
+                         f"lowest first, got {pair!r}") from None
+    return (lo[0], lo[1]), (hi[0], hi[1])
+
+
 def _positive(table: Mapping[str, Any], key: str, where: str, default: float) -> float:
     value = float(table.get(key, default))
     if not (math.isfinite(value) and value > 0):
@@ -258,12 +299,17 @@ def parse_profile(data: Mapping[str, Any], source: str = "<profile>") -> Autopil
         _pname(alt_t, "pos_p", wal), _pname(alt_t, "vel_p", wal), _pname(alt_t, "vel_i", wal),
         _pname(alt_t, "vel_d", wal), _pname(alt_t, "hover_thrust", wal),
         accel_p=_optional_pname(alt_t, "accel_p", wal),
-        accel_p_value=_positive(alt_t, "accel_p_value", wal, 0.5))
+        accel_p_value=_positive(alt_t, "accel_p_value", wal, 0.5),
+        accel_p_per_m_s2=_positive(alt_t, "accel_p_per_m_s2", wal, 0.1))
+    alternatives = ap.get("alternatives", [])
+    if not (isinstance(alternatives, list) and all(isinstance(a, str) for a in alternatives)):
+        raise UsageError(f"{w}: 'alternatives' must be a list of profile names")
     prof = AutopilotProfile(
         name=str(ap.get("name", Path(source).stem)), family=family,
         description=str(ap.get("description", "")), actuation=actuation, modes=modes,
         safety=safety, roll=angle("roll"), pitch=angle("pitch"), side=side,
-        altitude=altitude, source=source)
+        altitude=altitude, source=source, versions=_versions(ap, w),
+        alternatives=tuple(alternatives))
     return replace(prof, param_ranges=_ranges(data, source, prof.parameter_names()))
 
 
@@ -297,8 +343,8 @@ def _ratio(g: PDGains, loop: Loop) -> float:
 
 
 def _accel_gain(alt: AltitudeParams, accel_p: float | None = None) -> float:
-    """ArduPilot ACCZ loop: throttle per m/s^2 (0.001 per cm/s^2 times ACCZ_P)."""
-    return 0.1 * (alt.accel_p_value if accel_p is None else accel_p)
+    """ArduPilot's acceleration loop: throttle per m/s^2 (ACCZ_P: 0.001 per cm/s^2 each)."""
+    return alt.accel_p_per_m_s2 * (alt.accel_p_value if accel_p is None else accel_p)
 
 
 def gains_to_params(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
@@ -500,3 +546,62 @@ def params_in_range(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
     notes = tuple(clamp_note(profile, c, designed, in_effect) for c in clamps)
     return ClampedParams(values, tuple(clamps), notes,
                          {lp: g for lp, g in in_effect.items() if lp in gains})
+
+
+# ---------------------------------------------------------------------- firmware
+def _is_bundled(profile: AutopilotProfile) -> bool:
+    return bool(profile.source) and Path(profile.source).resolve().parent == PROFILE_DIR
+
+
+def fit_profile(requested: AutopilotProfile, firmware: Firmware,
+                has_param: Callable[[str], bool]) -> tuple[AutopilotProfile, str]:
+    """The profile whose parameter names the vehicle in front of us has, and a note why.
+
+    ``requested`` and its ``alternatives`` (bundled profiles of the same autopilot with
+    other names, e.g. ArduCopter's PSC_POSZ_P before and PSC_D_POS_P after the PSC_*
+    renaming) are tried in order: those whose ``versions`` hold the firmware's version
+    first, each confirmed by asking the vehicle for the parameter that differs
+    (``has_param(name)``). A profile without alternatives is taken as it is.
+
+    Raises
+    ------
+    UsageError
+        The profile is for another autopilot than the one that answered.
+    ParameterError
+        None of the candidates' parameters is on the vehicle.
+    """
+    fam, fw_fam = requested.family, firmware.family
+    known = (AutopilotFamily.PX4, AutopilotFamily.ARDUPILOT)
+    if fam in known and fw_fam in known and fam is not fw_fam:
+        bundled = sorted(p.stem for p in PROFILE_DIR.glob("*.toml")
+                         if p.stem.startswith(fw_fam.value))
+        raise UsageError(f"the vehicle is {firmware.name} but profile {requested.name} is for "
+                         f"{fam.value}: use --profile {' or '.join(bundled) or fw_fam.value}")
+    candidates = [requested]
+    for name in requested.alternatives:
+        alt = load_profile(name)
+        if alt.family is fam and all(alt.name != c.name for c in candidates):
+            candidates.append(alt)
+    if len(candidates) == 1:
+        note = ""
+        if not requested.fits_version(firmware.version):
+            note = (f"profile {requested.name} was written for {requested.versions_text()}, "
+                    f"the vehicle runs {firmware.name}")
+        return requested, note
+    candidates.sort(key=lambda c: not c.fits_version(firmware.version))  # stable: keeps order
+    how = "AUTOPILOT_VERSION" if firmware.version else "no version reported"
+    for cand in candidates:
+        probe = cand.altitude.pos_p
+        if not has_param(probe):
+            continue
+        why = f"{firmware.name} ({how}); the vehicle has {probe}"
+        if cand is not requested:
+            why += f", not {requested.altitude.pos_p}"
+        if not cand.fits_version(firmware.version):
+            why += f" (profile written for {cand.versions_text()})"
+        if cand is requested:
+            return cand, f"parameter names of profile {cand.name}: {why}"
+        return cand, f"profile {cand.name} instead of {requested.name}: {why}"
+    probes = ", ".join(f"{c.altitude.pos_p} ({c.name})" for c in candidates)
+    raise ParameterError(f"{firmware.name}: the vehicle has none of {probes}: name its "
+                         f"parameters in a profile of your own (--profile FILE.toml)")

@@ -74,8 +74,11 @@ def test_tune_over_udp_report_and_readback(tuned):
         assert set(loop["residual"]) == {"rms_before", "rms_after", "effect", "effect_params"}
     assert set(rep["loops"]["x"]["model"]) == {"K", "T2", "tau"}
     assert set(rep["loops"]["roll"]["model"]) == {"K", "T_prop", "T1", "tau"}
+    firmware = rep["vehicle"].pop("firmware")
     assert rep["vehicle"] == {"connection": result.connection, "autopilot": "px4",
                               "profile": "sitl", "actuation": "torque"}
+    # the bundled SITL answers no AUTOPILOT_VERSION: the heartbeat names the autopilot
+    assert firmware["autopilot"] == "px4" and firmware["source"] == "HEARTBEAT"
     assert rep["parameters"][0].keys() == {"name", "old", "new"}
     assert write_report(result, folder / "r.json").is_file()
     png = plot_cycles(result, folder / "cycles.png")

@@ -34,7 +34,14 @@ from pathlib import Path
 
 import numpy as np
 
-from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort, UsageError
+from mrft_gcs.errors import (
+    IdentificationError,
+    LinkError,
+    MrftError,
+    ParameterError,
+    SafetyAbort,
+    UsageError,
+)
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.flight.onboard import onboard_gains, retarget_delay_s
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
@@ -67,6 +74,7 @@ from mrft_gcs.link import (
     measure_link,
     require_relay_capable,
 )
+from mrft_gcs.link.firmware import Firmware, detect_firmware, torque_path_refusal
 from mrft_gcs.link.latency import CpuWakeLatency
 from mrft_gcs.link.quality import LinkQuality
 from mrft_gcs.loops import Loop, LoopKind
@@ -77,6 +85,7 @@ from mrft_gcs.profiles import (
     AutopilotProfile,
     PDGains,
     SafetyLimits,
+    fit_profile,
     load_profile,
     params_in_range,
 )
@@ -279,6 +288,8 @@ class TuneResult:
     limits: SafetyLimits | None = None
     hover_error_m: float = float("nan")
     notes: tuple[str, ...] = field(default_factory=tuple)
+    #: the autopilot firmware as it reported itself (None: not asked yet)
+    firmware: Firmware | None = None
 
 
 class _Telemetry:
@@ -496,6 +507,7 @@ class _Run:
         self.written: dict[Loop, PD] = {}
         self.residuals = True
         self.requested: frozenset[Loop] = frozenset(Loop)
+        self.firmware: Firmware | None = None
 
     # ------------------------------------------------------------------ result
     def result(self, status: str, error: str | None = None) -> TuneResult:
@@ -531,7 +543,8 @@ class _Run:
             notes=tuple([YAW_NOTE] + self.notes + self._log_notes()
                         + (list(seq.events) if seq else [])
                         + ([tilt_note(seq.max_tilt_by_phase)]
-                           if seq and seq.max_tilt_by_phase else [])))
+                           if seq and seq.max_tilt_by_phase else [])),
+            firmware=self.firmware)
 
     def _log_notes(self) -> list[str]:
         error = self.link.tlog_error
@@ -548,6 +561,7 @@ class _Run:
         started here so that it loads while the link is measured.
         """
         link = self.link
+        self._know_firmware()
         if own_worker and not dry_link:
             self._start_worker()
         self.quality = measure_link(link, rate_hz=self.rate_hz)
@@ -594,6 +608,32 @@ class _Run:
         if self.residuals:
             self._residuals()
         return self.result("ok")
+
+    def _know_firmware(self) -> None:
+        """Ask the firmware what it is, take the profile whose parameter names it has, and
+        refuse a path it cannot carry: all before anything is armed or written."""
+        fw = self.firmware = detect_firmware(self.link)
+        if fw.version is None:
+            self.notes.append(f"firmware: {fw.name}: the vehicle did not answer AUTOPILOT_VERSION "
+                              f"(the heartbeat gives the autopilot, the parameters the names)")
+        probe = ParamClient(self.link, timeout_s=0.4, retries=1)
+
+        def has_param(name: str) -> bool:
+            try:
+                probe.read(name)
+            except ParameterError:
+                return False
+            return True
+
+        prof, note = fit_profile(self.prof, fw, has_param)
+        if note:
+            self.notes.append(note)
+        if prof is not self.prof:
+            self.prof = prof
+            self.link.modes = dict(prof.modes)
+        if self.act is Actuation.TORQUE and (why := torque_path_refusal(fw)) is not None:
+            raise UsageError(f"--actuation torque cannot fly this vehicle: {why}; use "
+                             f"--actuation attitude (tunes altitude, x and y)")
 
     # ------------------------------------------------------------------ identification
     def _start_worker(self) -> None:

@@ -68,7 +68,8 @@ def report_dict(result: TuneResult) -> dict[str, Any]:
     return {
         "schema": SCHEMA,
         "vehicle": {"connection": result.connection, "autopilot": result.autopilot,
-                    "profile": result.profile, "actuation": result.actuation},
+                    "profile": result.profile, "actuation": result.actuation,
+                    "firmware": result.firmware.as_dict() if result.firmware else None},
         "started": result.started,
         "duration_s": _num(result.duration_s),
         "loops": {lp.value: _loop(lr) for lp, lr in result.loops.items()},
@@ -87,7 +88,8 @@ def report_dict(result: TuneResult) -> dict[str, Any]:
             "period_p99_ms": _num(st.period_p99_ms), "jitter_p99_ms": _num(st.jitter_p99_ms)},
         "link": None if lq is None else {
             "attitude_hz": _num(lq.attitude_hz), "position_hz": _num(lq.position_hz),
-            "rtt_p50_ms": _num(lq.rtt_p50_ms), "rtt_max_ms": _num(lq.rtt_max_ms)},
+            "rtt_p50_ms": _num(lq.rtt_p50_ms), "rtt_max_ms": _num(lq.rtt_max_ms),
+            "rtt_p90_ms": _num(lq.rtt_p90_ms), "rtt_method": lq.rtt_method},
         "notes": list(result.notes),
     }
 

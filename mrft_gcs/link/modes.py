@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 from mrft_gcs.telemetry import AutopilotFamily
 
-__all__ = ["CustomMode", "PX4_MODES", "ARDUPILOT_COPTER_MODES", "encode_custom_mode", "mode_matches"]
+__all__ = ["CustomMode", "PX4_MODES", "ARDUPILOT_COPTER_MODES", "encode_custom_mode",
+           "mode_matches"]
 
 
 @dataclass(frozen=True)

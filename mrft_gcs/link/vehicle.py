@@ -49,13 +49,17 @@ from mrft_gcs.telemetry import (
     is_finite_sample,
 )
 
-__all__ = ["VehicleLink", "CommandAck", "ParamReport", "Subscription", "LinkCounters"]
+__all__ = ["VehicleLink", "CommandAck", "ParamReport", "AutopilotVersion", "TimesyncReply",
+           "Subscription", "LinkCounters"]
 
 # Wire constants (common.xml), named once here.
 MAV_CMD_NAV_LAND = 21
 MAV_CMD_DO_SET_MODE = 176
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
+MAV_CMD_REQUEST_MESSAGE = 512
+MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES = 520
+MAVLINK_MSG_ID_AUTOPILOT_VERSION = 148
 MAV_RESULT_ACCEPTED = 0
 MAV_RESULT_IN_PROGRESS = 5
 MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
@@ -69,7 +73,9 @@ _MAV_RESULT_NAMES = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "
                      4: "FAILED", 5: "IN_PROGRESS", 6: "CANCELLED"}
 _COMMAND_NAMES = {MAV_CMD_NAV_LAND: "NAV_LAND", MAV_CMD_DO_SET_MODE: "DO_SET_MODE",
                   MAV_CMD_COMPONENT_ARM_DISARM: "COMPONENT_ARM_DISARM",
-                  MAV_CMD_SET_MESSAGE_INTERVAL: "SET_MESSAGE_INTERVAL"}
+                  MAV_CMD_SET_MESSAGE_INTERVAL: "SET_MESSAGE_INTERVAL",
+                  MAV_CMD_REQUEST_MESSAGE: "REQUEST_MESSAGE",
+                  MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: "REQUEST_AUTOPILOT_CAPABILITIES"}
 
 
 @dataclass(frozen=True, slots=True)
@@ -95,7 +101,31 @@ class ParamReport:
     count: int
 
 
-Event = Sample | CommandAck | ParamReport
+@dataclass(frozen=True, slots=True)
+class AutopilotVersion:
+    """AUTOPILOT_VERSION: what the firmware says it is (decoded in :mod:`.firmware`).
+
+    ``flight_sw_version`` packs major, minor, patch and FIRMWARE_VERSION_TYPE in its four
+    bytes (high to low); ``capabilities`` is the MAV_PROTOCOL_CAPABILITY bit mask.
+    """
+
+    capabilities: int
+    flight_sw_version: int
+    vendor_id: int
+    product_id: int
+
+
+@dataclass(frozen=True, slots=True)
+class TimesyncReply:
+    """A TIMESYNC answer: ``tc1_ns`` the peer's clock, ``ts1_ns`` our request echoed."""
+
+    tc1_ns: int
+    ts1_ns: int
+
+
+#: answers that go to subscribers only, never into the telemetry queue
+_REPLIES = (CommandAck, AutopilotVersion, TimesyncReply)
+Event = Sample | CommandAck | ParamReport | AutopilotVersion | TimesyncReply
 
 
 @dataclass
@@ -188,7 +218,8 @@ class VehicleLink:
         #: on this clock as a .tlog reader does (``mrft_gcs.logs.tlog``)
         self.rx_offset_s = math.inf
         self._stop = threading.Event()
-        #: mode numbers used by :meth:`land`; a profile replaces them (``link.modes = profile.modes``)
+        #: mode numbers used by :meth:`land`; a profile replaces them
+        #: (``link.modes = profile.modes``)
         self.modes: dict[str, CustomMode] = self.default_modes()
         conn.mav.set_send_callback(self._on_sent)
         self._reader = threading.Thread(target=self._read_loop, name="mavlink-reader", daemon=True)
@@ -341,12 +372,12 @@ class VehicleLink:
         event = self._to_event(kind, msg)
         if event is None:
             return
-        if isinstance(event, CommandAck | ParamReport):
+        if isinstance(event, _REPLIES):
             self._publish(event)
-            if isinstance(event, ParamReport):
-                event = ParamValue(self._boot_s, event.name, event.value, event.index, event.count)
-            else:
-                return
+            return
+        if isinstance(event, ParamReport):
+            self._publish(event)
+            event = ParamValue(self._boot_s, event.name, event.value, event.index, event.count)
         if not is_finite_sample(event):
             self.counters.nonfinite_dropped += 1
             return
@@ -393,6 +424,12 @@ class VehicleLink:
         if kind == "STATUSTEXT":
             text = m.text.decode(errors="replace") if isinstance(m.text, bytes) else str(m.text)
             return StatusText(self._boot_s, int(m.severity), text.rstrip("\x00"))
+        if kind == "TIMESYNC":
+            # tc1 0 is the peer's own request (ArduPilot sends some); only answers count
+            return TimesyncReply(int(m.tc1), int(m.ts1)) if m.tc1 != 0 else None
+        if kind == "AUTOPILOT_VERSION":
+            return AutopilotVersion(int(m.capabilities), int(m.flight_sw_version),
+                                    int(m.vendor_id), int(m.product_id))
         return None
 
     # ------------------------------------------------------------------ sending
@@ -433,16 +470,17 @@ class VehicleLink:
                 send(attempt)
                 if not wait_ack:
                     return None
-                ack = sub.wait_for(lambda e: e.command == command and e.result != MAV_RESULT_IN_PROGRESS,
-                                   timeout_s)
+                ack = sub.wait_for(lambda e: e.command == command
+                                   and e.result != MAV_RESULT_IN_PROGRESS, timeout_s)
                 if ack is None:
                     continue
                 if not ack.accepted:
                     result = _MAV_RESULT_NAMES.get(ack.result, str(ack.result))
                     raise LinkError(f"vehicle refused {name} ({result})")
                 return ack
-        raise LinkError(f"vehicle did not acknowledge {name} within {timeout_s * (retries + 1):g} s: "
-                        f"check the link quality and that the vehicle supports the command")
+        raise LinkError(f"vehicle did not acknowledge {name} within "
+                        f"{timeout_s * (retries + 1):g} s: check the link quality and that the "
+                        f"vehicle supports the command")
 
     def request_message_interval(self, message: str | int, rate_hz: float, *,
                                  timeout_s: float = 1.0) -> None:
@@ -540,6 +578,27 @@ class VehicleLink:
             self.send_actuator_target(target)
         else:
             self.send_attitude_target(target)
+
+    def request_autopilot_version(self, timeout_s: float = 1.0) -> AutopilotVersion | None:
+        """AUTOPILOT_VERSION, asked with MAV_CMD_REQUEST_MESSAGE (148), else with the older
+        MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES; None if neither brings it (a peer that does
+        not serve it is no fault). Each way waits ``timeout_s / 2`` for the acknowledgement
+        and as long again for the message."""
+        with self.subscribe(AutopilotVersion) as sub:
+            for cmd, params in ((MAV_CMD_REQUEST_MESSAGE, (MAVLINK_MSG_ID_AUTOPILOT_VERSION,)),
+                                (MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, (1.0,))):
+                try:
+                    self.command(cmd, params, timeout_s=timeout_s / 2, retries=1)
+                except LinkError:
+                    continue  # refused or unanswered: try the other way
+                version = sub.get(timeout_s / 2)
+                if version is not None:
+                    return version  # type: ignore[return-value]
+        return None
+
+    def send_timesync(self, ts1_ns: int) -> None:
+        """TIMESYNC request (tc1 0): the peer answers with its clock and ``ts1_ns`` echoed."""
+        self._send(lambda mav: mav.timesync_send(0, int(ts1_ns)), "TIMESYNC")
 
     def send_param_request_read(self, name: str = "", index: int = -1) -> None:
         """PARAM_REQUEST_READ by name (index -1) or by index."""

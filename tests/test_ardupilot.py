@@ -1,0 +1,207 @@
+"""Knowing the autopilot (AUTOPILOT_VERSION, parameter names), timing the link with TIMESYNC,
+and refusing paths the firmware cannot carry.
+
+The live parts run over real UDP sockets: against the bundled SITL (which answers neither
+AUTOPILOT_VERSION nor TIMESYNC: the fallbacks) and against a small ArduPilot-like MAVLink
+peer that answers the way ArduCopter does (AUTOPILOT_VERSION on MAV_CMD_REQUEST_MESSAGE,
+TIMESYNC at once, PARAM_REQUEST_READ only from a 10 Hz parameter stream). The real
+ArduCopter SITL is exercised in tests/test_ardupilot_sitl.py when it is built.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import pytest
+from pymavlink import mavutil
+
+from mrft_gcs.errors import ParameterError, UsageError
+from mrft_gcs.flight.api import tune
+from mrft_gcs.link import VehicleLink, measure_link, require_relay_capable
+from mrft_gcs.link.firmware import (
+    Firmware,
+    decode_sw_version,
+    detect_firmware,
+    torque_path_refusal,
+)
+from mrft_gcs.link.quality import RTT_PARAM_READ, RTT_TIMESYNC
+from mrft_gcs.loops import Loop
+from mrft_gcs.profiles import PDGains, fit_profile, gains_to_params, load_profile
+from mrft_gcs.telemetry import AutopilotFamily
+
+OLD_NAMES = {n: 1.0 for n in load_profile("ardupilot").parameter_names()}
+NEW_NAMES = {n: 1.0 for n in load_profile("ardupilot-ned").parameter_names()}
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _sw(major: int, minor: int, patch: int, kind: int) -> int:
+    return (major << 24) | (minor << 16) | (patch << 8) | kind
+
+
+# ---------------------------------------------------------------- firmware facts
+@pytest.mark.parametrize("value, expected", [
+    (_sw(4, 7, 0, 0), (4, 7, 0, "dev")),
+    (_sw(4, 6, 2, 255), (4, 6, 2, "official")),
+    (_sw(4, 3, 8, 192), (4, 3, 8, "rc")),
+    (_sw(1, 14, 0, 255), (1, 14, 0, "official")),
+    (_sw(1, 16, 0, 194), (1, 16, 0, "rc")),  # PX4 counts rc2 as 194
+])
+def test_flight_sw_version_decodes(value, expected):
+    assert decode_sw_version(value) == expected
+
+
+@pytest.mark.parametrize("family, version, refused", [
+    (AutopilotFamily.ARDUPILOT, (4, 7, 0), True),
+    (AutopilotFamily.ARDUPILOT, None, True),
+    (AutopilotFamily.PX4, (1, 13, 3), False),
+    (AutopilotFamily.PX4, (1, 14, 0), True),
+    (AutopilotFamily.PX4, (1, 16, 0), True),
+    (AutopilotFamily.PX4, None, False),  # not known: the bundled SITL serves torque as PX4 1.13
+])
+def test_torque_path_refused_where_firmware_has_no_torque_input(family, version, refused):
+    why = torque_path_refusal(Firmware(family, 2, version, "official" if version else ""))
+    assert (why is not None) == refused
+    if refused:
+        assert "SET_ACTUATOR_CONTROL_TARGET" in why
+
+
+# ---------------------------------------------------------------- parameter names
+def _fw(version):
+    return Firmware(AutopilotFamily.ARDUPILOT, 2, version, "dev" if version else "")
+
+
+@pytest.mark.parametrize("version", [(4, 7, 0), (4, 5, 7), None])
+def test_profile_follows_the_names_the_vehicle_has(version):
+    asked: list[str] = []
+
+    def has(names):
+        return lambda n: asked.append(n) or n in names
+
+    prof, note = fit_profile(load_profile("ardupilot"), _fw(version), has(OLD_NAMES))
+    assert prof.name == "ardupilot" and "PSC_POSZ_P" in note
+    prof, note = fit_profile(load_profile("ardupilot"), _fw(version), has(NEW_NAMES))
+    assert prof.name == "ardupilot-ned"
+    assert "instead of ardupilot" in note and "PSC_D_POS_P" in note
+    assert set(prof.parameter_names()) <= set(NEW_NAMES)
+
+
+def test_profile_for_another_autopilot_or_with_no_matching_names_is_refused():
+    with pytest.raises(UsageError, match="ArduCopter 4.7.0-dev .* profile px4 .* --profile "
+                                         "ardupilot"):
+        fit_profile(load_profile("px4"), _fw((4, 7, 0)), lambda n: True)
+    with pytest.raises(ParameterError, match="PSC_POSZ_P .ardupilot.*PSC_D_POS_P"):
+        fit_profile(load_profile("ardupilot"), _fw((4, 7, 0)), lambda n: False)
+
+
+def test_metre_based_acceleration_gain_gives_the_same_climb_rate_gain():
+    gains = {Loop.ALTITUDE: PDGains(Kc=0.5, Kd=0.2)}
+    old = gains_to_params(load_profile("ardupilot"), gains, 0.4)
+    new = gains_to_params(load_profile("ardupilot-ned"), gains, 0.4)
+    assert new["PSC_D_ACC_P"] == pytest.approx(0.1 * old["PSC_ACCZ_P"])
+    assert new["PSC_D_VEL_P"] == pytest.approx(old["PSC_VELZ_P"])
+    assert new["PSC_D_POS_P"] == pytest.approx(old["PSC_POSZ_P"])
+
+
+# ---------------------------------------------------------------- the bundled SITL
+def test_bundled_sitl_falls_back_to_heartbeat_and_parameter_reads():
+    sitl = pytest.importorskip("mrft_gcs.sitl")
+    port = _free_udp_port()
+    with sitl.SitlProcess(vehicle="qdrone", port=port, speedup=1.0, seed=0), \
+            VehicleLink.connect(f"udp:127.0.0.1:{port}") as link:
+        fw = detect_firmware(link)
+        assert fw.family is AutopilotFamily.PX4 and fw.source == "HEARTBEAT"
+        assert torque_path_refusal(fw) is None  # its torque path is the point of the SITL
+        q = measure_link(link, rate_hz=250.0, window_s=0.5)
+        assert q.rtt_method == RTT_PARAM_READ and q.rtt_lost == 0, q.line()
+        require_relay_capable(q)
+
+
+# ---------------------------------------------------------------- an ArduCopter-like peer
+class ArduCopterLike(threading.Thread):
+    """Answers as ArduCopter does: HEARTBEAT as MAV_AUTOPILOT_ARDUPILOTMEGA quad,
+    AUTOPILOT_VERSION 4.7.0-dev on request, TIMESYNC at once, PARAM_REQUEST_READ only
+    from a 10 Hz parameter stream, ATTITUDE and LOCAL_POSITION_NED at 250 Hz."""
+
+    def __init__(self, port: int, params: dict[str, float]) -> None:
+        super().__init__(daemon=True)
+        self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
+                                               source_component=1)
+        self.params = params
+        self.commands: list[int] = []
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        mav, names = self.conn.mav, list(self.params)
+        pending: list[str] = []
+        next_beat = next_param = next_tm = 0.0
+        t0 = time.monotonic()
+        while not self.stop.is_set():
+            now = time.monotonic()
+            boot_ms = int((now - t0) * 1000)
+            if now >= next_beat:
+                next_beat = now + 0.2
+                mav.heartbeat_send(2, 3, 81, 0, 3)
+            if now >= next_tm:
+                next_tm = now + 0.004
+                mav.attitude_send(boot_ms, 0, 0, 0, 0, 0, 0)
+                mav.local_position_ned_send(boot_ms, 0, 0, 0, 0, 0, 0)
+            if now >= next_param and pending:
+                next_param = now + 0.1
+                name = pending.pop(0)
+                mav.param_value_send(name.encode(), self.params[name], 9, len(names),
+                                     names.index(name))
+            msg = self.conn.recv_match(blocking=True, timeout=0.002)
+            if msg is None:
+                continue
+            kind = msg.get_type()
+            if kind == "TIMESYNC" and msg.tc1 == 0:
+                mav.timesync_send(time.monotonic_ns(), msg.ts1)
+            elif kind == "PARAM_REQUEST_READ":
+                pid = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode()
+                name = pid if msg.param_index < 0 else names[msg.param_index]
+                if name in self.params:
+                    pending.append(name)
+            elif kind == "COMMAND_LONG":
+                self.commands.append(int(msg.command))
+                mav.command_ack_send(msg.command, 0)
+                if msg.command == 512 and int(msg.param1) == 148:
+                    mav.autopilot_version_send(0, _sw(4, 7, 0, 0), 0, 0, 0, [0] * 8, [0] * 8,
+                                               [0] * 8, 0, 0, 0)
+
+    def __enter__(self) -> ArduCopterLike:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.join(2.0)
+        self.conn.close()
+
+
+def test_ardupilot_like_peer_is_known_and_timed_with_timesync():
+    port = _free_udp_port()
+    with ArduCopterLike(port, OLD_NAMES), VehicleLink.connect(f"udp:127.0.0.1:{port}") as link:
+        fw = detect_firmware(link)
+        assert fw.name == "ArduCopter 4.7.0-dev" and fw.source == "AUTOPILOT_VERSION"
+        q = measure_link(link, rate_hz=250.0, window_s=0.5)
+        assert q.rtt_method == RTT_TIMESYNC and q.rtt_lost == 0, q.line()
+        assert q.rtt_p50_ms < 50, q.line()  # a parameter read would take ~100 ms here
+
+
+def test_torque_on_ardupilot_is_refused_before_arming(tmp_path):
+    port = _free_udp_port()
+    with ArduCopterLike(port, OLD_NAMES) as peer:
+        with pytest.raises(UsageError, match="--actuation torque cannot fly this vehicle: "
+                                             "ArduCopter 4.7.0-dev has no handler for "
+                                             "SET_ACTUATOR_CONTROL_TARGET") as err:
+            tune(f"udp:127.0.0.1:{port}", "ardupilot", actuation="torque", backup_dir=tmp_path)
+    assert "\n" not in str(err.value)
+    assert 400 not in peer.commands  # never armed
+    assert err.value.partial_result.firmware.name == "ArduCopter 4.7.0-dev"
