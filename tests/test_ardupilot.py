@@ -1,5 +1,5 @@
 """Knowing the autopilot (AUTOPILOT_VERSION, parameter names), timing the link with TIMESYNC,
-and refusing paths the firmware cannot carry.
+refusing paths the firmware cannot carry, and the hover check that gates status ``ok``.
 
 The live parts run over real UDP sockets: against the bundled SITL (which answers neither
 AUTOPILOT_VERSION nor TIMESYNC: the fallbacks) and against a small ArduPilot-like MAVLink
@@ -14,11 +14,14 @@ import socket
 import threading
 import time
 
+import numpy as np
 import pytest
 from pymavlink import mavutil
 
 from mrft_gcs.errors import ParameterError, UsageError
 from mrft_gcs.flight.api import tune
+from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.hover import HoverLimits, check_hover, check_hover_states
 from mrft_gcs.link import VehicleLink, measure_link, require_relay_capable
 from mrft_gcs.link.firmware import (
     Firmware,
@@ -29,7 +32,7 @@ from mrft_gcs.link.firmware import (
 from mrft_gcs.link.quality import RTT_PARAM_READ, RTT_TIMESYNC
 from mrft_gcs.loops import Loop
 from mrft_gcs.profiles import PDGains, fit_profile, gains_to_params, load_profile
-from mrft_gcs.telemetry import AutopilotFamily
+from mrft_gcs.telemetry import Attitude, AutopilotFamily, LocalPosition
 
 OLD_NAMES = {n: 1.0 for n in load_profile("ardupilot").parameter_names()}
 NEW_NAMES = {n: 1.0 for n in load_profile("ardupilot-ned").parameter_names()}
@@ -107,6 +110,50 @@ def test_metre_based_acceleration_gain_gives_the_same_climb_rate_gain():
     assert new["PSC_D_ACC_P"] == pytest.approx(0.1 * old["PSC_ACCZ_P"])
     assert new["PSC_D_VEL_P"] == pytest.approx(old["PSC_VELZ_P"])
     assert new["PSC_D_POS_P"] == pytest.approx(old["PSC_POSZ_P"])
+
+
+# ---------------------------------------------------------------- hover check
+def _window(n=100, height=1.0, wobble_m=0.0, tilt_rad=0.0, vz=0.0):
+    t = np.arange(n) * 0.02
+    xyz = np.column_stack([wobble_m * np.sin(t * 3), np.zeros(n), np.full(n, height)])
+    return (t, xyz, np.full(n, vz), np.full(n, tilt_rad), np.zeros(n))
+
+
+def test_hover_check_passes_a_steady_hover_and_fails_ground_and_swinging():
+    assert check_hover(*_window(), ground_z_up_m=0.0).passed
+    ground = check_hover(*_window(height=0.02), ground_z_up_m=0.0)
+    assert not ground.airborne and "not airborne" in ground.reason
+    # the reported run: hit the ground in the hand-over, 2.9 m off and 28.5 deg of tilt
+    hit = check_hover(*_window(height=0.4, wobble_m=2.9, tilt_rad=np.radians(28.5)), 0.0)
+    assert not hit.steady and "2.90 m" in hit.reason and "28.5 deg" in hit.reason
+    falling = check_hover(*_window(vz=-1.0), ground_z_up_m=0.0)
+    assert not falling.passed and "vertical speed" in falling.reason
+    assert not check_hover(*_window(n=3), ground_z_up_m=0.0).passed
+
+
+def test_hover_check_fails_on_samples_recorded_from_a_vehicle_on_the_ground():
+    sitl = pytest.importorskip("mrft_gcs.sitl")
+    port = _free_udp_port()
+    with sitl.SitlProcess(vehicle="qdrone", port=port, speedup=1.0, seed=0), \
+            VehicleLink.connect(f"udp:127.0.0.1:{port}") as link:
+        link.request_message_interval("ATTITUDE", 50)
+        link.request_message_interval("LOCAL_POSITION_NED", 50)
+        att = pos = None
+        states = []
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            s = link.next_sample(0.1)
+            att = s if isinstance(s, Attitude) else att
+            pos = s if isinstance(s, LocalPosition) else pos
+            if att is not None and pos is not None:
+                states.append(FlightState(att.t_s, att.roll_rad, att.pitch_rad, att.yaw_rad,
+                                          0, 0, 0, pos.t_s, pos.x_m, pos.y_m, -pos.z_m,
+                                          pos.vx_m_s, pos.vy_m_s, -pos.vz_m_s))
+    assert len(states) > 20
+    result = check_hover_states(states, ground_z_up_m=states[0].z_up_m)
+    assert result.steady and not result.airborne and not result.passed, result
+    # the same samples, judged as if the take-off point had been 1 m lower, pass
+    assert check_hover_states(states, states[0].z_up_m - 1.0, HoverLimits()).passed
 
 
 # ---------------------------------------------------------------- the bundled SITL

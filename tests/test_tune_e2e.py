@@ -79,6 +79,7 @@ def test_tune_over_udp_report_and_readback(tuned):
                               "profile": "sitl", "actuation": "torque"}
     # the bundled SITL answers no AUTOPILOT_VERSION: the heartbeat names the autopilot
     assert firmware["autopilot"] == "px4" and firmware["source"] == "HEARTBEAT"
+    assert rep["hover_check"]["passed"] and rep["hover_check"]["min_height_m"] > 0.3
     assert rep["parameters"][0].keys() == {"name", "old", "new"}
     assert write_report(result, folder / "r.json").is_file()
     png = plot_cycles(result, folder / "cycles.png")

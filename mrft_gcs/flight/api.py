@@ -43,6 +43,7 @@ from mrft_gcs.errors import (
     UsageError,
 )
 from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.hover import HoverCheck, check_hover_states
 from mrft_gcs.flight.onboard import onboard_gains, retarget_delay_s
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
 from mrft_gcs.flight.sequence import AUTOPILOT_ATTITUDE as _AUTOPILOT_ATTITUDE
@@ -290,6 +291,8 @@ class TuneResult:
     notes: tuple[str, ...] = field(default_factory=tuple)
     #: the autopilot firmware as it reported itself (None: not asked yet)
     firmware: Firmware | None = None
+    #: the hover on the written gains after the hand-over (None: not reached)
+    hover_check: HoverCheck | None = None
 
 
 class _Telemetry:
@@ -508,6 +511,7 @@ class _Run:
         self.residuals = True
         self.requested: frozenset[Loop] = frozenset(Loop)
         self.firmware: Firmware | None = None
+        self.hover_check: HoverCheck | None = None
 
     # ------------------------------------------------------------------ result
     def result(self, status: str, error: str | None = None) -> TuneResult:
@@ -544,7 +548,7 @@ class _Run:
                         + (list(seq.events) if seq else [])
                         + ([tilt_note(seq.max_tilt_by_phase)]
                            if seq and seq.max_tilt_by_phase else [])),
-            firmware=self.firmware)
+            firmware=self.firmware, hover_check=self.hover_check)
 
     def _log_notes(self) -> list[str]:
         error = self.link.tlog_error
@@ -916,6 +920,7 @@ class _Run:
         end = time.monotonic() + self.hover_check_s
         worst = 0.0
         held: tuple[float, float, float] | None = None  # where position mode was entered
+        states: list[FlightState] = []
         while time.monotonic() < end:
             s = telemetry.poll()
             if link.telemetry_age_s() > 0.5:
@@ -935,6 +940,16 @@ class _Run:
                 here = (s.x_m, s.y_m, s.z_up_m)
                 held = here if held is None else held
                 worst = max(worst, math.dist(here, held))
+                states.append(s)
             time.sleep(0.02)
         self.hover_error_m = worst
+        # ``ok`` needs the vehicle airborne and steady over the whole window: a vehicle that
+        # hit the ground in the hand-over also keeps still (2.9 m off, 28.5 deg seen)
+        self.hover_check = check_hover_states(states, self.monitor.origin[2])
+        if not self.hover_check.passed:
+            link.land(wait_ack=False)
+            mode = self.prof.modes["position"].name
+            raise SafetyAbort(f"hover check on the written gains in {mode} failed: "
+                              f"{self.hover_check.reason}; landing commanded (restore the "
+                              f"backup {self.backup})")
 

@@ -81,6 +81,9 @@ def report_dict(result: TuneResult) -> dict[str, Any]:
         "tlog": result.tlog,
         "max_tilt_deg": _num(result.max_tilt_deg),
         "hover_error_m": _num(result.hover_error_m),
+        "hover_check": None if result.hover_check is None else {
+            k: (_num(v) if isinstance(v, float) else v)
+            for k, v in result.hover_check.as_dict().items()},
         "limits": None if lim is None else {k: _num(v) for k, v in vars(lim).items()},
         "stream": None if st is None else {
             "rate_hz_target": _num(st.rate_hz_target), "rate_hz": _num(st.rate_hz_achieved),
