@@ -14,19 +14,33 @@ and only moves it by the change the delay makes. ``d`` is never allowed to take
 more than half of the identified delay (the correction is steep: over-correcting
 erodes the phase margin on the true process).
 
-``d`` is measured (:func:`command_delay_s`): over the identified cycles, how old
-each telemetry sample was when the command answering it left, counted from the
-earliest the link has delivered a sample (the session's smallest receive-minus-vehicle
-time, as the .tlog reader places commands on the vehicle clock, so dry-run measures the
-same on the session's log; a vehicle clock drifting 20 ppm against the ground station's
-moves it by 0.2 ms per 10 s of session). Telemetry and the stream's ticks are not
-synchronised: at 250 Hz both, their phase is fixed for a session at whatever it
-happened to be, so this age is anywhere from 0 to 4 ms from one tune to the next
-(measured live: session means 1.4-4.9 ms), plus the reader's and the stream's
-lateness on a loaded machine. The link's smallest latency both ways and the vehicle
-taking the command are not measured and stay in the written gains, on the side of
-margin. Without a measurement (too few samples), ``d`` is half a setpoint period
-(:func:`gcs_delay_s`), the mean of an unsynchronised wait.
+``d`` is measured (:func:`measure_gcs_delay`): over the identified cycles, how old each
+telemetry sample was when the first command answering it left, counted from the earliest
+the link delivers a sample stamped with that vehicle time: the lower envelope of
+receive-minus-vehicle time kept up to date over the session
+(:mod:`mrft_gcs.link.clock`: drift and slips of the vehicle's clock tracked; a .tlog
+reader places commands on the vehicle clock through the same fit, so dry-run measures the
+same on the session's log). Telemetry and the stream's ticks are not synchronised: at
+250 Hz both, their phase is fixed for a session at whatever it happened to be, so this
+age is anywhere from 0 to 4 ms from one tune to the next (measured live: session means
+1.4-4.9 ms), plus the reader's and the stream's lateness on a loaded machine. The link's
+smallest latency both ways and the vehicle taking the command are not measured and stay
+in the written gains, on the side of margin. Without a measurement (too few samples) or
+with an implausible one (most ages at the clip, a mean over 1.5 setpoint periods plus the
+link's one-way latency, a vehicle clock that slipped during the cycles or drifts over
+1000 ppm), ``d`` is half a setpoint period (:func:`gcs_delay_s`), the mean of an
+unsynchronised wait, and the plausible range starts at 0.
+
+Robust over what is left open (:func:`robust_onboard_gains`): the onboard loop's delay is
+``tau - d_true`` with ``d_true`` anywhere in the plausible range ``[d_lo, d_hi]``; removing
+more than ``d_true`` leaves it less margin than designed, so the written gains must keep
+a phase margin of :data:`PM_ROBUST_DEG` on the model with ``tau - d_lo``: ``d`` is held
+back towards 0 until they do.
+
+A busy host (issue 22): a simulated vehicle whose loop fell behind real time slipped its
+clock 5-11 times in a tune; ages counted from an offset taken once grew with every slip,
+every sample reached the clip (12 ms) and the written gains were re-targeted by it,
+leaving the onboard loop 3-13 deg of phase margin.
 
 Why it matters: racer250's roll (8 ms of delay) loses about 3.5 % of J per millisecond
 of GCS delay left in its gains. Re-targeting by a fixed half period left the written
@@ -39,13 +53,19 @@ all of the GCS delay, hence the cap below.
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 
 from mrft_gcs.identify import Identification
-from mrft_gcs.pd_design import frequency_grid, optimal_pd
-from mrft_gcs.plant import PD, InnerModel, inner_response
+from mrft_gcs.link.clock import ClockFit
+from mrft_gcs.pd_design import frequency_grid, margins, optimal_pd
+from mrft_gcs.plant import PD, InnerModel, inner_response, loop_response
 
-__all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"]
+__all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s",
+           "first_answers", "GcsDelay", "measure_gcs_delay", "Retarget",
+           "robust_onboard_gains", "PM_ROBUST_DEG"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -61,8 +81,34 @@ def gcs_delay_s(setpoint_period_s: float) -> float:
 AGE_CLIP_PERIODS = 3.0
 #: fewer aged samples than this in a window: no measurement
 MIN_AGED_SAMPLES = 20
+#: a measurement with more than this share of its ages at the clip is a stalled clock
+#: or stream, not the loop's delay: rejected
+CLIP_SHARE_MAX = 0.25
+#: a mean age over this many setpoint periods (plus the link's one-way latency) is
+#: implausible: a first answer waits at most one period for its tick
+MEAN_MAX_PERIODS = 1.5
+#: a vehicle clock drifting more than this against the ground station's is not measured
+SKEW_MAX_PPM = 1000.0
+#: the phase margin the written gains keep on the onboard loop over the plausible range
+PM_ROBUST_DEG = 15.0
 
 
+def first_answers(sample_t_s, ages_s) -> np.ndarray:
+    """Per distinct sample time, the age at the first command that answered it (s).
+
+    A command that answers the same sample again (no new sample by its tick) adds no delay
+    to the loop: the relay switched on the first.
+
+    >>> first_answers([1.0, 1.0, 1.004, 1.008, 1.008], [0.001, 0.005, 0.002, 0.0, 0.004])
+    array([0.001, 0.002, 0.   ])
+    """
+    t = np.asarray(sample_t_s, dtype=float)
+    a = np.asarray(ages_s, dtype=float)
+    ok = np.isfinite(t) & np.isfinite(a)
+    t, a = t[ok], a[ok]
+    order = np.lexsort((a, t))
+    t, a = t[order], a[order]
+    return a[np.diff(t, prepend=-np.inf) > 0]
 def command_delay_s(ages_s, setpoint_period_s: float) -> float:
     """The GCS delay of a relay loop from its samples' ages (s; NaN: too few).
 
@@ -114,3 +160,200 @@ def onboard_gains(ident: Identification, delay_s: float) -> PD:
 
     p0, p1 = best(m.tau), best(m.tau - d)
     return PD(ident.gains.Kc * p1.Kc / p0.Kc, ident.gains.Kd * p1.Kd / p0.Kd)
+
+
+@dataclass(frozen=True)
+class GcsDelay:
+    """The GCS delay of one relay loop: what was measured, what is plausible, what to use.
+
+    Attributes
+    ----------
+    estimate_s : float
+        The delay to re-target by, before the robust check (s): the measurement when
+        plausible, else half a setpoint period.
+    lo_s, hi_s : float
+        The plausible range of the true GCS delay (s).
+    measured_s : float
+        The mean first-answer age, each clipped at :data:`AGE_CLIP_PERIODS` periods (s;
+        NaN: too few samples).
+    measured : bool
+        ``estimate_s`` is the measurement (it was plausible).
+    why : str
+        Why the measurement was not used ("" when it was).
+    """
+
+    estimate_s: float
+    lo_s: float
+    hi_s: float
+    measured_s: float
+    measured: bool
+    why: str = ""
+
+
+def measure_gcs_delay(ages_s, setpoint_period_s: float, *, sample_t_s=None,
+                      clock: ClockFit | None = None, latency_s: float = 0.0) -> GcsDelay:
+    """The GCS delay of a relay loop from its samples' ages, checked for plausibility.
+
+    Parameters
+    ----------
+    ages_s : array (m,)
+        How old each sample was when a command answering it left (s), on ``clock``.
+    setpoint_period_s : float
+        The stream's period (s).
+    sample_t_s : array (m,), optional
+        The samples' vehicle times (s): only the first answer of each counts
+        (:func:`first_answers`), and a slip of ``clock`` between the first and last is
+        a reason to reject.
+    clock : ClockFit, optional
+        The clock model the ages were measured on: its slips, skew, spread and stamp
+        resolution widen or reject the measurement.
+    latency_s : float
+        The link's one-way latency where measured (s), allowed on top of the ages.
+
+    Examples
+    --------
+    >>> g = measure_gcs_delay([0.002] * 30, 0.004)
+    >>> g.measured, g.estimate_s, g.lo_s
+    (True, 0.002, 0.002)
+    >>> g = measure_gcs_delay([0.012] * 30, 0.004)  # every age at the clip
+    >>> g.measured, g.estimate_s, g.lo_s, g.why
+    (False, 0.002, 0.0, '100 % of the ages at the 12.0 ms clip')
+    """
+    p = setpoint_period_s
+    a = np.asarray(ages_s, dtype=float)
+    if sample_t_s is not None:
+        t = np.asarray(sample_t_s, dtype=float)
+        window = (float(np.nanmin(t)), float(np.nanmax(t))) if len(t) else None
+        a = first_answers(t, a)
+    else:
+        a, window = a[np.isfinite(a)], None
+    hi_default = p + latency_s
+
+    def fallback(why: str, measured_s: float = math.nan) -> GcsDelay:
+        return GcsDelay(gcs_delay_s(p), 0.0, hi_default, measured_s, False, why)
+
+    if a.size < MIN_AGED_SAMPLES:
+        return fallback(f"{a.size} samples, too few to measure")
+    clip = AGE_CLIP_PERIODS * p
+    m = round(float(np.mean(np.clip(a, 0.0, clip))), 9)
+    share = float(np.mean(a >= clip - 1e-9))
+    if share > CLIP_SHARE_MAX:
+        return fallback(f"{share:.0%} of the ages at the {clip * 1e3:.1f} ms clip".replace(
+            "%", " %"), m)
+    if m > MEAN_MAX_PERIODS * p + latency_s:
+        return fallback(f"mean age {m * 1e3:.1f} ms is over {MEAN_MAX_PERIODS:g} setpoint "
+                        f"periods plus the link's latency", m)
+    spread = 0.0
+    if clock is not None and not clock.empty:
+        if abs(clock.skew_ppm) > SKEW_MAX_PPM:
+            return fallback(f"the vehicle clock drifts {clock.skew_ppm:.0f} ppm against the "
+                            f"ground station's", m)
+        if window is not None and (slips := clock.slips_between(*window)):
+            steps = ", ".join(f"{sl.step_s * 1e3:+.1f} ms" for sl in slips)
+            return fallback(f"the vehicle clock slipped during the cycles ({steps})", m)
+        spread = (clock.spread_s if math.isfinite(clock.spread_s) else 0.0) + clock.resolution_s
+    return GcsDelay(m, max(0.0, m - spread), m + spread + hi_default, m, True)
+
+
+@dataclass(frozen=True)
+class Retarget:
+    """Gains written for the onboard loop, and the delay re-targeted out of them.
+
+    Attributes
+    ----------
+    gains : PD
+    delay_s : float
+        The delay re-targeted out (s; 0: the identified gains).
+    pm_deg : float
+        Phase margin of ``gains`` on the identified model with ``tau - gcs.lo_s`` (deg;
+        NaN: not an inner loop).
+    gcs : GcsDelay
+    """
+
+    gains: PD
+    delay_s: float
+    pm_deg: float
+    gcs: GcsDelay
+
+    @property
+    def held_back(self) -> bool:
+        return self.delay_s < min(self.gcs.estimate_s, self._cap) - 1e-9
+
+    _cap: float = math.inf
+
+    def note(self) -> str:
+        """``re-targeted by X ms (measured Y ms, plausible Z..W ms)`` and why, if so."""
+        g = self.gcs
+        got = (f"measured {g.measured_s * 1e3:.1f} ms" if g.measured
+               else f"not measured: {g.why}" if math.isnan(g.measured_s)
+               else f"measured {g.measured_s * 1e3:.1f} ms, rejected: {g.why}")
+        out = (f"re-targeted by {self.delay_s * 1e3:.1f} ms ({got}; plausible "
+               f"{g.lo_s * 1e3:.1f}..{g.hi_s * 1e3:.1f} ms)")
+        if self.held_back:
+            out += (f", held back from {min(g.estimate_s, self._cap) * 1e3:.1f} ms to keep "
+                    f"PM {self.pm_deg:.0f} deg at {g.lo_s * 1e3:.1f} ms")
+        return out
+
+
+def _pm_deg(gains: PD, m: InnerModel, tau: float) -> float:
+    w = frequency_grid(m.T_prop, m.T1, tau)
+    L = loop_response(gains.Kc, gains.Kd, inner_response(m.K, m.T_prop, m.T1, tau, w), w)[0]
+    mg = margins(L, w)
+    return mg.pm_deg if mg.stable else -math.inf
+
+
+def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
+                         pm_min_deg: float = PM_ROBUST_DEG) -> Retarget:
+    """:func:`onboard_gains` re-targeted by as much of ``gcs.estimate_s`` as keeps a phase
+    margin of ``pm_min_deg`` on the identified model with ``tau - gcs.lo_s`` (the least
+    GCS delay that is plausible, hence the most onboard delay); bisected towards 0.
+
+    Examples
+    --------
+    >>> from mrft_gcs.loops import LoopKind
+    >>> m = InnerModel(K=40.0, T_prop=0.02, T1=0.3, tau=0.012)
+    >>> w = frequency_grid(m.T_prop, m.T1, m.tau)
+    >>> pd = optimal_pd(inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0], w).pd
+    >>> i = Identification(LoopKind.ATTITUDE, m, 0, 1.0, -0.8, 0.1, 0.25, 0.03, pd)
+    >>> r = robust_onboard_gains(i, GcsDelay(0.003, 0.0025, 0.008, 0.003, True))
+    >>> r.delay_s, r.pm_deg >= 15.0
+    (0.003, True)
+    >>> r = robust_onboard_gains(i, GcsDelay(0.006, 0.0, 0.008, math.nan, False, "x"))
+    >>> r.held_back, 0.0 < r.delay_s < 0.006, round(r.pm_deg)
+    (True, True, 15)
+    """
+    m = ident.model
+    if not isinstance(m, InnerModel) or not gcs.estimate_s > 0:
+        return Retarget(ident.gains, 0.0, math.nan, gcs)
+    cap = 0.5 * m.tau
+    tau_on = max(m.tau - min(gcs.lo_s, cap), 1e-6)
+    d = min(gcs.estimate_s, cap)
+
+    def best(tau: float) -> PD:
+        w = frequency_grid(m.T_prop, m.T1, tau)
+        return optimal_pd(inner_response(m.K, m.T_prop, m.T1, tau, w)[0], w).pd
+
+    p0 = best(m.tau)
+
+    def gains(dd: float) -> PD:
+        if dd <= 0:
+            return ident.gains
+        p1 = best(m.tau - dd)
+        return PD(ident.gains.Kc * p1.Kc / p0.Kc, ident.gains.Kd * p1.Kd / p0.Kd)
+
+    g = gains(d)
+    pm = _pm_deg(g, m, tau_on)
+    if pm < pm_min_deg:
+        lo, hi = 0.0, d  # largest re-target that keeps the margin, to 0.1 ms
+        g_lo = ident.gains
+        pm_lo = _pm_deg(g_lo, m, tau_on)
+        while hi - lo > 1e-4:
+            mid = 0.5 * (lo + hi)
+            g_mid = gains(mid)
+            pm_mid = _pm_deg(g_mid, m, tau_on)
+            if pm_mid >= pm_min_deg:
+                lo, g_lo, pm_lo = mid, g_mid, pm_mid
+            else:
+                hi = mid
+        d, g, pm = round(lo, 6), g_lo, pm_lo
+    return Retarget(g, d, pm, gcs, cap)
