@@ -9,14 +9,18 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import typer
 from rich.console import Console, ConsoleDimensions
+from rich.spinner import Spinner
 from rich.text import Text
 
 from mrft_gcs.errors import MrftError
 
-__all__ = ["app", "main", "console", "err_console", "styled"]
+__all__ = ["app", "main", "console", "err_console", "styled", "heartbeat_spinner",
+           "heartbeat_wait"]
 
 app = typer.Typer(
     name="mrft-tune",
@@ -65,6 +69,31 @@ err_console = _Console(stderr=True, markup=False)
 def styled(text: str, style: str) -> Text:
     """``text`` in ``style`` (markup is off on both consoles, so style with this)."""
     return Text(text, style=style)
+
+
+def heartbeat_wait_text(connect: str, timeout_s: float) -> str:
+    return f"connecting to {connect}: waiting up to {timeout_s:g} s for a vehicle heartbeat"
+
+
+def heartbeat_spinner(connect: str, timeout_s: float) -> Spinner:
+    """What a live display shows until the vehicle answers. Where the display is not a
+    terminal (nothing live is drawn there), the wait is said once on stderr instead."""
+    text = heartbeat_wait_text(connect, timeout_s)
+    if not console.is_terminal:
+        err_console.print(text + " ...", highlight=False, soft_wrap=True)
+    return Spinner("dots", text=text)
+
+
+@contextmanager
+def heartbeat_wait(connect: str, timeout_s: float) -> Iterator[None]:
+    """A spinner on stderr while a command connects (one line where stderr is no terminal)."""
+    text = heartbeat_wait_text(connect, timeout_s)
+    if err_console.is_terminal:
+        with err_console.status(text):
+            yield
+    else:
+        err_console.print(text + " ...", highlight=False, soft_wrap=True)
+        yield
 
 
 def _error_line(message: str) -> Text:

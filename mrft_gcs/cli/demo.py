@@ -11,7 +11,7 @@ import typer
 from rich.live import Live
 from rich.table import Table
 
-from mrft_gcs.cli import app, console
+from mrft_gcs.cli import app, console, heartbeat_spinner
 from mrft_gcs.cli.tune import progress_table, result_table
 from mrft_gcs.errors import MrftError
 from mrft_gcs.flight import TuneResult, tune
@@ -85,7 +85,8 @@ def demo(
     with SitlProcess(vehicle=vehicle, port=None, seed=seed) as sitl:
         console.print(f"SITL at {sitl.connection_string}; tuning from the ground")
         try:
-            with Live(console=console, refresh_per_second=8, transient=True) as live:
+            with Live(heartbeat_spinner(sitl.connection_string, 5.0), console=console,
+                      refresh_per_second=8, transient=True) as live:
                 result = tune(sitl.connection_string, "sitl", backup_dir=folder,
                               tlog_path=folder / "session.tlog",
                               on_progress=lambda snap: live.update(progress_table(snap)))

@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from mrft_gcs.cli import DECLINED, app, console, err_console
+from mrft_gcs.cli import DECLINED, app, console, err_console, heartbeat_wait
 from mrft_gcs.errors import UsageError
 from mrft_gcs.link import VehicleLink
 from mrft_gcs.params import ParamClient, WriteResult, read_params_file, write_params_file
@@ -29,7 +29,8 @@ Timeout = Annotated[float, typer.Option("--timeout", help="seconds to wait for a
 
 def _connect(connect: str, baud: int | None, signing_key: Path | None,
              timeout: float) -> VehicleLink:
-    return VehicleLink.connect(connect, baud=baud, timeout_s=timeout, signing_key=signing_key)
+    with heartbeat_wait(connect, timeout):
+        return VehicleLink.connect(connect, baud=baud, timeout_s=timeout, signing_key=signing_key)
 
 
 def _changes_table(result: WriteResult, title: str) -> Table:

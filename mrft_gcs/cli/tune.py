@@ -10,7 +10,7 @@ import typer
 from rich.live import Live
 from rich.table import Table
 
-from mrft_gcs.cli import DECLINED, app, console, err_console
+from mrft_gcs.cli import DECLINED, app, console, err_console, heartbeat_spinner
 from mrft_gcs.errors import MrftError
 from mrft_gcs.flight import TuneResult, tune
 from mrft_gcs.flight.api import parse_actuation, requested_loops
@@ -128,7 +128,8 @@ def tune_command(
             err_console.print("nothing done")
             raise typer.Exit(DECLINED)
     try:
-        with Live(console=console, refresh_per_second=8, transient=True) as live:
+        with Live(heartbeat_spinner(connect, timeout), console=console, refresh_per_second=8,
+                  transient=True) as live:
             result = tune(connect, prof, actuation=actuation, limits=limits, z_ref_m=altitude,
                           dry_link=dry_link, baud=baud, signing_key=signing_key,
                           backup_dir=backup_dir, heartbeat_timeout_s=timeout, loops=wanted,

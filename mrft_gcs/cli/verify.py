@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 from rich.progress import Progress
 from rich.table import Table
 
@@ -89,7 +90,9 @@ def verify(
 
         models = load_airframe(sitl_models).linear_models()
     with Progress(console=console, transient=True) as bar:
-        task = bar.add_task("figure-eight", total=1.0)
+        # verify_figure8 connects first: say so until its first progress report
+        task = bar.add_task(f"connecting to {escape(connect)} (heartbeat, up to {timeout:g} s)",
+                            total=1.0)
         result = verify_figure8(
             connect, parse_size(size), period, laps, profile, settle_laps=settle_laps,
             altitude_m=altitude, models=models, land=not hold, timeout_s=timeout,

@@ -271,6 +271,8 @@ class VehicleLink:
         except BaseException:
             if tlog is not None:
                 tlog.close()
+                # no vehicle answered: the file would hold only our own heartbeats
+                tlog.path.unlink(missing_ok=True)
             conn.close()
             raise
         return cls(conn, spec, beat, (sysid, compid), tlog=tlog, signed=key is not None)
