@@ -50,12 +50,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from flight_sim import state_of  # noqa: E402
 from overrides import add_set_option, apply_overrides, checked_overrides  # noqa: E402
 
-from mrft_gcs.errors import IdentificationError  # noqa: E402
-from mrft_gcs.flight.api import NUMERIC_RETRIES, bundled_identifier  # noqa: E402
+from mrft_gcs.errors import IdentificationError, SetpointNotCrossed  # noqa: E402
+from mrft_gcs.flight.api import NUMERIC_RETRIES  # noqa: E402
 from mrft_gcs.flight.onboard import onboard_gains  # noqa: E402
 from mrft_gcs.flight.scoring import score_gains  # noqa: E402
 from mrft_gcs.flight.sequence import Phase, SequenceConfig, TuningSequence  # noqa: E402
 from mrft_gcs.identify import relay_settings  # noqa: E402
+from mrft_gcs.identify.live import bundled_identifier  # noqa: E402
 from mrft_gcs.loops import Loop, LoopKind  # noqa: E402
 from mrft_gcs.sitl import load_airframe  # noqa: E402
 from mrft_gcs.sitl.onboard import FlightMode  # noqa: E402
@@ -109,7 +110,7 @@ def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float
                 seq.apply(snap.loop, bundled_identifier(snap.loop, snap, inner))
             except IdentificationError as err:  # as the tune does: wait for the next cycles
                 retries.append(f"{snap.loop.value}: {err}")
-                seq.retry(snap.loop, restart="set point" in str(err))
+                seq.retry(snap.loop, restart=isinstance(err, SetpointNotCrossed))
             except (ValueError, ArithmeticError) as err:  # as the tune does (flight/api.py)
                 failed[snap.loop] = failed.get(snap.loop, 0) + 1
                 retries.append(f"{snap.loop.value}: numerical error ({type(err).__name__}: "

@@ -31,6 +31,7 @@ __all__ = [
     "ParameterError",
     "SafetyAbort",
     "IdentificationError",
+    "SetpointNotCrossed",
     "MissingDependency",
     "FleetError",
 ]
@@ -79,6 +80,11 @@ class IdentificationError(MrftError):
     """No steady relay oscillation found, or the classifier could not decide."""
 
     exit_code = 6
+
+
+class SetpointNotCrossed(IdentificationError):
+    """The relay cycles do not cross the set point every half-cycle: the relay is biased
+    too far for the test; a live tune starts the relay over from the set point."""
 
 
 class MissingDependency(MrftError):

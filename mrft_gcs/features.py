@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mrft_gcs.errors import IdentificationError
+from mrft_gcs.errors import IdentificationError, SetpointNotCrossed
 
 __all__ = ["N_POINTS", "CycleFeatures", "cycle_features", "crosses_setpoint", "rising_switches"]
 
@@ -132,7 +132,7 @@ def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 
         fracs.append((tf - ta) / (tb - ta))
     if not ys:
         if improper:
-            raise IdentificationError(
+            raise SetpointNotCrossed(
                 "the relay cycles do not cross the set point every half-cycle: the relay bias is "
                 "too large for this test; re-centre the relay on the hover command and retry")
         raise IdentificationError(

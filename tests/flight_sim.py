@@ -11,12 +11,12 @@ import math
 
 import numpy as np
 
-from mrft_gcs.errors import IdentificationError
-from mrft_gcs.flight.api import measured_attitude_loop
+from mrft_gcs.errors import IdentificationError, SetpointNotCrossed
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.flight.scoring import true_response
 from mrft_gcs.flight.sequence import Phase, TuningSequence
 from mrft_gcs.identify import Identification, RelaySettings
+from mrft_gcs.identify.live import measured_attitude_loop
 from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.pd_design import optimal_pd
 from mrft_gcs.plant import InnerModel, SideModel
@@ -108,7 +108,7 @@ def fly(seq: TuningSequence, vehicle: str = "qdrone", seed: int = 0, max_s: floa
                 seq.apply(snap.loop, ident(snap.loop, snap, inner))
             except IdentificationError as err:  # as the tune does: wait for the next cycles
                 retries.append((snap.loop, str(err)))
-                seq.retry(snap.loop, restart="set point" in str(err))
+                seq.retry(snap.loop, restart=isinstance(err, SetpointNotCrossed))
         if seq.side_waiting:
             seq.start_side({Loop.X: SIDE_RELAY, Loop.Y: SIDE_RELAY})
         if seq.phase is Phase.HOVER and not math.isfinite(t_done):

@@ -12,6 +12,7 @@ import pytest
 
 from mrft_gcs.errors import IdentificationError
 from mrft_gcs.flight.scoring import onboard_attitude_response
+from mrft_gcs.identify import Method
 from mrft_gcs.identify.closed_loop import (
     CLOSED_LOOP_HARMONICS,
     closed_attitude_identification,
@@ -118,8 +119,8 @@ def test_identification_carries_a_side_classifier_shape_at_the_relay_beta():
     side = side_relay_settings()
     t, u, y = _relay_record(_px4, h=side.h, noise=0.0008)
     ident = closed_attitude_identification(t, u, y, beta=side.beta, h=side.h)
-    assert ident.extras["method"] == "closed attitude loop"
-    assert isinstance(ident.extras["shape"], int) and ident.extras["scale"] > 0
+    assert ident.diagnostics.method is Method.CLOSED_LOOP
+    assert isinstance(ident.diagnostics.shape, int) and ident.diagnostics.scale > 0
     m, g = ident.model, ident.gains
     w = np.asarray(ident.extras["w"])
     T = closed_inner_response(g.Kc, g.Kd, inner_response(m.K, m.T_prop, m.T1, m.tau, w), w)[0]

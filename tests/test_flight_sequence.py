@@ -176,9 +176,9 @@ def test_side_axis_not_requested_is_held_and_never_relay_tested(monkeypatch):
 def test_attitude_path_tunes_x_and_y_behind_the_measured_attitude_loop():
     """Attitude path, in-process: altitude, x and y tuned with the bundled identification;
     x and y behind the autopilot's closed attitude loop measured from their own relays."""
-    from mrft_gcs.flight.api import bundled_identifier
     from mrft_gcs.flight.scoring import onboard_attitude_response, score_gains
-    from mrft_gcs.identify import relay_settings
+    from mrft_gcs.identify import Method, relay_settings
+    from mrft_gcs.identify.live import bundled_identifier
     from mrft_gcs.loops import LoopKind
     from mrft_gcs.sitl.onboard import PARAM_SPECS
 
@@ -201,9 +201,9 @@ def test_attitude_path_tunes_x_and_y_behind_the_measured_attitude_loop():
         LoopState.TUNED]
     for lp, axis in ((Loop.X, "pitch"), (Loop.Y, "roll")):
         inner = inners[lp]
-        assert inner.extras["method"] == "closed attitude loop"
-        w = np.asarray(inner.extras["w"][:3])  # measured: harmonics 1, 3, 5
-        T = np.asarray(inner.extras["T_re"][:3]) + 1j * np.asarray(inner.extras["T_im"][:3])
+        assert inner.diagnostics.method is Method.CLOSED_LOOP
+        measured = inner.diagnostics.measured
+        w, T = measured.w[:3], measured.T[:3]  # measured: harmonics 1, 3, 5
         true = onboard_attitude_response(models[axis], px4, axis.upper(), w)
         assert np.all(np.abs(np.log(T / true)) < 0.06), (lp, np.log(T / true))
     gains = {lp: seq.loops[lp].identification.gains for lp in (Loop.ALTITUDE, Loop.X, Loop.Y)}

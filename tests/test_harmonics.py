@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mrft_gcs.identify import identify, relay_settings
+from mrft_gcs.identify import Method, identify, relay_settings
 from mrft_gcs.identify.harmonics import (
     USABLE_SD,
     HarmonicPoints,
@@ -136,7 +136,7 @@ def test_side_gains_near_optimal_with_noise_and_bias(T2):
                               duration_s=10 + 20 * T2, keep_s=8.0, seed=5)
     s_id = identify(LoopKind.SIDE, srun.t, srun.u[0], srun.y[0], beta=rs.beta, h=rs.h,
                     inner=a_id, setpoint=0.0)
-    assert s_id.extras["method"] == "harmonic fit"
+    assert s_id.diagnostics.method is Method.HARMONIC_FIT
     w = np.logspace(-3, 4, 900)
     P = closed_inner_response(a_id.gains.Kc, a_id.gains.Kd, inner_response(*ATT, w), w)[0] * \
         side_response(*side, w)[0]
@@ -171,7 +171,7 @@ def test_inner_identification_keeps_its_phase_margin():
     for i in range(12):
         a_id = identify(LoopKind.ATTITUDE, run.t, run.u[i], run.y[i], beta=b.beta, h=b.h,
                         setpoint=0.0)
-        assert a_id.extras["method"] == "classifier + harmonics"
+        assert a_id.diagnostics.method is Method.CLASSIFIER_HARMONICS
         w = np.logspace(-2, 5, 1500)
         G = inner_response(K[i], *params[i], w)[0]
         m = margins((a_id.gains.Kc + 1j * w * a_id.gains.Kd) * G, w)
@@ -201,7 +201,7 @@ def test_a_record_the_model_cannot_explain_keeps_the_classifier_rule():
     phase = 2 * np.pi * t / 0.5
     u = b.h * np.sign(np.sin(phase + 0.8))
     a_id = identify(LoopKind.ATTITUDE, t, u, 0.02 * np.sin(phase), beta=b.beta, h=b.h)
-    assert a_id.extras["method"] == "classifier"
+    assert a_id.diagnostics.method is Method.CLASSIFIER
     assert a_id.gains.Kc / a_id.gains.Kd < 50
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from mrft_gcs.domains import D_SIDE, domain_for
 from mrft_gcs.errors import IdentificationError
-from mrft_gcs.identify import CycleDetector, identify, relay_settings
+from mrft_gcs.identify import CycleDetector, Method, identify, relay_settings
 from mrft_gcs.identify.runtime import MODELS_DIR, load_bundle
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.pd_design import frequency_grid, ise, margins, optimal_pd
@@ -164,7 +164,7 @@ def test_refinement_keeps_the_rules_margin_on_the_likely_shapes():
     best = optimal_pd(G, w)
     assert (ise(pd.Kc, pd.Kd, G, w) / best.ise - 1) * 100 < 10.0
     # the cycles wander (spread 0.08): the rule stands, not held back towards the refinement
-    assert ident.extras["held_back"] == 0.0 and ident.extras["method"] == "classifier"
+    assert ident.extras["held_back"] == 0.0 and ident.diagnostics.method is Method.CLASSIFIER
 
 
 def test_refused_refinement_on_steady_cycles_is_held_back_not_dropped():
@@ -194,7 +194,7 @@ def test_refused_refinement_on_steady_cycles_is_held_back_not_dropped():
     ident = identify(LoopKind.ATTITUDE, rec["t"], rec["u"], rec["y"], beta=float(rec["beta"]),
                      h=float(rec["h"]))
     a = ident.extras["held_back"]
-    assert 0.0 < a < 1.0 and ident.extras["method"] == "classifier + harmonics"
+    assert 0.0 < a < 1.0 and ident.diagnostics.method is Method.CLASSIFIER_HARMONICS
     models = load_airframe("racer250").linear_models()
     written = onboard_gains(ident, float(rec["gcs_delay_s"]))
     s = score_gains(models, {Loop.PITCH: written})[Loop.PITCH]
@@ -226,19 +226,19 @@ def test_refined_model_the_record_refutes_is_not_trusted(monkeypatch):
     rec = np.load(Path(__file__).parent / "data" / "racer250_altitude_live_misfit.npz")
     models = load_airframe("racer250").linear_models()
 
-    def written_j() -> tuple[float, dict]:
+    def written_j():
         ident = identify(LoopKind.ALTITUDE, rec["t"], rec["u"], rec["y"],
                          beta=float(rec["beta"]), h=float(rec["h"]), bias=float(rec["bias"]),
                          setpoint=float(rec["setpoint"]))
         s = score_gains(models, {Loop.ALTITUDE: onboard_gains(ident, float(rec["gcs_delay_s"]))})
-        return s[Loop.ALTITUDE].J_pct, ident.extras
+        return s[Loop.ALTITUDE].J_pct, ident
 
-    J, extras = written_j()
-    assert extras["method"] == "classifier" and extras["fit_cost"] == float("inf")
-    assert J < 5.0
+    J, ident = written_j()
+    assert ident.diagnostics.method is Method.CLASSIFIER
+    assert ident.extras["fit_cost"] == float("inf") and J < 5.0
     monkeypatch.setattr(runtime, "MAX_FIT_COST", float("inf"))  # the gate off: the misfit
-    J, extras = written_j()
-    assert extras["method"] == "classifier + harmonics" and J > 20.0
+    J, ident = written_j()
+    assert ident.diagnostics.method is Method.CLASSIFIER_HARMONICS and J > 20.0
 
 
 def test_side_fit_keeps_a_harmonic_the_measured_attitude_loop_would_push_out():
@@ -261,7 +261,7 @@ def test_side_fit_keeps_a_harmonic_the_measured_attitude_loop_would_push_out():
                     h=float(rec["h"]), inner=roll, setpoint=float(rec["setpoint"]),
                     tilt=rec["tilt"])
     sd = side.extras["harmonic_sd"]
-    assert side.extras["method"] == "harmonic fit" and 0.45 < sd[1] <= USABLE_SD
+    assert side.diagnostics.method is Method.HARMONIC_FIT and 0.45 < sd[1] <= USABLE_SD
     assert 3 in side.extras["harmonics"] and 3 not in side.extras["t_att_measured"]
     s = score_gains(load_airframe("racer250").linear_models(),
                     {Loop.ROLL: roll.gains, Loop.Y: side.gains})

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 
 from mrft_gcs.errors import IdentificationError
-from mrft_gcs.flight.api import _synthetic_cycles, bundled_identifier
 from mrft_gcs.flight.sequence import CycleSnapshot
 from mrft_gcs.identify import CycleStatus, relay_settings
+from mrft_gcs.identify.live import bundled_identifier, synthetic_cycles
 from mrft_gcs.identify.worker import AVAILABLE, IdentificationWorker, WorkerError
 from mrft_gcs.loops import Loop, LoopKind
 
@@ -15,14 +15,14 @@ pytestmark = pytest.mark.skipif(not AVAILABLE, reason="the worker needs a POSIX 
 
 
 def _roll_snapshot() -> CycleSnapshot:
-    t, u, y = _synthetic_cycles(0.3, 0.12, 0.05)
+    t, u, y = synthetic_cycles(0.3, 0.12, 0.05)
     beta = relay_settings(LoopKind.ATTITUDE).beta
     return CycleSnapshot(Loop.ROLL, t, u, y, beta, 0.12, 0.0, CycleStatus(6, True, 0.3, 0.05, 0))
 
 
 def _off_setpoint_altitude() -> CycleSnapshot:
     """Altitude cycles 4.7 m from their set point: refused (they never cross it)."""
-    t, u, y = _synthetic_cycles(0.75, 0.1, 0.04)
+    t, u, y = synthetic_cycles(0.75, 0.1, 0.04)
     beta = relay_settings(LoopKind.ALTITUDE).beta
     return CycleSnapshot(Loop.ALTITUDE, t, u + 0.5, y + 0.3, beta, 0.1, 0.5,
                          CycleStatus(6, True, 0.75, 0.04, 0), setpoint=5.0)
@@ -57,9 +57,9 @@ def test_a_refused_identification_is_raised_again_in_the_caller(worker):
 
 
 def test_the_attitude_paths_closed_loop_is_measured_there_too(worker):
-    """``attitude_loop`` (:func:`mrft_gcs.flight.api.measured_attitude_loop`): a side
+    """``attitude_loop`` (:func:`mrft_gcs.identify.live.measured_attitude_loop`): a side
     snapshot without a tilt record is refused there as here."""
-    from mrft_gcs.flight.api import measured_attitude_loop
+    from mrft_gcs.identify.live import measured_attitude_loop
 
     snap = _roll_snapshot()  # no tilt record
     with pytest.raises(IdentificationError, match="no measured tilt") as here:

@@ -23,13 +23,15 @@ from mrft_gcs.design.pipeline import load_json
 from mrft_gcs.domains import D_ATT, D_SIDE, domain_for
 from mrft_gcs.errors import IdentificationError
 from mrft_gcs.features import cycle_features
-from mrft_gcs.identify.api import identify, relay_settings
+from mrft_gcs.identify.result import Method
 from mrft_gcs.identify.runtime import (
     MODELS_DIR,
     GainScaling,
     _softmax,
+    identify,
     load_bundle,
     refined_identification,
+    relay_settings,
     scaled_gains,
     steady_points,
 )
@@ -90,7 +92,7 @@ class Trial:
     pm_deg : float
         Their phase margin on the true process.
     method : str
-        The identification path (``extras["method"]``).
+        The identification path (:class:`~mrft_gcs.identify.Method`).
     noise, bias : float
         Measurement noise (fraction of the clean cycle's amplitude) and relay bias
         (fraction of ``h``).
@@ -266,9 +268,9 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
             continue
         for name, scale in (("exact gain", 1.0), ("DF gain", None)):
             Kc, Kd = s_id.gains.Kc, s_id.gains.Kd
-            if scale is None and "rule" in s_id.extras:  # DF: gain from 4/pi |G|, not the
-                # simulated amplitude of the chosen class
-                table = json.loads((MODELS_DIR / "side" / f"shape_{int(a_id.extras['shape']):02d}"
+            if scale is None and s_id.diagnostics.method is Method.CLASSIFIER:
+                # DF: gain from 4/pi |G|, not the simulated amplitude of the chosen class
+                table = json.loads((MODELS_DIR / "side" / f"shape_{a_id.diagnostics.shape:02d}"
                                     / "classes.json").read_text())
                 z = table["zeta"][int(s_id.extras["rule"])]
                 Kc, Kd = Kc * (4 / np.pi) / z, Kd * (4 / np.pi) / z
@@ -285,7 +287,7 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
                 "attitude": [float(Ka[i]), *map(float, att[i])]},
             {"K": float(sm.K), "T2": float(sm.T2), "tau": float(sm.tau),
              "attitude": [float(am.K), float(am.T_prop), float(am.T1), float(am.tau)]},
-            float(J["exact gain"][i]), float(PM["exact gain"][i]), str(s_id.extras["method"]),
+            float(J["exact gain"][i]), float(PM["exact gain"][i]), str(s_id.diagnostics.method),
             float(noise / (0.5 * np.ptp(clean.y[0]))) if np.ptp(clean.y[0]) > 0 else 0.0,
             float(bias / rs.h)))
         brun = simulate_side_mrft((Ka[i], *att[i]), (pd.Kc, pd.Kd), (Ks[i], *side[i]), beta=0.0,

@@ -30,8 +30,7 @@ from mrft_gcs.design.discretize import J_FAR, greedy_net, reachable_scales
 from mrft_gcs.design.phase import rule_cost
 from mrft_gcs.domains import D_ATT, D_SIDE
 from mrft_gcs.features import N_POINTS
-from mrft_gcs.identify.api import identify
-from mrft_gcs.identify.runtime import load_bundle
+from mrft_gcs.identify.runtime import identify, load_bundle
 from mrft_gcs.identify.side import SIDE_H, side_features, side_plant_response
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.pd_design import PDDesign, ise, margins, optimal_pd
@@ -267,8 +266,8 @@ def side_dataset_realistic(sc: SideClasses, disc, n: int, seed: int, dt: float =
                          setpoint=0.0)
         except Exception:  # noqa: BLE001
             continue
-        if a.extras["shape"] == k:
-            keep.append((i, a.gains.Kc, a.gains.Kd, a.extras["scale"]))
+        if a.diagnostics.shape == k:
+            keep.append((i, a.gains.Kc, a.gains.Kd, a.diagnostics.scale))
         if len(keep) >= n:
             break
     idx = np.array([r[0] for r in keep], int)

@@ -40,6 +40,7 @@ from mrft_gcs.errors import (
     MrftError,
     ParameterError,
     SafetyAbort,
+    SetpointNotCrossed,
     UsageError,
 )
 from mrft_gcs.flight.controllers import FlightState
@@ -56,15 +57,18 @@ from mrft_gcs.flight.sequence import (
 )
 from mrft_gcs.identify import (
     Identification,
+    Method,
     RelaySettings,
     attach_residual,
-    identify,
     relay_settings,
 )
-from mrft_gcs.identify.closed_loop import (
-    CLOSED_LOOP_METHOD,
-    closed_attitude_identification,
-    side_relay_settings,
+from mrft_gcs.identify.closed_loop import side_relay_settings
+from mrft_gcs.identify.live import (
+    Identifier,
+    bundled_identifier,
+    closed_loop_summary,
+    measured_attitude_loop,
+    warm_up_identification,
 )
 from mrft_gcs.identify.worker import AVAILABLE as worker_available
 from mrft_gcs.identify.worker import IdentificationWorker, WorkerError
@@ -93,8 +97,7 @@ from mrft_gcs.profiles import (
 from mrft_gcs.telemetry import ActuatorTarget, Attitude, AttitudeTarget, LocalPosition
 
 __all__ = ["tune", "TuneResult", "LoopResult", "Identifier", "YAW_NOTE", "SCHEMA",
-           "requested_loops", "parse_actuation", "NOT_REQUESTED", "measured_attitude_loop",
-           "closed_loop_summary"]
+           "requested_loops", "parse_actuation", "NOT_REQUESTED"]
 
 SCHEMA = "mrft-gcs/tune-report/1"
 YAW_NOTE = ("yaw is not tuned: it is held by a conservative GCS-side PD during the tests "
@@ -146,51 +149,6 @@ def requested_loops(loops: Collection[str | Loop] | None, actuation: Actuation) 
                          f"use the torque path (--actuation torque)")
     return frozenset(chosen)
 
-#: ``f(loop, snapshot, inner_identification) -> Identification``
-Identifier = Callable[[Loop, CycleSnapshot, Identification | None], Identification]
-
-
-def measured_attitude_loop(snap: CycleSnapshot) -> Identification:
-    """The autopilot's closed attitude loop behind a side relay (attitude path).
-
-    Measured from the snapshot's commanded and measured tilt at the relay's odd
-    harmonics and expressed as an equivalent attitude model and PD
-    (:func:`mrft_gcs.identify.closed_loop.closed_attitude_identification`), the
-    ``inner`` the side identification takes.
-
-    Raises
-    ------
-    IdentificationError
-        No tilt record in the snapshot, or no equivalent loop follows the points.
-    """
-    if snap.tilt is None:
-        raise IdentificationError(
-            f"{snap.loop.value}: no measured tilt over the side relay cycles (ATTITUDE "
-            f"must stream with LOCAL_POSITION_NED); cannot measure the attitude loop")
-    return closed_attitude_identification(snap.t_s, snap.u, snap.tilt, beta=snap.beta,
-                                          h=snap.h)
-
-
-def closed_loop_summary(inner: Identification, side: Loop) -> str:
-    """One line on a measured closed attitude loop: bandwidth, response at the test."""
-    from mrft_gcs.plant import InnerModel, closed_inner_response, inner_response
-
-    m, g = inner.model, inner.gains
-    assert isinstance(m, InnerModel)  # a closed attitude loop identification
-    w = np.logspace(-1, 3, 400)
-    T = closed_inner_response(g.Kc, g.Kd, inner_response(m.K, m.T_prop, m.T1, m.tau, w),
-                              w)[0]
-    below = np.flatnonzero(np.abs(T) < 1 / math.sqrt(2))
-    bw = f"{w[below[0]]:.3g} rad/s" if below.size else "above 1000 rad/s"
-    x = inner.extras
-    w0 = float(x["w"][0])
-    t0 = complex(x["T_re"][0], x["T_im"][0])
-    return (f"its closed loop was measured during the {side.value} relay at {len(x['w'])} "
-            f"harmonics: gain {abs(t0):.3f} and phase {math.degrees(np.angle(t0)):.1f} deg at "
-            f"{w0:.3g} rad/s, bandwidth (-3 dB) {bw}, fit within {x['rms_sd']:.2g} "
-            f"standard errors")
-
-
 def tilt_note(by_phase: dict[str, float]) -> str:
     """The report's line on the largest tilt of each phase.
 
@@ -199,48 +157,6 @@ def tilt_note(by_phase: dict[str, float]) -> str:
     """
     return "largest tilt by phase: " + ", ".join(f"{ph} {d:.1f} deg"
                                                   for ph, d in by_phase.items())
-
-
-def bundled_identifier(loop: Loop, snap: CycleSnapshot,
-                       inner: Identification | None = None) -> Identification:
-    """Identification with the bundled classifiers (:func:`mrft_gcs.identify.identify`)."""
-    return identify(loop.kind, snap.t_s, snap.u, snap.y, beta=snap.beta, h=snap.h,
-                    bias=snap.bias, inner=inner, setpoint=snap.setpoint, tilt=snap.tilt)
-
-
-def _synthetic_cycles(period_s: float, h: float, amplitude: float, n: int = 6,
-                      dt: float = 0.004) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A square relay output and a lagging triangle wave: enough to run identification."""
-    t = np.arange(0.0, n * period_s, dt)
-    ph = 2 * np.pi * t / period_s
-    u = h * np.sign(np.sin(ph) + 1e-12)
-    y = -amplitude * (2 / np.pi) * np.arcsin(np.sin(ph - np.pi / 2 - 0.3))
-    return t, u, y
-
-
-def warm_up_identification(attitude: RelaySettings, altitude: RelaySettings) -> float:
-    """Run the bundled identification once on synthetic cycles; returns the seconds taken.
-
-    The first identification of each kind imports and loads what it needs (the side
-    classifiers and the harmonic fit: about a second on a 2-core machine). In flight
-    that work holds the interpreter next to the 250 Hz setpoint stream (measured: a
-    51 ms gap in the stream, and x/y started 0.7 s after altitude was tuned), so it
-    is done on the ground, before the stream starts. The results are thrown away and
-    errors are ignored: nothing but loading happens here.
-    """
-    t0 = time.monotonic()
-    try:
-        t, u, y = _synthetic_cycles(0.3, 0.12, 0.05)
-        inner = identify(LoopKind.ATTITUDE, t, u, y, beta=attitude.beta, h=0.12)
-        t, u, y = _synthetic_cycles(0.75, 0.1, 0.04)
-        identify(LoopKind.ALTITUDE, t, u + 0.5, y, beta=altitude.beta, h=0.1, bias=0.5,
-                 setpoint=0.0)
-        side = relay_settings(LoopKind.SIDE, inner)
-        t, u, y = _synthetic_cycles(1.0, 0.16, 0.04)
-        identify(LoopKind.SIDE, t, u, y, beta=side.beta, h=0.16, inner=inner, setpoint=0.0)
-    except Exception:  # noqa: BLE001 - loading only: the flight's own calls report errors
-        pass
-    return time.monotonic() - t0
 
 
 @dataclass(frozen=True)
@@ -804,7 +720,7 @@ class _Run:
             ident = self._offload("identify", self.ident_fn, snap.loop, snap, inner)
         except IdentificationError as err:
             self.notes.append(f"{snap.loop.value}: identification retried ({err})")
-            seq.retry(snap.loop, restart="set point" in str(err))
+            seq.retry(snap.loop, restart=isinstance(err, SetpointNotCrossed))
             return
         except (ValueError, ArithmeticError) as err:
             # a numerical failure inside identification (numpy's LinAlgError is a
@@ -823,7 +739,7 @@ class _Run:
                               f"error ({what})")
             seq.retry(snap.loop)
             return
-        if inner is not None and inner.extras.get("method") == CLOSED_LOOP_METHOD:
+        if inner is not None and inner.diagnostics.method is Method.CLOSED_LOOP:
             att = seq.loops[_SIDE_INNER[snap.loop]]
             att.note = f"{_AUTOPILOT_ATTITUDE}; {closed_loop_summary(inner, snap.loop)}"
             ident = dataclasses.replace(ident, extras={**ident.extras, "inner": "measured "

@@ -14,7 +14,17 @@ Interface (stable; other modules build on it):
   oscillation is steady and hands back the samples of the last steady cycles.
 - :func:`identify` -> :class:`Identification`: classify the cycle, recover the
   gain by exact gain scaling, return the model and the PD gains in SI units of
-  the loop (``u = Kc e - Kd dy/dt``).
+  the loop (``u = Kc e - Kd dy/dt``); :class:`Diagnostics` says which path
+  (:class:`Method`) produced it and which bundled shape it belongs to.
+- :func:`attach_residual`: the residual analysis for the report, after the tests.
+
+Modules: ``result`` (the typed results), ``detector`` (the cycle detector),
+``runtime`` (the classifiers, exact gain scaling, the refinement on the measured
+harmonics), ``harmonics`` (the harmonics of a relay cycle and the model fits on
+them), ``closed_loop`` (the autopilot's closed attitude loop measured behind a side
+relay), ``side`` (what side identification shares with the side classifiers'
+design), ``residual``, ``live`` (the entry points a tune calls on a relay test's
+record) and ``worker`` (those entry points in a process of their own).
 
 Units per loop (the input ``u`` is what the relay drives, ``y`` what is measured):
 roll/pitch: ``u`` normalised torque command in [-1, 1], ``y`` angle in rad;
@@ -25,21 +35,25 @@ attitude loop in rad (x: -pitch, y: +roll, yaw 0, NED), ``y`` position in m.
 
 from __future__ import annotations
 
-from mrft_gcs.identify.api import (
-    CycleDetector,
-    CycleStatus,
+from mrft_gcs.identify.detector import CycleDetector, CycleStatus
+from mrft_gcs.identify.residual import attach_residual
+from mrft_gcs.identify.result import (
+    Diagnostics,
     Identification,
+    MeasuredLoop,
+    Method,
     RelaySettings,
-    attach_residual,
-    identify,
-    relay_settings,
 )
+from mrft_gcs.identify.runtime import identify, relay_settings
 
 __all__ = [
     "attach_residual",
     "CycleDetector",
     "CycleStatus",
+    "Diagnostics",
     "Identification",
+    "MeasuredLoop",
+    "Method",
     "RelaySettings",
     "identify",
     "relay_settings",

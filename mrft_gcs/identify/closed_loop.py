@@ -23,7 +23,7 @@ reported, and a fit that does not follow them is refused). Above the highest
 measured harmonic the equivalent is an extrapolation; there the side cascade is
 already attenuated by its integrator and drag lag.
 
-The attitude class reported with it (``extras["shape"]``, ``extras["scale"]``: the
+The attitude class reported with it (``diagnostics.shape`` and ``.scale``: the
 bundled attitude shape whose closed loop under its own optimal PD is nearest to the
 measurement) picks the side classifier, which decides only when the harmonic fit of
 the side model cannot run.
@@ -38,16 +38,24 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from mrft_gcs.errors import IdentificationError
-from mrft_gcs.identify.api import Identification, RelaySettings
+from mrft_gcs.identify.harmonics import harmonic_points
+from mrft_gcs.identify.result import (
+    Diagnostics,
+    Identification,
+    MeasuredLoop,
+    Method,
+    RelaySettings,
+)
 from mrft_gcs.identify.side import SIDE_H
 from mrft_gcs.loops import LoopKind
+from mrft_gcs.pd_design import margins
 from mrft_gcs.plant import PD, InnerModel, closed_inner_response, inner_response
 
 __all__ = [
     "CLOSED_LOOP_HARMONICS",
-    "CLOSED_LOOP_METHOD",
     "ClosedLoopFit",
     "closed_loop_points",
     "fit_closed_loop",
@@ -58,8 +66,6 @@ __all__ = [
 #: Odd harmonics of the side relay cycle at which the closed attitude loop is measured
 #: (a side cycle of 1-3 s puts the 15th at 30-95 rad/s, past an attitude loop's bandwidth).
 CLOSED_LOOP_HARMONICS = (1, 3, 5, 7, 9, 11, 13, 15)
-#: ``extras["method"]`` of the identifications made here
-CLOSED_LOOP_METHOD = "closed attitude loop"
 #: A fit whose RMS residual over the measured points (log magnitude and phase together,
 #: weighted) exceeds this many standard errors does not describe the loop: refused.
 MAX_RMS_SD = 3.0
@@ -155,8 +161,6 @@ def closed_loop_points(t, u, tilt, cycles: int = 3, harmonics=CLOSED_LOOP_HARMON
     IdentificationError
         Fewer than two complete relay cycles, or values that are not finite.
     """
-    from mrft_gcs.identify.harmonics import harmonic_points
-
     t, u, tilt = (np.asarray(a, float) for a in (t, u, tilt))
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(u)) and np.all(np.isfinite(tilt))):
         raise IdentificationError("the tilt record holds NaN or infinite values; drop them "
@@ -239,8 +243,6 @@ def _grid_starts(w, T, wt, shapes: np.ndarray, n: int = 4) -> list[tuple[int, fl
 
 def _fit(w, T, sd, shapes) -> tuple[int, float, np.ndarray]:
     """Best ``(shape, scale, log params)`` over the grid starts (see :func:`fit_closed_loop`)."""
-    from scipy.optimize import least_squares
-
     best = None
     for k, c, p0 in _grid_starts(w, T, 1.0 / sd ** 2, shapes):
         def resid(lp, p0=p0):
@@ -279,8 +281,6 @@ def fit_closed_loop(points, shapes=None) -> ClosedLoopFit:
         The fit does not follow the points within :data:`MAX_RMS_SD` standard errors,
         or its equivalent loop is unstable.
     """
-    from mrft_gcs.pd_design import margins
-
     keep = np.isfinite(points.G) & (np.abs(points.G) > 0)
     w, T, sd = points.w[keep], points.G[keep], points.sd[keep]
     harm = np.asarray(points.harmonics)[keep]
@@ -324,9 +324,9 @@ def closed_attitude_identification(t, u, tilt, *, beta: float, h: float,
     Its ``model`` (``K = 1``) and ``gains`` reproduce the measured closed loop through
     :func:`mrft_gcs.plant.closed_inner_response`, so it can be passed as ``inner`` to
     :func:`mrft_gcs.identify.identify` for the side loop. ``beta``, ``h``: the side
-    relay's. ``extras``: ``method`` ("closed attitude loop"), ``shape``/``scale`` (the
-    nearest bundled attitude shape among those whose side classifier ran at ``beta``),
-    the measured points and the fit's residual.
+    relay's. ``diagnostics``: :attr:`Method.CLOSED_LOOP`, ``shape`` and ``scale`` (the
+    nearest bundled attitude shape among those whose side classifier ran at ``beta``)
+    and the measured points with the fit's residual (``measured``).
 
     Raises
     ------
@@ -340,7 +340,7 @@ def closed_attitude_identification(t, u, tilt, *, beta: float, h: float,
             f"no bundled side classifier for beta={beta}: run the side relay with "
             f"side_relay_settings() or regenerate the side classifiers")
     fit = fit_closed_loop(pts, shapes=[k for k in shapes if k < len(_shape_table()[0])])
-    from scipy.stats import chi2
+    from scipy.stats import chi2  # lazy: scipy.stats takes 0.6 s to import, at CLI start
 
     dof = 2 * fit.w.size - 5
     return Identification(
@@ -348,8 +348,10 @@ def closed_attitude_identification(t, u, tilt, *, beta: float, h: float,
         confidence=float(chi2.sf(fit.cost, dof)) if dof > 0 else 1.0, beta=beta, h=h,
         period_s=pts.period_s, amplitude=0.5 * float(np.ptp(np.asarray(tilt, float))),
         gains=fit.gains,
-        extras={"method": CLOSED_LOOP_METHOD, "shape": fit.shape, "scale": fit.scale,
-                "rms_sd": fit.rms_sd, "max_dev": list(fit.max_dev),
+        extras={"rms_sd": fit.rms_sd, "max_dev": list(fit.max_dev),
                 "harmonics": list(fit.harmonics),
                 "w": fit.w.tolist(), "T_re": fit.T.real.tolist(), "T_im": fit.T.imag.tolist(),
-                "sd": fit.sd.tolist()})
+                "sd": fit.sd.tolist()},
+        diagnostics=Diagnostics(Method.CLOSED_LOOP, shape=fit.shape, scale=fit.scale,
+                                measured=MeasuredLoop(fit.w, fit.T, fit.sd, fit.rms_sd,
+                                                      fit.harmonics)))

@@ -26,6 +26,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from mrft_gcs.features import rising_switches
+from mrft_gcs.plant import inner_response
 
 __all__ = ["HarmonicPoints", "SideFit", "harmonic_points", "fit_side_model", "fit_inner_model",
            "class_log_likelihood", "noise_std", "HARMONICS", "USABLE_SD"]
@@ -255,8 +256,6 @@ def fit_inner_model(points: HarmonicPoints, start, prior_log_sd: float = 0.5,
     cost : float
         Weighted residual of the measured points at the optimum (prior excluded).
     """
-    from mrft_gcs.plant import inner_response
-
     keep = (points.sd <= max_sd) & np.isfinite(points.G)
     keep[0] = True
     w, G, sd = points.w[keep], points.G[keep], points.sd[keep]

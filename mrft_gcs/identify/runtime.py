@@ -27,7 +27,7 @@ class by a prior) and the gains are the optimal PD of the refined model, provide
 they keep 15 deg of phase margin on every shape the posterior still holds likely
 (the refinement starts from the Bayes rule's shape, and its optimum must not undo
 the rule's safety); otherwise the rule's gains stand. The
-reported model is then the refined one (``extras["method"]`` says which path
+reported model is then the refined one (``diagnostics.method`` says which path
 ran); the classifier's most likely shape is in ``extras["likeliest"]``;
 ``class_index`` is the representative process of the chosen shape nearest in
 scale. Side motion: see :func:`_identify_side`.
@@ -35,6 +35,7 @@ scale. Side motion: see :func:`_identify_side`.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from functools import lru_cache
@@ -43,12 +44,29 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
+from mrft_gcs.domains import D_SIDE
 from mrft_gcs.errors import IdentificationError
-from mrft_gcs.features import cycle_features
-from mrft_gcs.identify.api import Identification, RelaySettings
+from mrft_gcs.features import cycle_features, rising_switches
+from mrft_gcs.identify.closed_loop import closed_loop_points
+from mrft_gcs.identify.harmonics import (
+    USABLE_SD,
+    class_log_likelihood,
+    fit_inner_model,
+    fit_side_model,
+    harmonic_points,
+)
+from mrft_gcs.identify.result import Diagnostics, Identification, Method, RelaySettings
 from mrft_gcs.identify.side import SIDE_H, side_features, side_plant_response
 from mrft_gcs.loops import LoopKind
-from mrft_gcs.plant import PD, InnerModel, inner_response
+from mrft_gcs.pd_design import frequency_grid, margins, optimal_pd
+from mrft_gcs.plant import (
+    PD,
+    InnerModel,
+    SideModel,
+    closed_inner_response,
+    inner_response,
+    side_response,
+)
 
 __all__ = ["identify", "relay_settings", "load_bundle", "Bundle", "MODELS_DIR", "GainScaling"]
 
@@ -103,7 +121,7 @@ def load_bundle(kind: LoopKind, models: Path = MODELS_DIR) -> Bundle:
         raise IdentificationError(
             f"no bundled {kind.value} classifier in {d}: regenerate it with "
             f"'mrft-tune design train --loop {kind.value}' (needs pip install -e '.[design]')")
-    import onnxruntime as ort
+    import onnxruntime as ort  # lazy: loaded with the first classifier, not at CLI start
 
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = 1
@@ -152,7 +170,7 @@ def load_side_bundle(att_shape: int, models: Path = MODELS_DIR) -> SideBundle:
         raise IdentificationError(
             f"no bundled side classifier for attitude shape {att_shape} in {d}: regenerate with "
             "'mrft-tune design side' (needs pip install -e '.[design]')")
-    import onnxruntime as ort
+    import onnxruntime as ort  # lazy: loaded with the first classifier, not at CLI start
 
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = 1
@@ -193,8 +211,6 @@ def harmonic_response(t, u, y, harmonic: int = 3, cycles: int = 4) -> tuple[floa
     cycles is a second measured point of the frequency response (noise averages out
     over the cycles). Returns ``(nan, nan)`` when there are not enough cycles.
     """
-    from mrft_gcs.features import rising_switches
-
     t, u, y = (np.asarray(a, float) for a in (t, u, y))
     r = rising_switches(u)
     if r.size < 2:
@@ -228,12 +244,20 @@ def harmonic_guard(pd: PD, w: float, G: complex, limit: float = 0.7) -> tuple[PD
 
 
 def _inner_shape(inner: Identification | None) -> tuple[int, float]:
-    if inner is None or "shape" not in inner.extras:
+    if inner is None or inner.diagnostics.shape is None:
         raise IdentificationError("side motion needs the attitude loop identified first")
-    return int(inner.extras["shape"]), float(inner.extras["scale"])
+    return inner.diagnostics.shape, inner.diagnostics.scale
 
 
 def relay_settings(kind: LoopKind, inner: Identification | None = None) -> RelaySettings:
+    """MRFT ``beta`` and default ``h`` for a loop kind (side motion needs the attitude result).
+
+    Raises
+    ------
+    IdentificationError
+        No bundled classifier for the loop, or side motion without an identified
+        attitude loop.
+    """
     if kind is LoopKind.SIDE:
         k, _ = _inner_shape(inner)
         return RelaySettings(beta=load_side_bundle(k).beta, h=SIDE_H)
@@ -288,12 +312,7 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, til
     whose motors hit zero at each side relay switch) does not pass its lag on to the side
     model. The gains are still designed for the modelled, linear attitude loop.
     """
-    from scipy.stats import chi2
-
-    from mrft_gcs.features import rising_switches
-    from mrft_gcs.identify.harmonics import USABLE_SD, fit_side_model, harmonic_points
-    from mrft_gcs.pd_design import optimal_pd
-    from mrft_gcs.plant import SideModel, closed_inner_response, inner_response, side_response
+    from scipy.stats import chi2  # lazy: scipy.stats takes 0.6 s to import, at CLI start
 
     try:
         pts = harmonic_points(t, u, y)
@@ -315,13 +334,11 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, til
             f"{pts.spread[1]:.2f} in log units, need <= {FIT_MAX_SD[1]}): raise the side relay "
             "amplitude or let it run longer, then retry")
     m, g = inner.model, inner.gains
-    assert isinstance(m, InnerModel)  # an inner-loop identification: it has extras["shape"]
+    assert isinstance(m, InnerModel)  # an inner-loop identification: it has a shape
 
     def t_att(w):
         return closed_inner_response(g.Kc, g.Kd, inner_response(m.K, m.T_prop, m.T1, m.tau, w),
                                      w)[0]
-
-    from mrft_gcs.domains import D_SIDE
 
     T_att, fit_pts, measured = _measured_t_att(t, u, tilt, pts, t_att(pts.w))
     # searched over the side domain of Table I, widened by 2 each way
@@ -365,12 +382,13 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, til
         kind=LoopKind.SIDE, model=model, class_index=near,
         confidence=float(chi2.sf(fit.cost, dof)) if dof > 0 else 1.0, beta=beta, h=h,
         period_s=pts.period_s, amplitude=amplitude, gains=design.pd,
-        extras={"method": "harmonic fit", "att_shape": int(b.att_shape), "att_scale": c,
+        extras={"att_shape": int(b.att_shape), "att_scale": c,
                 "gain": fit.K, "fit_cost": fit.cost, "harmonics": list(fit.used),
                 "harmonic_sd": [float(s) for s in pts.sd], "df_factor": df,
                 "t_att_measured": [int(k) for k, m in zip(pts.harmonics, measured,
                                                           strict=True) if m],
-                "pm_deg": float(design.margins.pm_deg)}), None
+                "pm_deg": float(design.margins.pm_deg)},
+        diagnostics=Diagnostics(Method.HARMONIC_FIT)), None
 
 
 #: prior on the side model's ``K / T2`` (m/s^2 per rad of tilt: ``g`` in hover) and its
@@ -399,11 +417,6 @@ def _measured_t_att(t, u, tilt, pts, modelled: np.ndarray):
     is within :data:`MEASURED_T_ATT_MAX_SD`, else ``modelled``), the
     points with the measured loop's error added to theirs, and which were measured.
     """
-    import dataclasses
-
-    from mrft_gcs.identify.closed_loop import closed_loop_points
-    from mrft_gcs.identify.harmonics import USABLE_SD
-
     none = np.zeros(len(pts.harmonics), bool)
     if tilt is None:
         return modelled, pts, none
@@ -430,8 +443,6 @@ def _measured_t_att(t, u, tilt, pts, modelled: np.ndarray):
 
 def _classify_side(t, u, y, beta, b: SideBundle, k: int, c: float,
                    setpoint=None) -> Identification:
-    from mrft_gcs.plant import SideModel
-
     f, x = side_features(t, u, y, c, setpoint)
     probs = _softmax(b.logits(x)[0])
     order = np.argsort(-probs)[:3]
@@ -453,10 +464,11 @@ def _classify_side(t, u, y, beta, b: SideBundle, k: int, c: float,
     return Identification(kind=LoopKind.SIDE, model=model, class_index=j,
                           confidence=float(probs[j]), beta=beta, h=f.h, period_s=f.period_s,
                           amplitude=f.amplitude, gains=PD(float(Kc), float(Kd)),
-                          extras={"method": "classifier", "att_shape": k, "att_scale": c,
+                          extras={"att_shape": k, "att_scale": c,
                                   "gain": float(K), "rule": r,
                                   "margin_guard_scale": scale,
-                                  "top": order.tolist(), "duty": f.duty, "bias": f.bias})
+                                  "top": order.tolist(), "duty": f.duty, "bias": f.bias},
+                          diagnostics=Diagnostics(Method.CLASSIFIER))
 
 
 def _softmax(z: np.ndarray) -> np.ndarray:
@@ -543,8 +555,6 @@ def _shape_models(b: Bundle, f) -> tuple[np.ndarray, np.ndarray]:
 
 def _min_pm_on_likely(b: Bundle, post: np.ndarray, f, pd: PD) -> float:
     """The smallest phase margin of ``pd`` on the likely shapes' models (deg)."""
-    from mrft_gcs.pd_design import frequency_grid, margins
-
     Ks, sps = _shape_models(b, f)
     worst = np.inf
     for k in np.flatnonzero(post >= LIKELY_POSTERIOR):
@@ -583,8 +593,6 @@ def steady_points(t, u, y):
     IdentificationError
         The fundamental varies from cycle to cycle by more than :data:`STEADY_MAX_SD`.
     """
-    from mrft_gcs.identify.harmonics import harmonic_points
-
     try:
         pts = harmonic_points(t, u, y)
     except ValueError:
@@ -604,8 +612,6 @@ def harmonic_posterior(b: Bundle, probs: np.ndarray, f, pts) -> np.ndarray:
     predicts the response at the relay's harmonics; how well it matches the measured
     points (their standard errors from the cycle spread) weighs the shape.
     """
-    from mrft_gcs.identify.harmonics import class_log_likelihood
-
     K, sp = _shape_models(b, f)
     T_prop, T1, tau = sp.T
     G = K[:, None] * inner_response(1.0, T_prop, T1, tau, pts.w)
@@ -633,9 +639,6 @@ def refined_identification(b: Bundle, probs: np.ndarray, f, pts,
     not at all. ``K_true``: the gain is known (the "normalised gain" evaluation) and is
     not fitted.
     """
-    from mrft_gcs.identify.harmonics import fit_inner_model
-    from mrft_gcs.pd_design import frequency_grid, optimal_pd
-
     post = probs if pts is None else harmonic_posterior(b, probs, f, pts)
     if K_true is None:
         pd, k, c, K = scaled_gains(b, post, f.period_s, f.amplitude, f.h)
@@ -673,9 +676,41 @@ def refined_identification(b: Bundle, probs: np.ndarray, f, pts,
     return Refinement(held, model, k, c, post, cost if a > 0 else float("inf"), a)
 
 
-def identify(kind: LoopKind, t, u, y, *, beta: float, h: float, bias: float = 0.0,
-             inner: Identification | None = None, setpoint=None, tilt=None) -> Identification:
+def identify(kind: LoopKind, t: np.ndarray, u: np.ndarray, y: np.ndarray, *, beta: float,
+             h: float, bias: float = 0.0, inner: Identification | None = None,
+             setpoint=None, tilt: np.ndarray | None = None) -> Identification:
+    """Identify a loop from samples of its steady relay oscillation.
+
+    Parameters
+    ----------
+    kind : LoopKind
+        Which domain and classifier to use.
+    t, u, y : arrays (m,)
+        Time (s), relay output (with bias) and measured variable, covering at
+        least one full cycle (more is better: the last complete one is used).
+        Any sample rate; it is resampled.
+    beta, h, bias : float
+        The relay that ran.
+    inner : Identification, optional
+        The attitude identification, required for side motion.
+    setpoint : float or array (m,), optional
+        The relay's set point; when given, cycles that do not cross it every
+        half-cycle (a degenerate test) are refused rather than identified.
+    tilt : array (m,), optional
+        Side motion: the measured tilt along the axis at the times ``t``. The side
+        model is then fitted behind the attitude loop as measured during the test
+        rather than as modelled (see :func:`_fit_side`).
+
+    Raises
+    ------
+    IdentificationError
+        No complete cycle in the data, or no bundled model for the loop
+        (:class:`~mrft_gcs.errors.SetpointNotCrossed` for cycles that miss the set point).
+    """
     if kind is LoopKind.SIDE:
+        if inner is None:
+            raise IdentificationError("side-motion identification needs the attitude loop "
+                                      "identified first")
         return _identify_side(t, u, y, beta, inner, setpoint, tilt)
     b = load_bundle(kind)
     if abs(beta - b.beta) > 1e-6:
@@ -689,12 +724,12 @@ def identify(kind: LoopKind, t, u, y, *, beta: float, h: float, bias: float = 0.
     rep = int(same[np.argmin(np.abs(np.log(b.reps[same, 1] / c)))]) if same.size else k
     return Identification(kind=kind, model=model, class_index=rep, confidence=float(post[k]),
                           beta=beta, h=f.h, period_s=f.period_s, amplitude=f.amplitude,
-                          gains=pd, extras={"shape": k, "scale": c, "gain": model.K, "rule": k,
+                          gains=pd, extras={"gain": model.K, "rule": k,
                                             "top": np.argsort(-post)[:3].tolist(),
                                             "likeliest": int(np.argmax(probs)),
                                             "probs": np.sort(probs)[::-1][:3].tolist(),
                                             "fit_cost": cost, "held_back": held_back,
-                                            "method": "classifier" if pts is None or
-                                            not np.isfinite(cost) else
-                                            "classifier + harmonics",
-                                            "duty": f.duty, "bias": f.bias})
+                                            "duty": f.duty, "bias": f.bias},
+                          diagnostics=Diagnostics(
+                              Method.CLASSIFIER if pts is None or not np.isfinite(cost)
+                              else Method.CLASSIFIER_HARMONICS, shape=k, scale=float(c)))

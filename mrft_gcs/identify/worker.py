@@ -10,7 +10,7 @@ machine (racer250, two stream workers): 243.3 and 245.1 Hz, p99 period jitter 3.
 
 :class:`IdentificationWorker` starts ``python -m mrft_gcs.identify.worker`` (a plain child
 process: nothing of the caller's ``__main__`` is imported again, unlike ``multiprocessing``'s
-spawn), warms it up (:func:`mrft_gcs.flight.api.warm_up_identification`'s work) and sends
+spawn), warms it up (:func:`mrft_gcs.identify.live.warm_up_identification`'s work) and sends
 it one request at a time over its standard input and output as pickles. Each request's
 exception is raised again in the caller, so a refused identification reads exactly as an
 in-process one. The child runs in a session of its own (a Ctrl-C reaches only the ground
@@ -21,6 +21,7 @@ its own process.
 
 from __future__ import annotations
 
+import gc
 import os
 import pickle
 import select
@@ -29,6 +30,12 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from mrft_gcs.identify.live import (
+    bundled_identifier,
+    measured_attitude_loop,
+    warm_up_identification,
+)
 
 __all__ = ["IdentificationWorker", "WorkerError", "AVAILABLE"]
 
@@ -71,9 +78,9 @@ class IdentificationWorker:
     def request(self, op: str, *args: Any) -> None:
         """Send one request; :meth:`reply` reads its answer.
 
-        ``"warm"`` (:func:`~mrft_gcs.flight.api.warm_up_identification`), ``"identify"``
-        (:func:`~mrft_gcs.flight.api.bundled_identifier`) or ``"attitude_loop"``
-        (:func:`~mrft_gcs.flight.api.measured_attitude_loop`, the attitude path).
+        ``"warm"`` (:func:`~mrft_gcs.identify.live.warm_up_identification`), ``"identify"``
+        (:func:`~mrft_gcs.identify.live.bundled_identifier`) or ``"attitude_loop"``
+        (:func:`~mrft_gcs.identify.live.measured_attitude_loop`, the attitude path).
         """
         if self._waiting:
             raise WorkerError("the worker is still busy with the previous request")
@@ -143,14 +150,6 @@ class IdentificationWorker:
 
 def _serve() -> None:
     """The child's loop: one pickled ``(op, args)`` in, one ``(status, value)`` out."""
-    import gc
-
-    from mrft_gcs.flight.api import (
-        bundled_identifier,
-        measured_attitude_loop,
-        warm_up_identification,
-    )
-
     ops = {"warm": warm_up_identification, "identify": bundled_identifier,
            "attitude_loop": measured_attitude_loop}
     inp = sys.stdin.buffer

@@ -1,34 +1,14 @@
-"""Types and entry points of runtime identification (see the package docstring)."""
+"""The streaming cycle detector: says when a relay loop's oscillation is steady."""
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from mrft_gcs.errors import IdentificationError
-from mrft_gcs.loops import LoopKind
-from mrft_gcs.plant import PD, InnerModel, SideModel
-
-__all__ = [
-    "attach_residual",
-    "CycleDetector",
-    "CycleStatus",
-    "Identification",
-    "RelaySettings",
-    "identify",
-    "relay_settings",
-]
-
-
-@dataclass(frozen=True)
-class RelaySettings:
-    """MRFT settings for one loop: ``beta`` and the default amplitude ``h`` (input units)."""
-
-    beta: float
-    h: float
+__all__ = ["CycleDetector", "CycleStatus"]
 
 
 @dataclass(frozen=True)
@@ -167,113 +147,3 @@ class CycleDetector:
         a, b = self.rises[-n - 1] - self.k0, self.rises[-1] - self.k0
         t, u, y = (np.asarray(list(d)[a:b + 1]) for d in (self.t, self.u, self.y))
         return t, u, y
-
-
-@dataclass(frozen=True)
-class Identification:
-    """Result of identifying one loop from its steady relay cycle.
-
-    Attributes
-    ----------
-    kind : LoopKind
-        Model family (attitude, altitude, side).
-    model : InnerModel or SideModel
-        Identified model in SI units of the loop.
-    class_index : int
-        Index of the representative process chosen by the classifier.
-    confidence : float
-        Classifier probability mass behind the chosen gains, in [0, 1].
-    beta, h : float
-        Relay settings of the test.
-    period_s, amplitude : float
-        Of the measured steady cycle.
-    gains : PD
-        PD gains in SI units (``u = Kc e - Kd dy/dt``).
-    extras : dict
-        Diagnostics (scale factor, gain estimate, top classes...).
-    """
-
-    kind: LoopKind
-    model: InnerModel | SideModel
-    class_index: int
-    confidence: float
-    beta: float
-    h: float
-    period_s: float
-    amplitude: float
-    gains: PD
-    extras: dict = field(default_factory=dict)
-
-
-def relay_settings(kind: LoopKind, inner: Identification | None = None) -> RelaySettings:
-    """MRFT ``beta`` and default ``h`` for a loop kind (side motion needs the attitude result)."""
-    from mrft_gcs.identify.runtime import relay_settings as _impl
-
-    return _impl(kind, inner)
-
-
-def identify(kind: LoopKind, t: np.ndarray, u: np.ndarray, y: np.ndarray, *, beta: float,
-             h: float, bias: float = 0.0, inner: Identification | None = None,
-             setpoint=None, tilt: np.ndarray | None = None) -> Identification:
-    """Identify a loop from samples of its steady relay oscillation.
-
-    Parameters
-    ----------
-    kind : LoopKind
-        Which domain and classifier to use.
-    t, u, y : arrays (m,)
-        Time (s), relay output (with bias) and measured variable, covering at
-        least one full cycle (more is better: the last complete one is used).
-        Any sample rate; it is resampled.
-    beta, h, bias : float
-        The relay that ran.
-    inner : Identification, optional
-        The attitude identification, required for side motion.
-    setpoint : float or array (m,), optional
-        The relay's set point; when given, cycles that do not cross it every
-        half-cycle (a degenerate test) are refused rather than identified.
-    tilt : array (m,), optional
-        Side motion: the measured tilt along the axis at the times ``t``. The side
-        model is then fitted behind the attitude loop as measured during the test
-        rather than as modelled (see :func:`mrft_gcs.identify.runtime._fit_side`).
-
-    Raises
-    ------
-    IdentificationError
-        No complete cycle in the data, or no bundled model for the loop.
-    """
-    if kind is LoopKind.SIDE and inner is None:
-        raise IdentificationError("side-motion identification needs the attitude loop identified first")
-    from mrft_gcs.identify.runtime import identify as _impl
-
-    return _impl(kind, t, u, y, beta=beta, h=h, bias=bias, inner=inner, setpoint=setpoint,
-                 tilt=tilt)
-
-
-def attach_residual(ident: Identification, t, u, y, *, bias: float = 0.0, band: float = 0.0,
-                    hover: float = 0.5) -> Identification:
-    """The identification with its residual analysis (SPEC 4.3 ``residual``) in ``extras``.
-
-    Simulates the identified model under the relay that ran and compares with the
-    measured cycles (:func:`mrft_gcs.residual.analyse_residual`); takes a second or
-    so, so call it after the tests, not inside the relay loop. Side-motion models
-    are not analysed yet: their residual fields are null, with the reason.
-    """
-    import dataclasses
-
-    from mrft_gcs.residual.analysis import RelayTest, analyse_residual
-
-    extras = dict(ident.extras)
-    if ident.kind is LoopKind.SIDE:
-        extras["residual"] = {"rms_before": None, "rms_after": None, "effect": None,
-                              "effect_params": {}, "note": "side-motion residuals not analysed"}
-        return dataclasses.replace(ident, extras=extras)
-    try:
-        rep = analyse_residual(ident.model, RelayTest(ident.beta, ident.h, bias), t, u, y,
-                               kind=ident.kind, hover=hover, band=band)
-    except Exception as exc:  # noqa: BLE001 - the tune stands; say why the residual is missing
-        extras["residual"] = {"rms_before": None, "rms_after": None, "effect": None,
-                              "effect_params": {}, "note": f"residual analysis failed: {exc}"}
-        return dataclasses.replace(ident, extras=extras)
-    extras["residual"] = rep.as_dict()
-    return dataclasses.replace(ident, extras=extras)
