@@ -226,22 +226,45 @@ def onboard_controller(airframe: Airframe, loop: Loop, params: Mapping[str, floa
     return _position_controller(params, "MPC_XY", 1.0 / g, s)
 
 
+def _true_models(airframe: Airframe) -> dict[str, dict[str, float]]:
+    """The linear models with the small-signal part of the undeclared effects: a thrust
+    curve changes the slope of thrust against command at hover (every inner loop's K)."""
+    models = {k: dict(v) for k, v in airframe.linear_models().items()}
+    a = airframe.effects.thrust_curve
+    if a:
+        f = airframe.hover_thrust  # force at hover over full thrust
+        c = (-(1 - a) + np.sqrt((1 - a) ** 2 + 4 * a * f)) / (2 * a)  # its command
+        for lp in ("roll", "pitch", "altitude"):
+            models[lp]["K"] *= (1 - a) + 2 * a * c
+    return models
+
+
+def _inner(airframe: Airframe, models, loop: Loop, w: np.ndarray, extra_delay_s: float = 0.0
+           ) -> np.ndarray:
+    """An inner loop's true process, with an undeclared sensor low-pass where there is one
+    (the angle and the position are both filtered: the side part keeps its relation)."""
+    m = models[loop.value]
+    G = inner_response(m["K"], m["T_prop"], m["T1"], m["tau"] + extra_delay_s, w)[0]
+    return G * _lowpass(1j * w, airframe.effects.sensor_lpf)
+
+
 def onboard_process(airframe: Airframe, loop: Loop, params: Mapping[str, float]
                     ) -> tuple[np.ndarray, np.ndarray]:
     """``(G(jw), w)``: the true process the autopilot's ``loop`` controls.
 
     The airframe's linear model with its onboard delays, held at the loop's rate
     (attitude: ``loop_hz``; altitude and x/y: ``position_loop_hz``); x and y through the
-    onboard closed attitude loop under ``params`` (pitch for x, roll for y).
+    onboard closed attitude loop under ``params`` (pitch for x, roll for y). Of the
+    undeclared effects, the linear ones are in: a sensor low-pass, and a thrust curve's
+    slope at hover; the others (limits, dead band, saturation) are large-signal.
     """
-    models = airframe.linear_models()
+    models = _true_models(airframe)
     spec = airframe.onboard
     if loop in _SIDE_INNER:
         mi, ms = models[_SIDE_INNER[loop].value], models[loop.value]
         w = frequency_grid(mi["T_prop"], mi["T1"], mi["tau"], extra_T=(ms["T2"], ms["tau"]))
         s = 1j * w
-        gi = inner_response(mi["K"], mi["T_prop"], mi["T1"], mi["tau"], w)[0] \
-            * _hold(s, 1.0 / spec.loop_hz)
+        gi = _inner(airframe, models, _SIDE_INNER[loop], w) * _hold(s, 1.0 / spec.loop_hz)
         Cr, Cy = onboard_controller(airframe, _SIDE_INNER[loop], params, w)
         t_att = gi * Cr / (1.0 + gi * Cy)
         G = t_att * side_response(ms["K"], ms["T2"], ms["tau"], w)[0]
@@ -249,8 +272,7 @@ def onboard_process(airframe: Airframe, loop: Loop, params: Mapping[str, float]
     m = models[loop.value]
     w = frequency_grid(m["T_prop"], m["T1"], m["tau"])
     rate = spec.loop_hz if loop in _AXIS else spec.position_loop_hz
-    G = inner_response(m["K"], m["T_prop"], m["T1"], m["tau"], w)[0] * _hold(1j * w, 1.0 / rate)
-    return G, w
+    return _inner(airframe, models, loop, w) * _hold(1j * w, 1.0 / rate), w
 
 
 def _pd_equivalent(loop: Loop, params: Mapping[str, float]) -> PD:
@@ -276,14 +298,22 @@ def _score(loop: Loop, gains: PD, Cr: np.ndarray, Cy: np.ndarray, G: np.ndarray,
 
 def _gcs_score(airframe: Airframe, loop: Loop, pd: PD, identified: Mapping[Loop, PD],
                delay_s: float) -> LoopScore | None:
-    models = {k: dict(v) for k, v in airframe.linear_models().items()}
     # the GCS sees angle and position equally late: the side part keeps its relative delay
-    for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE):
-        models[lp.value]["tau"] += delay_s
-    inner = identified.get(_SIDE_INNER[loop]) if loop in _SIDE_INNER else None
-    if loop in _SIDE_INNER and inner is None:
-        return None
-    G, w = true_response(models, loop, inner)
+    models = _true_models(airframe)
+    if loop in _SIDE_INNER:
+        inner = identified.get(_SIDE_INNER[loop])
+        if inner is None:
+            return None
+        mi, ms = models[_SIDE_INNER[loop].value], models[loop.value]
+        w = frequency_grid(mi["T_prop"], mi["T1"], mi["tau"] + delay_s,
+                           extra_T=(ms["T2"], ms["tau"]))
+        gi = _inner(airframe, models, _SIDE_INNER[loop], w, delay_s)
+        G = closed_inner_response(inner.Kc, inner.Kd, gi, w)[0] \
+            * side_response(ms["K"], ms["T2"], ms["tau"], w)[0]
+    else:
+        m = models[loop.value]
+        w = frequency_grid(m["T_prop"], m["T1"], m["tau"] + delay_s)
+        G = _inner(airframe, models, loop, w, delay_s)
     s = 1j * w
     return _score(loop, pd, pd.Kc + 0 * s, pd.Kc + pd.Kd * s, G, w)
 
