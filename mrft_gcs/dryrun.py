@@ -61,7 +61,7 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError, MrftError
 from mrft_gcs.identify import CycleDetector, Identification, identify
-from mrft_gcs.logs import decode_log, read_csv_metadata, summarize_log
+from mrft_gcs.logs import decode_log, log_truncation, read_csv_metadata, summarize_log
 from mrft_gcs.logs.describe import LogSummary
 from mrft_gcs.logs.replay import to_telemetry_log
 from mrft_gcs.loops import Loop, LoopKind
@@ -191,6 +191,9 @@ class DryRunResult:
         Per loop, what was looked at and why no relay test was found there.
     parameters : dict
         Parameter values a tune would write (empty without identified gains or profile).
+    warnings : tuple of str
+        One line per problem with the file that did not stop the analysis (a log cut
+        short: :func:`mrft_gcs.logs.log_truncation`).
     """
 
     source: str
@@ -198,6 +201,7 @@ class DryRunResult:
     loops: tuple[LoopResult, ...]
     searched: dict[str, str] = field(default_factory=dict)
     parameters: dict[str, float] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
 
     @property
     def found(self) -> bool:
@@ -1210,7 +1214,9 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
             results = tuple(replace(r, notes=r.notes + tuple(
                 n for c, n in zip(ranged.clamps, ranged.notes, strict=True) if r.loop in c.loops))
                 for r in results)
-    return DryRunResult(str(path), summarize_log(log), results, why, params)
+    cut = log_truncation(path)
+    return DryRunResult(str(path), summarize_log(log), results, why, params,
+                        warnings=(cut,) if cut else ())
 
 
 def _hover(log: TelemetryLog, profile) -> float | None:

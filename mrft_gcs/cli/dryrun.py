@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from mrft_gcs.cli import app, console, err_console
+from mrft_gcs.cli import app, console, err_console, styled
 from mrft_gcs.dryrun import DryRunResult, dry_run
 from mrft_gcs.errors import IdentificationError, UsageError
 from mrft_gcs.loops import Loop
@@ -100,6 +100,7 @@ def report_dict(res: DryRunResult, profile: str | None) -> dict:
         "parameters": [{"name": k, "old": None, "new": v} for k, v in res.parameters.items()],
         "status": "ok" if any(r.identification for r in res.loops) else "no_identification",
         "explanation": res.explanation(),
+        "warnings": list(res.warnings),
     }
 
 
@@ -156,6 +157,8 @@ def dry_run_command(
     meta = {k: str(v) for k, v in (("beta", beta), ("h", h)) if v is not None}
     with err_console.status(f"reading and analysing {log} ..."):
         res = dry_run(log, loops=loops, profile=prof, meta=meta)
+    for warning in res.warnings:  # a log cut short: said, not an error (the rest was used)
+        err_console.print(styled(f"warning: {warning}", "yellow"), soft_wrap=True)
     data = report_dict(res, profile)
     if json_out:
         console.print_json(json.dumps(data))

@@ -21,10 +21,11 @@ import enum
 from collections.abc import Callable
 from pathlib import Path
 
-from mrft_gcs.logs._common import input_error, read_head
+from mrft_gcs.logs._common import input_error, read_bytes, read_head
 from mrft_gcs.logs.csv import decode_csv, read_csv_metadata, sniff_csv
 from mrft_gcs.logs.dataflash import decode_dataflash, sniff_dataflash
 from mrft_gcs.logs.describe import LogSummary, SignalSummary, describe_log, summarize_log
+from mrft_gcs.logs.integrity import csv_tail, dataflash_tail, tlog_tail, ulog_tail
 from mrft_gcs.logs.replay import DecodedLog, LogReplay, LoopSample, collect_log, to_telemetry_log
 from mrft_gcs.logs.tlog import decode_tlog, sniff_tlog
 from mrft_gcs.logs.tlog_writer import TlogWriter
@@ -35,6 +36,7 @@ __all__ = [
     "LogFormat",
     "detect_format",
     "decode_log",
+    "log_truncation",
     "open_log",
     "read_log",
     "describe_log",
@@ -96,6 +98,31 @@ def detect_format(path: str | Path) -> LogFormat:
 def decode_log(path: str | Path) -> DecodedLog:
     """Decode any supported log (see :func:`detect_format`) at its reader's boundary."""
     return _DECODERS[detect_format(path)](path)
+
+
+def log_truncation(path: str | Path) -> str | None:
+    """One line saying the log ends inside a record (cut short), or None if it ends whole.
+
+    The readers use every whole record and drop a cut last one; this says that it happened
+    (the rest of the log is still usable). Reads the file again, framing only.
+
+    Raises
+    ------
+    InputFileError
+        As :func:`detect_format`.
+    """
+    fmt = detect_format(path)
+    data = read_bytes(path)
+    if fmt is LogFormat.CSV:
+        cut = csv_tail(data.decode("utf-8", "replace"))
+    else:
+        cut = {LogFormat.TLOG: tlog_tail, LogFormat.ULOG: ulog_tail,
+               LogFormat.DATAFLASH: dataflash_tail}[fmt](data)
+    if not cut:
+        return None
+    return (f"{path} is truncated: it ends inside a record ({cut} of {len(data)} bytes at the "
+            "end are not a whole record; was it copied while still being written?); the "
+            "whole records before were read")
 
 
 def open_log(path: str | Path) -> LogReplay:

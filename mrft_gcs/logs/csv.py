@@ -119,7 +119,8 @@ def decode_csv(path: str | Path) -> DecodedLog:
         the wrong number of fields, a number that does not parse, an unknown loop
         name, or no data rows.
     """
-    lines = _lines(path, read_bytes(path))
+    raw = read_bytes(path)
+    lines = _lines(path, raw)
     header: list[str] | None = None
     cols: tuple[int, int, int, int] = (0, 0, 0, 0)
     rows: dict[str, list[tuple[float, float, float]]] = {}
@@ -136,6 +137,8 @@ def decode_csv(path: str | Path) -> DecodedLog:
                                         f"{', '.join(missing)}", _HINT)
             cols = tuple(header.index(c) for c in CSV_COLUMNS)  # type: ignore[assignment]
             continue
+        if len(fields) < len(header) and number == len(lines) and not raw.endswith(b"\n"):
+            break  # a last row cut short: the file is truncated (log_truncation says so)
         if len(fields) != len(header):
             raise input_error(path, f"line {number}: {len(fields)} fields, the header has "
                                     f"{len(header)}", _HINT)
