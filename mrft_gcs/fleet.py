@@ -40,6 +40,8 @@ from pathlib import Path
 from typing import Any
 
 from mrft_gcs.errors import LinkError, MrftError, UsageError
+from mrft_gcs.flight.api import requested_loops, tune
+from mrft_gcs.flight.report import report_dict
 from mrft_gcs.link.connection import parse_connection_string
 from mrft_gcs.loops import Loop
 from mrft_gcs.profiles import Actuation, SafetyLimits, load_profile
@@ -90,8 +92,6 @@ def _positive(where: str, key: str, val: Any) -> float:
 
 def _loops(where: str, val: Any, actuation: Actuation) -> tuple[str, ...]:
     """Loop names checked as :func:`mrft_gcs.flight.api.tune` checks them (in Loop order)."""
-    from mrft_gcs.flight.api import requested_loops
-
     if not isinstance(val, list) or not val or not all(isinstance(n, str) for n in val):
         raise UsageError(f"{where}: 'loops' must be a non-empty list of loop names "
                          f"({', '.join(_LOOP_NAMES)})")
@@ -198,8 +198,6 @@ class FleetResult:
         ``report`` is the vehicle's tune report (SPEC 4.3, partial for a failed flight) or
         null where nothing was flown (no heartbeat, a bad argument).
         """
-        from mrft_gcs.flight.report import report_dict
-
         return {
             "schema": "mrft-gcs/fleet-1", "serial": self.serial, "duration_s": self.duration_s,
             "ok": not self.failed,
@@ -311,10 +309,7 @@ def tune_fleet(fleet: FleetSpec | Mapping[str, Any] | str | os.PathLike[str], *,
         spec = parse_fleet(fleet)
     else:
         spec = load_fleet(fleet)
-    if tuner is None:
-        from mrft_gcs.flight.api import tune as tuner
-    assert tuner is not None
-    run: Callable[..., Any] = tuner
+    run: Callable[..., Any] = tune if tuner is None else tuner
     t0 = time.monotonic()
     if serial:
         outcomes = [_tune_one(v, run, on_status) for v in spec.vehicles]

@@ -29,6 +29,7 @@ the report's own timestamp, over whole laps only.
 
 from __future__ import annotations
 
+import json
 import math
 import threading
 import time
@@ -39,12 +40,22 @@ from typing import Any
 
 import numpy as np
 
-from mrft_gcs.errors import LinkError, MissingDependency, SafetyAbort, UsageError
+from mrft_gcs.errors import (
+    InputFileError,
+    LinkError,
+    MissingDependency,
+    SafetyAbort,
+    UsageError,
+)
 from mrft_gcs.link import SetpointStreamer, VehicleLink
 from mrft_gcs.link.modes import mode_matches
 from mrft_gcs.loops import Loop
+from mrft_gcs.params import ParamClient
+from mrft_gcs.pd_design import frequency_grid, optimal_pd
+from mrft_gcs.plant import closed_inner_response, inner_response, side_response
 from mrft_gcs.profiles import G_M_S2, AutopilotProfile, PDGains, gains_to_params, load_profile
 from mrft_gcs.profiles import params_to_gains as _params_to_gains
+from mrft_gcs.sitl import load_airframe
 from mrft_gcs.telemetry import Attitude, AttitudeTarget, AutopilotFamily, Heartbeat, LocalPosition
 from mrft_gcs.trajectory import PiecewisePoly, TrajectorySample, evaluate, figure_eight
 
@@ -284,8 +295,6 @@ def feedforward_leads(models: Mapping[str, Mapping[str, float]],
     attitude loop ``Kc G / (1 + (Kc + Kd s) G)`` at the lap frequency ``2 pi / period_s``.
     Axes whose models are missing are left out.
     """
-    from mrft_gcs.plant import closed_inner_response, inner_response
-
     w = np.array([2 * math.pi / period_s])
     out: dict[str, float] = {}
     for axis, inner, loop in (("x", "pitch", Loop.PITCH), ("y", "roll", Loop.ROLL)):
@@ -394,10 +403,6 @@ def load_models(report_path: str | Path) -> dict[str, dict[str, float]]:
     InputFileError
         Unreadable file, not JSON, or no loop with a model in it.
     """
-    import json
-
-    from mrft_gcs.errors import InputFileError
-
     try:
         data = json.loads(Path(report_path).read_text(encoding="utf-8"))
     except (OSError, ValueError) as err:
@@ -425,10 +430,6 @@ def reference_gains(vehicle: str | Any) -> dict[Loop, PDGains]:
     A well-tuned reference to compare tuned gains with. ``vehicle`` is a bundled name or an
     :class:`~mrft_gcs.sitl.Airframe`. x uses the closed pitch loop, y the closed roll loop.
     """
-    from mrft_gcs.pd_design import frequency_grid, optimal_pd
-    from mrft_gcs.plant import closed_inner_response, inner_response, side_response
-    from mrft_gcs.sitl import load_airframe
-
     af = load_airframe(vehicle) if isinstance(vehicle, str) else vehicle
     lm = af.linear_models()
     out: dict[Loop, PDGains] = {}
@@ -453,8 +454,6 @@ def reference_params(vehicle: str | Any, profile: str | AutopilotProfile = "sitl
 
     Uses the hover thrust the SITL reports (the true one, rounded to 0.01).
     """
-    from mrft_gcs.sitl import load_airframe
-
     af = load_airframe(vehicle) if isinstance(vehicle, str) else vehicle
     prof = load_profile(profile) if isinstance(profile, str) else profile
     gains = {k: PDGains(g.Kc * scale, g.Kd * scale) for k, g in reference_gains(af).items()}
@@ -475,8 +474,6 @@ class _Shared:
 
 
 def _read_gains(link: Any, prof: AutopilotProfile) -> tuple[dict[Loop, PDGains], dict[str, float]]:
-    from mrft_gcs.params import ParamClient
-
     client = ParamClient(link)
     values = {n: p.value for n, p in client.read_many(prof.parameter_names()).items()}
     gains = _params_to_gains(prof, values)
