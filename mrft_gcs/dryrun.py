@@ -56,6 +56,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -69,6 +70,10 @@ from mrft_gcs.plant import PD, InnerModel, SideModel
 from mrft_gcs.residual import RelayTest, ResidualReport, analyse_residual
 from mrft_gcs.residual.cycles import noise_std
 from mrft_gcs.telemetry import TelemetryLog
+
+if TYPE_CHECKING:
+    from mrft_gcs.flight.onboard import GcsDelay
+    from mrft_gcs.link.clock import ClockFit
 
 __all__ = ["RelaySegment", "LoopResult", "DryRunResult", "find_relay_segments", "infer_beta",
            "analyse_segment", "dry_run", "MIN_SWITCHES"]
@@ -108,16 +113,20 @@ class RelaySegment:
         station (its commands are in the log), else 0.
     age_s : array (m,) or None
         With ``gcs_period_s``: how old each sample was when the command answering it was
-        logged (s; command minus sample time on the log's vehicle clock, whose offset is
-        the least-delayed sample's). A live tune re-targets the written inner-loop gains
-        by their mean over the identified cycles
-        (:func:`mrft_gcs.flight.onboard.command_delay_s`), as dry-run does here. Where
+        logged (s; command minus sample time on the log's vehicle clock, placed through
+        the lower envelope of receive-minus-vehicle time tracked over the log, ``clock``).
+        A live tune re-targets the written inner-loop gains by their mean over the
+        identified cycles (:func:`mrft_gcs.flight.onboard.measure_gcs_delay`), as dry-run
+        does here. Where
         the log cannot tell which sample a command answered (altitude, see
         :func:`_answer_position`), file order pairs it with the last one logged before
         it, which it may not have seen yet: the ages are then up to a period short.
     tilt : array (m,) or None
         x/y relays: the measured tilt along the axis at the times ``t`` (from ATTITUDE),
         which the side identification fits behind, as the live tune does.
+    clock : ClockFit or None
+        With ``age_s``: the log's clock fit (``DecodedLog.clock``), whose slips and skew
+        decide whether the ages are plausible.
     """
 
     loop: Loop
@@ -132,6 +141,7 @@ class RelaySegment:
     gcs_period_s: float = 0.0
     tilt: np.ndarray | None = None
     age_s: np.ndarray | None = None
+    clock: ClockFit | None = None
 
     @property
     def duration_s(self) -> float:
@@ -1082,15 +1092,23 @@ def _tilt(seg: RelaySegment, a: int, b: int) -> np.ndarray | None:
     return None if seg.tilt is None else seg.tilt[a:b]
 
 
-def _retarget_delay(seg: RelaySegment, t_cycles: np.ndarray) -> tuple[float, bool]:
-    """The GCS delay over the identified cycles (s), and whether this log measured it
-    (:func:`mrft_gcs.flight.onboard.retarget_delay_s`: else half a setpoint period)."""
-    from mrft_gcs.flight.onboard import retarget_delay_s
+def _gcs_delay(seg: RelaySegment, t_cycles: np.ndarray) -> GcsDelay:
+    """The GCS delay over the identified cycles, measured on the log as a live tune
+    measures it (:func:`mrft_gcs.flight.onboard.measure_gcs_delay`)."""
+    from mrft_gcs.flight.onboard import measure_gcs_delay
 
-    ages = np.empty(0)
+    t, ages = np.empty(0), np.empty(0)
     if seg.age_s is not None and len(t_cycles):
-        ages = seg.age_s[(seg.t >= t_cycles[0]) & (seg.t <= t_cycles[-1])]
-    return retarget_delay_s(ages, seg.gcs_period_s)
+        m = (seg.t >= t_cycles[0]) & (seg.t <= t_cycles[-1])
+        t, ages = seg.t[m], seg.age_s[m]
+    return measure_gcs_delay(ages, seg.gcs_period_s, sample_t_s=t, clock=seg.clock)
+
+
+def _retarget_delay(seg: RelaySegment, t_cycles: np.ndarray) -> tuple[float, bool]:
+    """The GCS delay to re-target by over the identified cycles (s, before the robust
+    check), and whether this log measured it plausibly (else half a setpoint period)."""
+    g = _gcs_delay(seg, t_cycles)
+    return g.estimate_s, g.measured
 
 
 def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
@@ -1107,15 +1125,14 @@ def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
     if ident is not None:
         gains = ident.gains
         if seg.gcs_period_s > 0 and isinstance(ident.model, InnerModel):
-            from mrft_gcs.flight.onboard import onboard_gains
+            from mrft_gcs.flight.onboard import robust_onboard_gains
 
-            delay, measured = _retarget_delay(seg, cyc[0])
-            how = ("measured: how old telemetry was when the command answering it was logged"
-                   if measured else "half a setpoint period")
-            gains = onboard_gains(ident, delay)
-            notes.append(f"gains re-targeted to the onboard loop ({delay * 1e3:.1f} ms "
-                         f"less delay than the ground-station relay, {how}), as a tune writes "
-                         f"them; identified Kc {ident.gains.Kc:.4g}, Kd {ident.gains.Kd:.4g}")
+            rt = robust_onboard_gains(ident, _gcs_delay(seg, cyc[0]))
+            delay, gains = rt.delay_s, rt.gains
+            notes.append(f"gains re-targeted to the onboard loop, less delay than the "
+                         f"ground-station relay by how old telemetry was when the command "
+                         f"answering it was logged ({rt.note()}), as a tune writes them; "
+                         f"identified Kc {ident.gains.Kc:.4g}, Kd {ident.gains.Kd:.4g}")
     res = None
     use = ident.model if ident is not None else model
     if isinstance(use, InnerModel):
@@ -1173,6 +1190,8 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
         search |= {Loop.ROLL, Loop.PITCH, Loop.ALTITUDE}
     order = _answer_order(log, decoded.file_order)
     segs, why = _find(log, info, tuple(lp for lp in Loop if lp in search), order)
+    # the ages were counted on the log's clock fit: its slips and skew judge them
+    segs = [replace(s, clock=decoded.clock) if s.age_s is not None else s for s in segs]
     hover = _hover(log, profile)
     hover_f = hover if hover is not None else 0.5
     by_loop: dict[Loop, LoopResult] = {}

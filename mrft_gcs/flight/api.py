@@ -45,7 +45,12 @@ from mrft_gcs.errors import (
 )
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.flight.hover import HoverCheck, check_hover_states
-from mrft_gcs.flight.onboard import onboard_gains, retarget_delay_s
+from mrft_gcs.flight.onboard import (
+    Retarget,
+    measure_gcs_delay,
+    onboard_gains,
+    robust_onboard_gains,
+)
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
 from mrft_gcs.flight.sequence import AUTOPILOT_ATTITUDE as _AUTOPILOT_ATTITUDE
 from mrft_gcs.flight.sequence import (
@@ -79,6 +84,7 @@ from mrft_gcs.link import (
     measure_link,
     require_relay_capable,
 )
+from mrft_gcs.link.clock import ClockFit, ClockModel
 from mrft_gcs.link.firmware import Firmware, detect_firmware, torque_path_refusal
 from mrft_gcs.link.latency import CpuWakeLatency
 from mrft_gcs.link.quality import LinkQuality
@@ -242,7 +248,7 @@ class _AgeLog:
     """Per stream tick: the vehicle times of the ATTITUDE and LOCAL_POSITION_NED samples a
     command answered, and when it left (monotonic); written on the stream's ticks only.
     The GCS delay re-targeted out of the written gains is measured on it
-    (:func:`mrft_gcs.flight.onboard.retarget_delay_s`)."""
+    (:func:`mrft_gcs.flight.onboard.measure_gcs_delay`)."""
 
     def __init__(self, capacity: int = 1 << 16) -> None:  # over four minutes at 250 Hz
         self.rows = np.full((capacity, 3), np.nan)  # t_att, t_pos, sent
@@ -254,15 +260,48 @@ class _AgeLog:
         self.rows[self.n] = (att.t_s, pos.t_s, time.monotonic())
         self.n += 1
 
-    def ages_s(self, position: bool, t0_s: float, t1_s: float, rx_offset_s: float
-               ) -> np.ndarray:
-        """How old the samples (position or attitude) with vehicle time in [t0, t1] were
-        when their commands left: send time minus sample time minus ``rx_offset_s`` (the
-        link's least-delayed receive-minus-vehicle time, :attr:`VehicleLink.rx_offset_s`)."""
+    def ages_s(self, position: bool, t0_s: float, t1_s: float, clock: ClockFit
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """The samples (position or attitude) with vehicle time in [t0, t1], and how old
+        each was when a command answering it left: send time minus the earliest the link
+        delivers a sample of that vehicle time (``clock``, kept up to date over the session,
+        :mod:`mrft_gcs.link.clock`)."""
         r = self.rows[: self.n]
         t = r[:, 1] if position else r[:, 0]
         m = (t >= t0_s) & (t <= t1_s)
-        return r[m, 2] - t[m] - rx_offset_s
+        return t[m], r[m, 2] - t[m] - clock.offset_at(t[m])
+
+
+class _ReceiveClock:
+    """The vehicle's clock against this one (:class:`~mrft_gcs.link.clock.ClockModel`), fed
+    the receive time of every ATTITUDE and LOCAL_POSITION_NED by the link's reader thread.
+
+    The receive time is the link's own stamp of the sample (the one its running
+    ``rx_offset_s`` takes): stamped again here, a reader thread that lost the GIL between
+    would add its wait to the offset."""
+
+    def __init__(self, link: VehicleLink) -> None:
+        self.model = ClockModel()
+        self._link = link
+        subscribe = getattr(link, "subscribe", None)
+        if subscribe is None:  # a link without subscribers: no measurement, half a period
+            return
+        self._sub = subscribe(Attitude, LocalPosition)
+        sub = self._sub.__enter__()  # for the link's life: it closes with the session
+        sub._offer = self._offer  # type: ignore[method-assign]  # counted here, never queued
+
+    def _offer(self, event: object) -> None:
+        if isinstance(event, Attitude | LocalPosition):
+            rx = getattr(self._link, "_last_telemetry", None)
+            self.model.update(time.monotonic() if rx is None else rx, event.t_s)
+
+
+def _one_way_latency_s(q: LinkQuality | None) -> float:
+    """Half the link's median round trip where TIMESYNC timed it (s), else 0 (a parameter
+    read's round trip holds the autopilot's own handling)."""
+    if q is None or getattr(q, "rtt_method", None) != "TIMESYNC" or not q.rtt_p50_ms > 0:
+        return 0.0
+    return 0.5e-3 * q.rtt_p50_ms
 
 
 def _idle(actuation: Actuation) -> ActuatorTarget | AttitudeTarget:
@@ -421,6 +460,7 @@ class _Run:
         self.numeric_failures: dict[Loop, int] = {}  # identifications that raised (_identify)
         self.gcs_delay_s: float | None = None  # None: measured per loop (self.ages)
         self.ages = _AgeLog()
+        self.clock = _ReceiveClock(link)  # ages are counted on it
         self.delays: dict[Loop, float] = {}  # re-targeted out of the written gains (s)
         self.config = SequenceConfig()
         self.written: dict[Loop, PD] = {}
@@ -774,7 +814,8 @@ class _Run:
     def _write_back(self, client: ParamClient) -> None:
         seq = self.seq
         assert seq is not None
-        identified, delay, unmeasured = {}, {}, []
+        identified, delay = {}, {}
+        retargets: dict[Loop, Retarget] = {}
         for lp, t in seq.loops.items():
             if t.state is not LoopState.TUNED or t.identification is None:
                 continue
@@ -783,22 +824,23 @@ class _Run:
                           f"it) but not written; the report's gains are the identified ones")
                 continue
             identified[lp] = t.identification.gains
-            delay[lp], measured = self._gcs_delay(lp, t.snapshot)
-            if not measured:
-                unmeasured.append(lp.value)
-            self.written[lp] = onboard_gains(t.identification, delay[lp])
+            rt = self._retarget(lp, t.identification, t.snapshot)
+            delay[lp], retargets[lp] = rt.delay_s, rt
+            self.written[lp] = rt.gains
         moved = [lp for lp, g in identified.items() if self.written[lp] != g]
         self.delays = {lp: delay[lp] for lp in moved}
         if moved:
-            how = ("as asked" if self.gcs_delay_s is not None else "measured: how old telemetry "
-                   "was when the command answering it left" + (
-                       f"; {', '.join(unmeasured)}: half a setpoint period, too few samples"
-                       if unmeasured else ""))
+            if self.gcs_delay_s is not None:
+                how = (f"{', '.join(f'{lp.value} {delay[lp] * 1e3:.1f} ms' for lp in moved)} "
+                       f"less delay, as asked")
+            else:
+                how = ("less delay by how old telemetry was when the command answering it "
+                       "left; " + "; ".join(f"{lp.value} {retargets[lp].note()}"
+                                            for lp in moved))
             self.notes.append(
                 f"written {', '.join(lp.value for lp in moved)} gains are re-targeted from the "
-                f"GCS-side loop to the onboard loop ("
-                f"{', '.join(f'{lp.value} {delay[lp] * 1e3:.1f} ms' for lp in moved)} less "
-                f"delay, {how}); the report's gains are the written ones")
+                f"GCS-side loop to the onboard loop ({how}); the report's gains are the "
+                f"written ones")
         for lp, inner_lp in _SIDE_INNER.items():
             if (lp in self.written and inner_lp not in self.requested
                     and seq.loops[inner_lp].state is LoopState.TUNED):
@@ -816,14 +858,25 @@ class _Run:
         self.changes, self.backup = result.changes, str(result.backup_path)
         self._check_stream()
 
-    def _gcs_delay(self, lp: Loop, snap: CycleSnapshot | None) -> tuple[float, bool]:
-        """The delay re-targeted out of ``lp``'s written gains (s), and whether it was
-        measured (or asked for): measured over its identified cycles, else half a period."""
+    def _retarget(self, lp: Loop, ident: Identification, snap: CycleSnapshot | None
+                  ) -> Retarget:
+        """``lp``'s written gains and the delay re-targeted out of them: as asked, else
+        measured over its identified cycles on the session's clock model, checked for
+        plausibility, and held back where the gains would lose their margin over what is
+        plausible (:func:`mrft_gcs.flight.onboard.robust_onboard_gains`)."""
+        period = 1.0 / self.rate_hz
         if self.gcs_delay_s is not None:
-            return self.gcs_delay_s, True
-        ages = np.empty(0) if snap is None or not len(snap.t_s) else self.ages.ages_s(
-            lp is Loop.ALTITUDE, float(snap.t_s[0]), float(snap.t_s[-1]), self.link.rx_offset_s)
-        return retarget_delay_s(ages, 1.0 / self.rate_hz)
+            d = self.gcs_delay_s
+            gcs = measure_gcs_delay([], period)
+            return Retarget(onboard_gains(ident, d), d if d > 0 else 0.0, math.nan, gcs)
+        clock = self.clock.model.fit()
+        t, ages = np.empty(0), np.empty(0)
+        if snap is not None and len(snap.t_s):
+            t, ages = self.ages.ages_s(lp is Loop.ALTITUDE, float(snap.t_s[0]),
+                                       float(snap.t_s[-1]), clock)
+        gcs = measure_gcs_delay(ages, period, sample_t_s=t, clock=clock,
+                                latency_s=_one_way_latency_s(self.quality))
+        return robust_onboard_gains(ident, gcs)
 
     def _hand_over(self) -> None:
         """Switch to the autopilot's position mode, stop streaming, check it hovers."""

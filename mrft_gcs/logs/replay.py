@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -37,6 +37,9 @@ from mrft_gcs.telemetry import (
     collect,
     is_finite_sample,
 )
+
+if TYPE_CHECKING:
+    from mrft_gcs.link.clock import ClockFit
 
 __all__ = [
     "LoopSample",
@@ -83,6 +86,10 @@ class DecodedLog:
     directions in the order the ground station saw it (.tlog): it tells which
     telemetry sample a ground-station command answered, which the clock cannot
     (commands carry no vehicle time). Tables without it are absent.
+
+    ``clock``: for formats that stamp what the ground station received (.tlog), the fit
+    of its receive clock against the vehicle's (:mod:`mrft_gcs.link.clock`) that placed
+    the commands on the vehicle clock; None otherwise.
     """
 
     attitude: np.ndarray = field(default_factory=lambda: _empty(7))
@@ -93,6 +100,7 @@ class DecodedLog:
     loops: dict[str, np.ndarray] = field(default_factory=dict)
     source: str = ""
     file_order: dict[str, np.ndarray] = field(default_factory=dict)
+    clock: ClockFit | None = None
 
     def cleaned(self) -> DecodedLog:
         """Drop rows and events with non-finite values; sort each by time (stable).

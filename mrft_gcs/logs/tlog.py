@@ -19,8 +19,11 @@ Clock (``t_s``)
 ``time_usec`` of the vehicle's own messages). Messages without a vehicle
 time stamp (the ground station's SET_* commands, STATUSTEXT, HEARTBEAT,
 PARAM_VALUE) are placed on that clock through the .tlog time stamp:
-``t_s = t_unix - offset``, with ``offset`` the smallest ``t_unix - t_boot``
-over ATTITUDE and LOCAL_POSITION_NED (the least-delayed frame). After a vehicle
+``t_s = t_unix - offset``, with ``offset`` the lower envelope of ``t_unix - t_boot``
+over ATTITUDE and LOCAL_POSITION_NED (the least-delayed frames), kept up to date over
+the log as a live tune keeps it (:mod:`mrft_gcs.link.clock`: the clocks drift, and a
+simulated vehicle on a busy host slips behind real time; ``DecodedLog.clock`` holds the
+fit). After a vehicle
 reboot (boot time going back) the new boot clock is shifted by the wall-clock
 gap so ``t_s`` keeps increasing. A log with no vehicle time stamps at all uses
 seconds since its first record.
@@ -61,6 +64,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mrft_gcs.link.clock import ClockFit, clock_bins, fit_clock
 from mrft_gcs.logs._common import input_error, read_bytes
 from mrft_gcs.logs.replay import DecodedLog
 from mrft_gcs.telemetry import Heartbeat, ParamValue, Sample, StatusText
@@ -311,7 +315,7 @@ def _assemble(by_id: dict[int, _Frames], source: str) -> DecodedLog:
 
     att = from_vehicle(by_id[ATTITUDE])
     lpn = from_vehicle(by_id[LOCAL_POSITION_NED])
-    clock = _Clock.fit(
+    clock = _Clock.fit_log(
         np.concatenate([att.pos, lpn.pos]),
         np.concatenate([att.rec["time_boot_ms"], lpn.rec["time_boot_ms"]]).astype(float) * 1e-3,
         np.concatenate([att.t_unix, lpn.t_unix]),
@@ -376,7 +380,8 @@ def _assemble(by_id: dict[int, _Frames], source: str) -> DecodedLog:
     events.sort(key=lambda e: e[0])
     return DecodedLog(attitude=attitude, position=position, actuator=actuator,
                       attitude_target=attitude_target, events=tuple(e for _, e in events),
-                      source=source, file_order=order)
+                      source=source, file_order=order,
+                      clock=None if clock.fit.empty else clock.fit)
 
 
 def _select(f: _Frames, mask: np.ndarray) -> _Frames:
@@ -390,20 +395,28 @@ class _Clock:
     seg_pos: np.ndarray  # file offset where each boot segment starts
     shift: np.ndarray  # seconds added to boot time in each segment
     offset0: float  # wall - boot of the first segment
+    fit: ClockFit  # wall - boot tracked over the log (empty: offset0 throughout)
 
     @classmethod
-    def fit(cls, pos: np.ndarray, boot: np.ndarray, wall: np.ndarray, first_wall: float) -> _Clock:
+    def fit_log(cls, pos: np.ndarray, boot: np.ndarray, wall: np.ndarray, first_wall: float
+                ) -> _Clock:
         if len(pos) == 0:
-            return cls(np.zeros(1, dtype=np.int64), np.zeros(1), first_wall)
+            return cls(np.zeros(1, dtype=np.int64), np.zeros(1), first_wall,
+                       fit_clock(clock_bins([], [])))
         order = np.argsort(pos, kind="stable")
         pos, boot, wall = pos[order], boot[order], wall[order]
         starts = np.concatenate([[0], np.flatnonzero(np.diff(boot) < -1.0) + 1])
         offsets = np.minimum.reduceat(wall - boot, starts)
-        return cls(pos[starts], offsets - offsets[0], float(offsets[0]))
+        shift = offsets - offsets[0]
+        # in file order, as the live link saw them: the same bins as its clock model
+        vt = boot + np.repeat(shift, np.diff(np.append(starts, len(boot))))
+        return cls(pos[starts], shift, float(offsets[0]), fit_clock(clock_bins(wall, vt)))
 
     def boot(self, pos: np.ndarray, boot_s: np.ndarray) -> np.ndarray:
         seg = np.clip(np.searchsorted(self.seg_pos, pos, side="right") - 1, 0, None)
         return np.asarray(boot_s, dtype=float) + self.shift[seg]
 
     def wall(self, wall_s: np.ndarray) -> np.ndarray:
-        return np.asarray(wall_s, dtype=float) - self.offset0
+        if self.fit.empty:
+            return np.asarray(wall_s, dtype=float) - self.offset0
+        return self.fit.to_vehicle(wall_s)
