@@ -10,7 +10,7 @@ import typer
 from rich.live import Live
 from rich.table import Table
 
-from mrft_gcs.cli import DECLINED, app, console, err_console, heartbeat_spinner
+from mrft_gcs.cli.app import DECLINED, app, console, err_console, heartbeat_spinner
 from mrft_gcs.errors import MrftError
 from mrft_gcs.flight import TuneResult, tune
 from mrft_gcs.flight.api import parse_actuation, requested_loops
@@ -57,9 +57,11 @@ def _write_outputs(result: TuneResult, report: Path | None, plot: Path | None) -
     if report is not None:
         console.print(f"report: {write_report(result, report)}")
     if plot is not None:
-        from mrft_gcs.flight.plot import plot_cycles
+        from mrft_gcs.plots import plot_tune
 
-        console.print(f"plot: {plot_cycles(result, plot)}")
+        written = plot_tune(result, plot)
+        console.print(f"plot: {written}" if written else
+                      f"no plot written to {plot}: no loop reached a relay test")
 
 
 @app.command("tune")
@@ -80,8 +82,9 @@ def tune_command(
         "error")] = None,
     yes: Annotated[bool, typer.Option("--yes", "-y", help="do not ask before take-off")] = False,
     report: Annotated[Path | None, typer.Option("--report", help="write the JSON report")] = None,
-    plot: Annotated[Path | None, typer.Option("--plot", help="PNG of each loop's relay cycles")]
-    = None,
+    plot: Annotated[Path | None, typer.Option(
+        "--plot", help="PNG: per loop the relay cycles, the predicted step response and the "
+        "open-loop Bode plot of the written gains with their margins")] = None,
     dry_link: Annotated[bool, typer.Option("--dry-link", help="connect and check the link and "
                                            "parameters, never arm")] = False,
     signing_key: Annotated[Path | None, typer.Option(
