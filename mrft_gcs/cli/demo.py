@@ -11,7 +11,7 @@ import typer
 from rich.live import Live
 from rich.table import Table
 
-from mrft_gcs.cli import app, console, heartbeat_spinner
+from mrft_gcs.cli.app import app, console, heartbeat_spinner
 from mrft_gcs.cli.tune import progress_table, result_table
 from mrft_gcs.errors import MrftError
 from mrft_gcs.flight import TuneResult, tune

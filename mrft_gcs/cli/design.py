@@ -11,7 +11,7 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from mrft_gcs.cli import app, console
+from mrft_gcs.cli.app import app, console
 from mrft_gcs.errors import UsageError
 from mrft_gcs.loops import LoopKind
 

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from mrft_gcs.cli import app, console, err_console, styled
+from mrft_gcs.cli.app import app, console, err_console, styled
 from mrft_gcs.dryrun import DryRunResult, dry_run
 from mrft_gcs.errors import IdentificationError, UsageError
 from mrft_gcs.loops import Loop

@@ -15,7 +15,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from mrft_gcs.cli import DECLINED, app, console, err_console, styled
+from mrft_gcs.cli.app import DECLINED, app, console, err_console, styled
 from mrft_gcs.errors import FleetError
 from mrft_gcs.fleet import FleetResult, FleetSpec, VehicleOutcome, load_fleet, tune_fleet
 from mrft_gcs.loops import Loop

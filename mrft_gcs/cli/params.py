@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from mrft_gcs.cli import DECLINED, app, console, err_console, heartbeat_wait
+from mrft_gcs.cli.app import DECLINED, app, console, err_console, heartbeat_wait
 from mrft_gcs.errors import UsageError
 from mrft_gcs.link import VehicleLink
 from mrft_gcs.params import ParamClient, WriteResult, read_params_file, write_params_file

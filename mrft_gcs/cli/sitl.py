@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from rich.text import Text
 
-from mrft_gcs.cli import app, console
+from mrft_gcs.cli.app import app, console
 from mrft_gcs.errors import UsageError
 from mrft_gcs.sitl.population import domain_check
 from mrft_gcs.sitl.process import DEFAULT_PORT, SitlConfig, make_server, parse_effects

@@ -10,7 +10,7 @@ import typer
 from rich.live import Live
 from rich.table import Table
 
-from mrft_gcs.cli import DECLINED, app, console, err_console, heartbeat_spinner
+from mrft_gcs.cli.app import DECLINED, app, console, err_console, heartbeat_spinner
 from mrft_gcs.errors import MrftError
 from mrft_gcs.flight import TuneResult, tune
 from mrft_gcs.flight.api import parse_actuation, requested_loops

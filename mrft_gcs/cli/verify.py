@@ -11,7 +11,7 @@ from rich.markup import escape
 from rich.progress import Progress
 from rich.table import Table
 
-from mrft_gcs.cli import app, console, styled
+from mrft_gcs.cli.app import app, console, styled
 from mrft_gcs.errors import UsageError
 from mrft_gcs.verify import VerifyResult, load_models, plot_verify, verify_figure8
 
