@@ -1,0 +1,463 @@
+"""Benchmark: tune a population of random vehicles and score what was written on each
+vehicle's true onboard loop.
+
+Each vehicle is :func:`mrft_gcs.sitl.random_airframe` of its seed (airframe, delay split,
+link, telemetry cap, PX4- or ArduPilot-like onboard cascade and rates, hover misestimate,
+CoM bias, sometimes an undeclared effect) and is counted in-domain, hidden-effect or
+out-of-domain by :func:`mrft_gcs.sitl.domain_check` (Table I, and a link fast enough for a
+relay test). Outcomes: ``completed`` (all loops written, the hand-over hover held),
+``refused`` (the tool stopped with an explanation: link check, identification that never
+settled, a numerical failure; no safety limit crossed) or ``aborted`` (a safety limit, or
+the hover on the written gains failed).
+
+Two ways to run it (the output says which):
+
+* ``--mode lockstep`` (default, the fastest honest one): the tool's own sequence
+  (:class:`TuningSequence`), the bundled classifiers, the retry rules, the GCS-delay
+  re-targeting and the parameter write-back (``params_in_range`` on the ``sitl`` profile)
+  drive the in-process vehicle in simulated time, 1 ms physics steps. The link is the
+  vehicle's: telemetry at its cap (at most the 250 Hz asked), each frame held
+  ``link_delay_s`` each way, commands every 4 ms; the link check is the tool's own
+  (``require_relay_capable``) on those figures, not a measurement. Not run: the tool's
+  in-air check of written gains and anything that depends on host timing (a CPU hog then
+  changes only the wall time).
+* ``--mode live``: the real ``tune()`` over loopback UDP against ``python -m mrft_gcs.sitl
+  --random SEED`` in real time (about a minute a vehicle; host load matters).
+
+Scores: for every written loop, J (%) and phase margin of the written parameters on the
+onboard truth (:func:`mrft_gcs.flight.scoring.score_written`: onboard delays, loop rates as
+sample-and-hold, the cascade's structure), beside the GCS-side figures (the identified PD
+on the model with the ground station's delay: 2 x link + half a telemetry period + half a
+setpoint period + half an onboard loop period).
+
+    .venv/bin/python benchmarks/tune_population.py [--seeds 40] [--first-seed 0] \
+        [--mode lockstep|live] [--with-hog] [--hog-procs 2] \
+        [--json benchmarks/results/population.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort
+from mrft_gcs.flight.api import NUMERIC_RETRIES, bundled_identifier
+from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.onboard import onboard_gains, retarget_delay_s
+from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
+from mrft_gcs.flight.scoring import score_written
+from mrft_gcs.flight.sequence import LoopState, Phase, SequenceConfig, TuningSequence
+from mrft_gcs.identify import relay_settings
+from mrft_gcs.link.quality import LinkQuality, require_relay_capable
+from mrft_gcs.loops import Loop, LoopKind
+from mrft_gcs.profiles import PDGains, load_profile, params_in_range
+from mrft_gcs.sitl import SimVehicle, domain_check, random_airframe
+from mrft_gcs.sitl.onboard import FlightMode, ParamStore
+
+_SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
+RATE_HZ = 250.0          # the tool's setpoint stream and the telemetry rate it asks
+MAX_RELAY_S = 30.0       # tune(max_relay_s=...) default
+HOVER_CHECK_S = 2.0      # tune(hover_check_s=...) default
+DEFAULT_JSON = Path(__file__).resolve().parent / "results" / "population.json"
+
+
+def _num(x) -> float | None:
+    return float(x) if x is not None and math.isfinite(x) else None
+
+
+def gcs_delay_s(af) -> float:
+    """The ground station's extra delay on the inner loops of ``af`` (see the docstring)."""
+    tel = min(RATE_HZ, af.telemetry_max_hz)
+    return 2 * af.link_delay_s + 0.5 / tel + 0.5 / RATE_HZ + 0.5 / af.onboard.loop_hz
+
+
+def _state(af, t: float, att, posv) -> FlightState:
+    return FlightState(t, att[0], att[1], att[2], att[3], att[4], att[5], t, posv[0], posv[1],
+                       -posv[2], posv[3], posv[4], -posv[5])
+
+
+def _true_tilt_deg(v: SimVehicle) -> float:
+    r, p, _ = v.physics.euler
+    return math.degrees(math.acos(max(-1.0, min(1.0, math.cos(r) * math.cos(p)))))
+
+
+class _Lockstep:
+    """The vehicle, its link and the ground station's 250 Hz tick, in simulated time."""
+
+    def __init__(self, af, seed: int) -> None:
+        self.af = af
+        self.v = SimVehicle(af, seed=seed)
+        self.link = af.link_delay_s
+        self.tel_period = 1.0 / min(RATE_HZ, af.telemetry_max_hz)
+        self.next_tel = 0.0
+        rng = np.random.default_rng([7, seed])
+        self.next_tick = float(rng.uniform(0.0, 1.0 / RATE_HZ))  # the session's phase
+        self.tel_q: collections.deque = collections.deque()    # (arrival, FlightState)
+        self.cmd_q: collections.deque = collections.deque()    # (arrival, callable)
+        self.latest: FlightState | None = None
+        self.latest_arrival = math.nan
+        self.max_tilt = 0.0
+
+    def send(self, fn) -> None:
+        """A command from the ground station: acts on the vehicle a link delay later."""
+        self.cmd_q.append((self.v.time_s + self.link, fn))
+
+    def advance_to_tick(self) -> FlightState | None:
+        """Step the vehicle to the ground station's next tick; the newest telemetry then."""
+        v = self.v
+        while v.time_s < self.next_tick - 1e-9:
+            while self.cmd_q and self.cmd_q[0][0] <= v.time_s + 1e-9:
+                self.cmd_q.popleft()[1]()
+            if v.time_s >= self.next_tel - 1e-9:
+                ph = v.physics
+                self.tel_q.append((v.time_s + self.link,
+                                   _state(self.af, v.time_s, ph.meas_att, ph.meas_posv)))
+                self.next_tel += self.tel_period
+            v.step()
+            self.max_tilt = max(self.max_tilt, _true_tilt_deg(v))
+        while self.tel_q and self.tel_q[0][0] <= v.time_s + 1e-9:
+            self.latest_arrival, self.latest = self.tel_q.popleft()
+        self.next_tick += 1.0 / RATE_HZ
+        return self.latest
+
+
+def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
+    """One tune of the random vehicle of ``seed`` in simulated time; a JSON-able record."""
+    af = random_airframe(seed)
+    rec = _head(af, seed, "lockstep")
+    prof = load_profile("sitl")
+    lim = prof.safety
+    # the link check, as the tool does it, on this vehicle's link figures
+    tel = min(RATE_HZ, af.telemetry_max_hz)
+    rtt = 2e3 * af.link_delay_s
+    try:
+        require_relay_capable(LinkQuality(RATE_HZ, tel, tel, rtt, rtt, 0, 10, 2.0))
+    except LinkError as err:
+        return _end(rec, "refused", f"link: {err}")
+    ls = _Lockstep(af, seed)
+    v, ap = ls.v, ls.v.autopilot
+    hover = ap.params["MPC_THR_HOVER"]  # what the tool reads: the autopilot's estimate
+    cfg = SequenceConfig(actuation=prof.actuation, z_ref_m=1.0, hover_thrust_guess=hover,
+                         max_tilt_cmd_rad=0.6 * math.radians(lim.max_tilt_deg))
+    seq = TuningSequence(cfg, relay_settings(LoopKind.ATTITUDE),
+                         relay_settings(LoopKind.ALTITUDE))
+    ap.set_actuator_controls(0.0, 0.0, 0.0, 0.0)
+    ap.set_mode(FlightMode.OFFBOARD)
+    ap.arm(True)
+    ages: dict[bool, list[tuple[float, float]]] = {False: [], True: []}  # (t, age) att / pos
+    while v.time_s < 0.4:  # on the ground: the noise that sets the relays' bands
+        s = ls.advance_to_tick()
+        if s is not None:
+            seq.observe(s)
+        ls.send(lambda: ap.set_actuator_controls(0.0, 0.0, 0.0, 0.0))
+    s = ls.advance_to_tick()
+    monitor = SafetyMonitor(lim, (s.x_m, s.y_m, s.z_up_m), s.t_att_s)
+    seq.start(s)
+    failed: dict[Loop, int] = {}
+    notes: list[str] = []
+    outcome = reason = None
+    while outcome is None:
+        s = ls.advance_to_tick()
+        try:
+            monitor.check(s)
+        except LimitExceeded as err:
+            outcome, reason = "aborted", str(err)
+            break
+        sp = seq.step(s)
+        age = v.time_s - ls.latest_arrival
+        ages[False].append((s.t_att_s, age))
+        ages[True].append((s.t_pos_s, age))
+        ls.send(lambda sp=sp: ap.set_actuator_controls(sp.roll, sp.pitch, sp.yaw, sp.thrust))
+        for snap in seq.ready():
+            inner = seq.loops[_SIDE_INNER[snap.loop]].identification \
+                if snap.loop in _SIDE_INNER else None
+            try:
+                seq.apply(snap.loop, bundled_identifier(snap.loop, snap, inner))
+            except IdentificationError as err:
+                notes.append(f"{snap.loop.value}: identification retried ({err})")
+                seq.retry(snap.loop, restart="set point" in str(err))
+            except (ValueError, ArithmeticError) as err:
+                failed[snap.loop] = failed.get(snap.loop, 0) + 1
+                notes.append(f"{snap.loop.value}: numerical error ({type(err).__name__})")
+                if failed[snap.loop] > NUMERIC_RETRIES:
+                    outcome, reason = "refused", f"{snap.loop.value}: identification failed " \
+                        f"{failed[snap.loop]} times on a numerical error"
+                    break
+                seq.retry(snap.loop)
+        if outcome is not None:
+            break
+        if seq.side_waiting:
+            settings = {}
+            for lp in seq.side_ready():
+                inner = seq.loops[_SIDE_INNER[lp]].identification
+                if inner is None:
+                    seq.leave_alone(lp, "its attitude loop was not identified")
+                    continue
+                settings[lp] = relay_settings(LoopKind.SIDE, inner)
+            seq.start_side(settings)
+        for lp in Loop:
+            if seq.relay_age_s(lp) > MAX_RELAY_S:
+                outcome, reason = "refused", f"{lp.value}: no steady relay oscillation after " \
+                    f"{MAX_RELAY_S:.0f} s"
+        if seq.phase is Phase.HOVER:
+            break
+        if v.time_s > max_s:
+            outcome, reason = "aborted", f"not done after {max_s:.0f} s of simulated time"
+    rec["time_to_tune_s"] = _num(seq.duration_s) if seq.phase is Phase.HOVER else None
+    rec["notes"] = notes
+    rec["max_tilt_by_phase"] = {k: _num(d) for k, d in seq.max_tilt_by_phase.items()}
+    identified = {lp: t.identification for lp, t in seq.loops.items()
+                  if t.state is LoopState.TUNED and t.identification is not None}
+    rec["identified"] = {lp.value: {"class": i.class_index, "model": i.model.as_dict(),
+                                    "Kc": i.gains.Kc, "Kd": i.gains.Kd}
+                         for lp, i in identified.items()}
+    if outcome is not None:
+        rec["max_tilt_deg"] = ls.max_tilt
+        return _end(rec, outcome, reason)
+    # write-back, as the tool does: re-target the GCS delay measured from the ages, clamp
+    written, delays = {}, {}
+    for lp, ident in identified.items():
+        snap = seq.loops[lp].snapshot
+        t0, t1 = (float(snap.t_s[0]), float(snap.t_s[-1])) if snap is not None and len(
+            snap.t_s) else (math.inf, -math.inf)
+        a = [age for t, age in ages[lp is Loop.ALTITUDE] if t0 <= t <= t1]
+        delays[lp], _ = retarget_delay_s(a, 1.0 / RATE_HZ)
+        written[lp] = onboard_gains(ident, delays[lp])
+    rec["retarget_delay_ms"] = {lp.value: d * 1e3 for lp, d in delays.items()}
+    ranged = params_in_range(prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in written.items()}, hover)
+    rec["notes"] += list(ranged.notes)
+    refused = [n for n, val in ranged.values.items() if not ap.params.set(n, val)]
+    if refused:
+        return _end(rec, "refused", f"parameters did not stick: {refused}")
+    rec["written"] = dict(ranged.values)
+    # hand-over: position mode on the written gains, the stream stops, a short hover check
+    ls.send(lambda: ap.set_mode(FlightMode.POSCTL))
+    held = None
+    worst = 0.0
+    t_end = v.time_s + HOVER_CHECK_S
+    while v.time_s < t_end:
+        s = ls.advance_to_tick()
+        why = monitor.violation(s, duration=False)
+        if why is not None:
+            outcome, reason = "aborted", f"on the written gains in POSCTL: {why}"
+            break
+        here = (s.x_m, s.y_m, s.z_up_m)
+        held = held or here
+        worst = max(worst, math.dist(here, held))
+    rec["hover_error_m"] = worst
+    rec["max_tilt_deg"] = ls.max_tilt
+    _score(rec, af, dict(ap.params.values), {lp: i.gains for lp, i in identified.items()},
+           list(identified))
+    return _end(rec, outcome or "completed", reason)
+
+
+def run_live(seed: int) -> dict:
+    """One tune of the random vehicle of ``seed`` by the real tool over loopback UDP."""
+    from mrft_gcs.flight import tune
+    from mrft_gcs.sitl import SitlProcess
+
+    af = random_airframe(seed)
+    rec = _head(af, seed, "live")
+    r = None
+    with tempfile.TemporaryDirectory() as d, SitlProcess(random_seed=seed, port=None) as sitl:
+        try:
+            r = tune(sitl.connection_string, "sitl", backup_dir=d)
+            outcome, reason = ("completed", None) if r.status == "ok" else ("aborted", r.status)
+        except SafetyAbort as err:
+            r, outcome, reason = getattr(err, "partial_result", None), "aborted", str(err)
+        except MrftError as err:
+            r, outcome, reason = getattr(err, "partial_result", None), "refused", str(err)
+    if r is None:
+        return _end(rec, outcome, reason)
+    rec["time_to_tune_s"] = _num(r.duration_s)
+    rec["max_tilt_deg"] = _num(r.max_tilt_deg)
+    rec["max_tilt_by_phase"] = {k: _num(x) for k, x in r.max_tilt_by_phase.items()}
+    rec["notes"] = list(r.notes)
+    rec["hover_error_m"] = _num(r.hover_error_m)
+    identified = {lp: lr.identification for lp, lr in r.loops.items()
+                  if lr.identification is not None}
+    rec["identified"] = {lp.value: {"class": i.class_index, "model": i.model.as_dict(),
+                                    "Kc": i.gains.Kc, "Kd": i.gains.Kd}
+                         for lp, i in identified.items()}
+    if r.parameters:
+        params = dict(ParamStore(af.hover_thrust * af.hover_estimate_factor).values)
+        params.update({c.name: c.new for c in r.parameters})
+        rec["written"] = {c.name: c.new for c in r.parameters}
+        loops = [lp for lp in identified if lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE)
+                 or lp in _SIDE_INNER]
+        _score(rec, af, params, {lp: i.gains for lp, i in identified.items()}, loops)
+    return _end(rec, outcome, reason)
+
+
+def _head(af, seed: int, mode: str) -> dict:
+    check = domain_check(af)
+    return {"seed": seed, "mode": mode, "vehicle": af.name, "description": af.description,
+            "category": check.category, "domain_reasons": list(check.reasons),
+            "effects": af.effects.active(), "mass_kg": af.mass_kg,
+            "onboard": {"style": af.onboard.style, "loop_hz": af.onboard.loop_hz,
+                        "position_loop_hz": af.onboard.position_loop_hz},
+            "link_delay_ms": af.link_delay_s * 1e3, "telemetry_hz": af.telemetry_max_hz,
+            "gcs_delay_ms": gcs_delay_s(af) * 1e3, "load_1min": os.getloadavg()[0]}
+
+
+def _end(rec: dict, outcome: str, reason: str | None) -> dict:
+    rec["outcome"], rec["reason"] = outcome, reason
+    return rec
+
+
+def _score(rec: dict, af, params: dict, identified_pd: dict, loops) -> None:
+    """J and PM of every written loop on the onboard truth, GCS-side figures beside."""
+    wanted = [lp for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE, Loop.X, Loop.Y)
+              if lp in loops and (lp not in _SIDE_INNER or _SIDE_INNER[lp] in identified_pd)]
+    sc = score_written(af, params, wanted, identified=identified_pd,
+                       gcs_delay_s=gcs_delay_s(af))
+    rec["loops"] = {lp.value: {
+        "onboard_J_pct": _num(s.onboard.J_pct) if s.onboard.stable else None,
+        "onboard_pm_deg": _num(s.onboard.pm_deg), "onboard_stable": s.onboard.stable,
+        "gcs_J_pct": _num(s.gcs.J_pct) if s.gcs and s.gcs.stable else None,
+        "gcs_pm_deg": _num(s.gcs.pm_deg) if s.gcs else None}
+        for lp, s in sc.items()}
+
+
+def line(r: dict) -> str:
+    head = (f"seed {r['seed']:3d} {r['category']:13s} {r['outcome']:9s} "
+            f"{r['onboard']['style']:9s} {r['onboard']['loop_hz']:4.0f} Hz, "
+            f"{r['mass_kg'] * 1e3:5.0f} g")
+    if r["outcome"] != "completed" and "loops" not in r:
+        tilt = r.get("max_tilt_deg")
+        return f"{head}: {r['reason']}" + (f" (tilt {tilt:.1f} deg)" if tilt else "")
+    loops = " ".join(
+        f"{k} {_f(v['onboard_J_pct'], '5.1f')}%/{_f(v['onboard_pm_deg'], '4.1f')}deg"
+        f" (gcs {_f(v['gcs_J_pct'], '.1f')}/{_f(v['gcs_pm_deg'], '.1f')})"
+        for k, v in r.get("loops", {}).items())
+    t = r.get("time_to_tune_s")
+    return (f"{head}: {_f(t, '5.2f')} s, tilt {_f(r.get('max_tilt_deg'), '4.1f')} deg; "
+            f"onboard J/PM {loops}" + (f"  [{r['reason']}]" if r.get("reason") else ""))
+
+
+def _f(x, fmt: str) -> str:
+    return "unst" if x is None else format(x, fmt)
+
+
+def summary(recs: list[dict]) -> list[str]:
+    out = []
+    by = collections.Counter((r["category"], r["outcome"]) for r in recs)
+    for cat in ("in-domain", "hidden-effect", "out-of-domain"):
+        n = sum(v for (c, _), v in by.items() if c == cat)
+        if n:
+            out.append(f"{cat}: {n} vehicles: " + ", ".join(
+                f"{by[(cat, o)]} {o}" for o in ("completed", "refused", "aborted")))
+    done = [r for r in recs if r["outcome"] == "completed"]
+    tt = [r["time_to_tune_s"] for r in done if r.get("time_to_tune_s") is not None]
+    if tt:
+        out.append(f"time from take-off to all loops tuned: mean {np.mean(tt):.1f} s, "
+                   f"max {max(tt):.1f} s, {sum(t <= 15 for t in tt)}/{len(tt)} within 15 s")
+    loops = [(r["seed"], k, v) for r in recs for k, v in r.get("loops", {}).items()]
+    if loops:
+        pm = [v["onboard_pm_deg"] for _, _, v in loops if v["onboard_pm_deg"] is not None]
+        js = [v["onboard_J_pct"] for _, _, v in loops]
+        unst = sum(j is None for j in js)
+        ok = [j for j in js if j is not None]
+        out.append(f"written loops on the onboard truth: {len(loops)}; PM min {min(pm):.1f} "
+                   f"deg, {sum(p < 15 for p in pm)} under 15 deg; J max "
+                   f"{max(ok, default=math.nan):.1f} %, {sum(j > 10 for j in ok)} over 10 %, "
+                   f"{unst} unstable")
+        gp = [v["gcs_pm_deg"] for _, _, v in loops if v["gcs_pm_deg"] is not None]
+        gj = [v["gcs_J_pct"] for _, _, v in loops if v["gcs_pm_deg"] is not None]
+        if gp:
+            out.append(f"the same loops GCS-side (identified PD, GCS delay): PM min "
+                       f"{min(gp):.1f} deg, {sum(p < 15 for p in gp)} under 15 deg; J max "
+                       f"{max((j for j in gj if j is not None), default=math.nan):.1f} %")
+    tilts = [r["max_tilt_deg"] for r in recs if r.get("max_tilt_deg") is not None]
+    if tilts:
+        out.append(f"largest tilt {max(tilts):.1f} deg; {sum(t > 35 for t in tilts)} vehicles "
+                   f"over 35 deg")
+    ind = [r for r in recs if r["category"] == "in-domain"]
+    ood = [r for r in recs if r["category"] == "out-of-domain"]
+    out.append(f"in-domain tuned: {sum(r['outcome'] == 'completed' for r in ind)}/{len(ind)}; "
+               f"out-of-domain refused cleanly: {sum(r['outcome'] == 'refused' for r in ood)}"
+               f"/{len(ood)}")
+    return out
+
+
+class CpuHog:
+    """Busy-looping processes beside the benchmark, each ending by itself after
+    ``limit_s`` and killed (by their own pids) when the block ends."""
+
+    def __init__(self, procs: int, limit_s: float) -> None:
+        self.procs, self.limit_s = procs, limit_s
+        self._p: list[subprocess.Popen] = []
+
+    def __enter__(self) -> CpuHog:
+        code = f"import time\nend = time.monotonic() + {self.limit_s!r}\n" \
+               "while time.monotonic() < end:\n    sum(range(1000))\n"
+        self._p = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(self.procs)]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for p in self._p:
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=40)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--mode", choices=("lockstep", "live"), default="lockstep")
+    ap.add_argument("--with-hog", action="store_true",
+                    help="run busy-looping processes beside the tunes (killed at the end)")
+    ap.add_argument("--hog-procs", type=int, default=2)
+    ap.add_argument("--json", type=Path, default=DEFAULT_JSON)
+    args = ap.parse_args()
+    if args.seeds < 1 or args.first_seed < 0 or args.hog_procs < 1:
+        ap.error("--seeds and --hog-procs must be >= 1, --first-seed >= 0")
+    how = ("lockstep: the tool's sequence, classifiers and write-back on the in-process "
+           "vehicle in simulated time" if args.mode == "lockstep" else
+           "live: the real tune() over loopback UDP against the SITL process, real time")
+    print(f"population of {args.seeds} random vehicles (seeds {args.first_seed}-"
+          f"{args.first_seed + args.seeds - 1}), {how}; CPU hog: "
+          f"{f'{args.hog_procs} processes' if args.with_hog else 'none'}; "
+          f"{platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}",
+          flush=True)
+    run = run_lockstep if args.mode == "lockstep" else run_live
+    recs = []
+    wall0 = time.monotonic()
+    hog = CpuHog(args.hog_procs, limit_s=120.0 * args.seeds) if args.with_hog else None
+    try:
+        if hog is not None:
+            hog.__enter__()
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
+            t0 = time.monotonic()
+            r = run(seed)
+            r["wall_s"] = time.monotonic() - t0
+            r["hog"] = args.with_hog
+            recs.append(r)
+            print(line(r), flush=True)
+    finally:
+        if hog is not None:
+            hog.__exit__()
+    for s in summary(recs):
+        print(s)
+    print(f"wall time {time.monotonic() - wall0:.0f} s")
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps({"mode": args.mode, "hog": args.with_hog,
+                                     "seeds": [args.first_seed, args.seeds], "runs": recs},
+                                    indent=1))
+    print(f"records: {args.json}")
+
+
+if __name__ == "__main__":
+    main()
