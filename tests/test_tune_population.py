@@ -1,0 +1,42 @@
+"""benchmarks/tune_population.py: one lockstep tune per outcome path, scored and printed."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import tune_population as tp  # noqa: E402
+
+from mrft_gcs.sitl import domain_check, random_airframe  # noqa: E402
+
+
+def test_slow_link_is_refused_before_take_off():
+    seed = next(s for s in range(100) if random_airframe(s).telemetry_max_hz < 150)
+    r = tp.run_lockstep(seed)
+    assert r["outcome"] == "refused" and "telemetry" in r["reason"]
+    assert r["category"] == "out-of-domain" and "loops" not in r
+    assert "refused" in tp.line(r)
+
+
+def test_a_tune_ends_in_one_of_the_outcomes_with_every_written_loop_scored():
+    seed = 38  # an in-domain vehicle (the tune's outcome is what the test reports)
+    assert domain_check(random_airframe(seed)).category == "in-domain"
+    r = tp.run_lockstep(seed)
+    assert r["outcome"] in ("completed", "refused", "aborted")
+    if r["outcome"] == "completed":
+        assert set(r["loops"]) == {"roll", "pitch", "altitude", "x", "y"}
+        for fig in r["loops"].values():
+            assert math.isfinite(fig["onboard_pm_deg"]) and math.isfinite(fig["gcs_pm_deg"])
+        assert 0 < r["time_to_tune_s"] < 60 and r["written"]
+    lines = tp.summary([r])
+    assert any(ln.startswith("in-domain tuned:") for ln in lines)
+
+
+def test_cpu_hog_processes_end_with_the_block():
+    with tp.CpuHog(1, limit_s=30.0) as hog:
+        procs = list(hog._p)
+        assert all(p.poll() is None for p in procs)
+    assert all(p.poll() is not None for p in procs)
