@@ -108,7 +108,8 @@ def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 
         raise IdentificationError("the relay record holds NaN or infinite values; drop them first")
     rises = rising_switches(u)
     if rises.size < 2:
-        raise IdentificationError("no complete relay cycle in the record (need two rising switches)")
+        raise IdentificationError("no complete relay cycle in the record (need two rising "
+                                  "switches)")
     high = u > 0.5 * (u.max() + u.min())
     falls = np.flatnonzero(high[:-1] & ~high[1:]) + 1
     k = min(n_cycles, rises.size - 1)
@@ -117,7 +118,7 @@ def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 
     e = None if setpoint is None else np.broadcast_to(np.asarray(setpoint, float), y.shape) - y
     ys, fracs = [], []
     improper = 0
-    for a, b in zip(rises[-k - 1:-1], rises[-k:]):
+    for a, b in zip(rises[-k - 1:-1], rises[-k:], strict=True):
         f = falls[(falls > a) & (falls < b)]
         if f.size != 1 or min(f[0] - a, b - f[0]) < 3:
             continue
@@ -136,7 +137,8 @@ def cycle_features(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_cycles: int = 
                 "the relay cycles do not cross the set point every half-cycle: the relay bias is "
                 "too large for this test; re-centre the relay on the hover command and retry")
         raise IdentificationError(
-            "no clean relay cycle (too few samples per half-cycle: telemetry too slow for this loop?)")
+            "no clean relay cycle (too few samples per half-cycle: telemetry too slow for this "
+            "loop?)")
     yc = np.mean(ys, axis=0)
     offset = float(yc.mean())
     amp = 0.5 * float(yc.max() - yc.min())

@@ -51,7 +51,10 @@ __all__ = [
 
 
 def reachable_scales(domain: Domain, a, b) -> tuple[np.ndarray, np.ndarray]:
-    """Range ``[lo, hi]`` of ``T1`` for which shape ``(a, b)`` lies in the box (``lo > hi``: none)."""
+    """Range ``[lo, hi]`` of ``T1`` for which shape ``(a, b)`` lies in the box.
+
+    ``lo > hi``: no ``T1`` puts the shape in the box.
+    """
     a, b = np.asarray(a, float), np.asarray(b, float)
     (tp_lo, t1_lo, tau_lo), (tp_hi, t1_hi, tau_hi) = domain.low, domain.high
     lo = np.maximum.reduce([np.full_like(a, t1_lo), tp_lo / np.exp(a), tau_lo / np.exp(b)])

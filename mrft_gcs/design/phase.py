@@ -1,4 +1,4 @@
-"""Distinguishing phase (paper Algorithm 1), exact gain scaling (zeta) and cascade structure (Algorithm 2).
+"""Distinguishing phase (paper Algorithm 1), exact gain scaling (zeta), cascade structure (Alg. 2).
 
 MRFT cycles of the representative shapes are *simulated* (not taken from the
 describing function), on each shape stretched so its predicted period is about
@@ -61,7 +61,10 @@ def hb_period(params: np.ndarray, beta: float, w: np.ndarray | None = None) -> n
 
 @dataclass(frozen=True)
 class UnitCycles:
-    """Simulated MRFT cycles at unit scale: ``period[i, k]``, ``amplitude[i, k]`` for shape i, beta k."""
+    """Simulated MRFT cycles at unit scale: ``period[i, k]``, ``amplitude[i, k]``.
+
+    ``i`` indexes the shapes, ``k`` the betas.
+    """
 
     betas: np.ndarray
     period: np.ndarray
@@ -70,7 +73,7 @@ class UnitCycles:
 
 
 def unit_cycles(params: np.ndarray, betas, cycles: int = 14, dt_frac: float = 1e-4) -> UnitCycles:
-    """Simulate MRFT (``h = 1``, ``K = 1``) on unit shapes for each ``beta``; return unit-scale cycles.
+    """Simulate MRFT (``h = 1``, ``K = 1``) on unit shapes for each ``beta``; unit-scale cycles.
 
     Parameters
     ----------
@@ -91,8 +94,8 @@ def unit_cycles(params: np.ndarray, betas, cycles: int = 14, dt_frac: float = 1e
     for k, beta in enumerate(betas):
         T_hb = hb_period(params, beta)
         c = 1.0 / T_hb  # stretch so the predicted period is one second
-        run = simulate_mrft(1.0 / c, params[:, 0] * c, params[:, 1] * c, params[:, 2] * c, beta=beta,
-                            h=1.0, duration_s=float(cycles), dt=dt_frac, keep_s=3.0)
+        run = simulate_mrft(1.0 / c, params[:, 0] * c, params[:, 1] * c, params[:, 2] * c,
+                            beta=beta, h=1.0, duration_s=float(cycles), dt=dt_frac, keep_s=3.0)
         for i in range(n):
             cyc = find_cycle(run.u[i], run.y[i], run.dt)
             # With gain 1/c the stretched plant is exactly G(c s): same amplitude, period x c.
@@ -132,7 +135,7 @@ PM_PENALTY = 5.0  # % of J per degree of phase margin below the 20 deg constrain
 
 
 def rule_cost(Kc: float, Kd: float, G: np.ndarray, w: np.ndarray, q_opt: float) -> float:
-    """Cost (%) of PD ``(Kc, Kd)`` on a plant whose optimal ISE is ``q_opt``: |J| + margin penalty."""
+    """Cost (%) of PD ``(Kc, Kd)`` on a plant of optimal ISE ``q_opt``: |J| + margin penalty."""
     m = margins((Kc + Kd * 1j * w) * G, w)
     if not m.stable:
         return np.inf
@@ -142,7 +145,7 @@ def rule_cost(Kc: float, Kd: float, G: np.ndarray, w: np.ndarray, q_opt: float) 
 
 def rule_cost_table(params: np.ndarray, pds: np.ndarray, ises: np.ndarray, period: np.ndarray,
                     amplitude: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``C[i, j]``: cost of shape ``i``'s tuning rule applied to shape ``j`` (time-scale invariant)."""
+    """``C[i, j]``: cost of shape ``i``'s tuning rule on shape ``j`` (time-scale invariant)."""
     n = len(params)
     G = inner_response(1.0, params[:, 0], params[:, 1], params[:, 2], w)
     c1 = pds[:, 0] * amplitude
@@ -163,7 +166,7 @@ def distinguishing_phase(params: np.ndarray, pds: np.ndarray, ises: np.ndarray,
     G = inner_response(1.0, params[:, 0], params[:, 1], params[:, 2], w)
     worst_per_beta = np.full(len(cycles.betas), np.inf)
     best = (np.inf, 0, 0, 0.0, 0.0)
-    for k, beta in enumerate(cycles.betas):
+    for k in range(len(cycles.betas)):
         T, a = cycles.period[:, k], cycles.amplitude[:, k]
         if not np.all(np.isfinite(T) & np.isfinite(a)):
             continue
@@ -191,7 +194,7 @@ def zeta_table(params: np.ndarray, period: np.ndarray, amplitude: np.ndarray) ->
     """Exact gain scaling ``zeta = a / (h |G(j 2 pi / T)|)`` per unit shape (DF gives 4/pi)."""
     w = 2 * np.pi / period
     g = np.array([abs(inner_response(1.0, T_prop, T1, tau, [wi])[0, 0])
-                  for (T_prop, T1, tau), wi in zip(params, w)])
+                  for (T_prop, T1, tau), wi in zip(params, w, strict=True)])
     return amplitude / g
 
 

@@ -81,7 +81,8 @@ def load_json(kind: LoopKind, name: str, models: Path = MODELS_DIR) -> dict:
     path = models / kind.value / f"{name}.json"
     if not path.exists():
         step = {"discretisation": "discretize"}.get(name, name)
-        raise UsageError(f"{path} is missing: run 'mrft-tune design {step} --loop {kind.value}' first")
+        raise UsageError(f"{path} is missing: run 'mrft-tune design {step} --loop "
+                         f"{kind.value}' first")
     return json.loads(path.read_text())
 
 

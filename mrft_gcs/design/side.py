@@ -171,7 +171,7 @@ def design_side_for_shape(k: int, att: np.ndarray, att_pd: np.ndarray, scale_lo:
     beta = float(SIDE_BETAS[best[1]])
     up, ua = _unit_side_cycles(att, tuple(att_pd), sp, [beta], cycles=16, dt_frac=1e-4)
     gabs = np.array([abs(side_plant_response(att, tuple(att_pd), T2, ta, [2 * np.pi / T])[0, 0])
-                     for (T2, ta), T in zip(sp, up[:, 0])])
+                     for (T2, ta), T in zip(sp, up[:, 0], strict=True)])
     T, a = up[:, 0], ua[:, 0]
     c1 = spd[:, 0] * a
     c2 = spd[:, 1] * 2 * np.pi / (spd[:, 0] * T)

@@ -28,6 +28,7 @@ import select
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -150,8 +151,9 @@ class IdentificationWorker:
 
 def _serve() -> None:
     """The child's loop: one pickled ``(op, args)`` in, one ``(status, value)`` out."""
-    ops = {"warm": warm_up_identification, "identify": bundled_identifier,
-           "attitude_loop": measured_attitude_loop}
+    ops: dict[str, Callable[..., Any]] = {
+        "warm": warm_up_identification, "identify": bundled_identifier,
+        "attitude_loop": measured_attitude_loop}
     inp = sys.stdin.buffer
     out = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())  # stray prints must not break replies
