@@ -96,3 +96,65 @@ def test_backed_off_gains_restore_the_margin_on_the_true_loop():
     safer = backed_off_gains(plan, check)
     assert _pm(true, safer) >= 18.0
     assert safer.Kc < gains.Kc and safer.Kd < gains.Kd
+
+
+def _fly_check(Kc: float, Kd: float, model: InnerModel):
+    """The check of roll gains ``(Kc, Kd)`` flown on the bundled SITL's vehicle in-process
+    (its physics and onboard PX4-style cascade at 1 kHz, telemetry and set points at 250 Hz);
+    the plan predicts on ``model``."""
+    from mrft_gcs.flight.inair import CHECK_AMPLITUDE_RAD, SquareWaveProbe
+    from mrft_gcs.loops import Loop
+    from mrft_gcs.sitl import SimVehicle, load_airframe
+    from mrft_gcs.sitl.onboard import FlightMode
+    from mrft_gcs.sitl.physics import quat_from_euler
+
+    af = load_airframe("qdrone")
+    v = SimVehicle(af, seed=0)
+    v.reset((0.0, 0.0, -3.0), airborne=True)
+    ap = v.autopilot
+    for name, value in {"MC_ROLL_P": Kc / Kd, "MC_ROLLRATE_P": Kd, "MC_ROLLRATE_I": 0.0,
+                        "MC_ROLLRATE_D": 0.0, "MC_ROLLRATE_K": 1.0}.items():
+        assert ap.params.set(name, value)
+    level = quat_from_euler(0.0, 0.0, 0.0)
+    ap.set_attitude_target(level, af.hover_thrust)
+    ap.set_mode(FlightMode.OFFBOARD)
+    ap.arm(True)
+    for _ in range(125):  # half a second level first
+        ap.set_attitude_target(level, af.hover_thrust)
+        v.run(0.004)
+    plan = plan_check(model, PD(Kc, Kd), CHECK_AMPLITUDE_RAD)
+    probe = SquareWaveProbe({Loop.ROLL: plan})
+    while not probe.done:
+        att = v.physics.meas_att
+        r, p = probe.step(v.time_s, v.time_s, att[0], att[1])
+        ap.set_attitude_target(quat_from_euler(r, p, 0.0), af.hover_thrust)
+        v.run(0.004)
+    return plan, check_margin(plan, *probe.points()[Loop.ROLL])
+
+
+def test_check_on_the_sitl_vehicle_measures_its_onboard_loop():
+    from mrft_gcs.sitl import load_airframe
+
+    m = load_airframe("qdrone").linear_models()["roll"]
+    true = InnerModel(m["K"], m["T_prop"], m["T1"], m["tau"])
+    gains = _optimal(true)
+    # the gains as designed for 3 ms less delay than the vehicle has (a re-target too far)
+    plan, check = _fly_check(gains.Kc, gains.Kd, InnerModel(true.K, true.T_prop, true.T1,
+                                                            true.tau - 0.003))
+    assert check.steady and check.passed
+    assert abs(check.measured_pm_deg - _pm(true, gains)) < AGREE_DEG
+
+
+def test_check_refuses_a_loop_that_oscillates_on_its_own():
+    """Gains re-targeted by 11 ms too much (a saturated GCS-delay measurement on a busy
+    host): the onboard loop has about -1 deg of margin and swings on its own. Its response
+    is not steady, so no margin is read from it (it read 27 deg before this test)."""
+    from mrft_gcs.sitl import load_airframe
+
+    m = load_airframe("qdrone").linear_models()["roll"]
+    true = InnerModel(m["K"], m["T_prop"], m["T1"], m["tau"])
+    short = InnerModel(true.K, true.T_prop, true.T1, true.tau - 0.011)
+    gains = _optimal(short)
+    assert _pm(true, gains) < 5.0
+    _, check = _fly_check(gains.Kc, gains.Kd, short)
+    assert not check.steady and not check.passed

@@ -72,6 +72,13 @@ def test_tune_over_udp_report_and_readback(tuned):
             assert key in loop, (name, key)
         assert loop["state"] == "tuned" and loop["gains"]["Kc"] > 0
         assert set(loop["residual"]) == {"rms_before", "rms_after", "effect", "effect_params"}
+    for name in ("roll", "pitch"):  # measured in the air on the autopilot's own loop
+        ver = rep["loops"][name]["verification"]
+        assert ver["passed"] and ver["method"].startswith("square wave")
+        assert ver["measured_pm_deg"] >= 15 and ver["predicted_pm_deg"] >= 15
+    for name in ("altitude", "x", "y"):  # checked by the hover on the written gains
+        ver = rep["loops"][name]["verification"]
+        assert ver["passed"] and ver["method"].startswith("hover") and ver["note"]
     assert set(rep["loops"]["x"]["model"]) == {"K", "T2", "tau"}
     assert set(rep["loops"]["roll"]["model"]) == {"K", "T_prop", "T1", "tau"}
     firmware = rep["vehicle"].pop("firmware")
@@ -84,6 +91,35 @@ def test_tune_over_udp_report_and_readback(tuned):
     assert write_report(result, folder / "r.json").is_file()
     png = plot_cycles(result, folder / "cycles.png")
     assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_inair_check_undoes_a_retarget_that_went_too_far(tmp_path):
+    """The busy-host failure: the written gains re-targeted by 12 ms of GCS delay the
+    vehicle never had (on qdrone's 22 ms loop, no margin left onboard). The in-air check
+    finds the written loop unsteady, writes the ground-station loop's gains instead and
+    measures them; the gains left on the vehicle keep their margin on the true model."""
+    from mrft_gcs.flight.scoring import score_gains
+    from mrft_gcs.sitl import load_airframe
+
+    with SitlProcess(vehicle="qdrone", port=None, seed=5) as sitl:
+        result = tune(sitl.connection_string, "sitl", backup_dir=tmp_path, relay=RELAY,
+                      identifier=_truth("qdrone"), hover_check_s=1.0, gcs_delay_s=0.012,
+                      residuals=False)
+        with VehicleLink.connect(sitl.connection_string) as link:
+            readback = ParamClient(link).read_many(["MC_ROLL_P", "MC_ROLLRATE_P"])
+    assert result.status == "ok"
+    models = load_airframe("qdrone").linear_models()
+    scores = score_gains(models, {lp: result.loops[lp].gains for lp in (Loop.ROLL, Loop.PITCH)})
+    for lp in (Loop.ROLL, Loop.PITCH):
+        ver = result.loops[lp].verification
+        assert ver is not None and ver.passed and "re-written" in ver.action, ver
+        assert scores[lp].pm_deg >= 15
+        assert abs(ver.measured_pm_deg - scores[lp].pm_deg) < 4.0
+    roll = result.loops[Loop.ROLL].gains
+    assert readback["MC_ROLLRATE_P"].value == pytest.approx(roll.Kd, rel=1e-5)
+    assert readback["MC_ROLL_P"].value == pytest.approx(roll.Kc / roll.Kd, rel=1e-5)
+    old = {c.name: c.old for c in result.parameters}
+    assert old["MC_ROLL_P"] == pytest.approx(6.5)  # the value from before the tune
 
 
 def test_tune_only_the_requested_loops(tmp_path):

@@ -23,15 +23,19 @@ of round trip: 0.4 deg on a 20 deg loop crossing at 27 rad/s).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from mrft_gcs.loops import Loop
 from mrft_gcs.pd_design import frequency_grid, margins, optimal_pd
 from mrft_gcs.plant import PD, InnerModel, inner_response
 
-__all__ = ["PM_MIN_DEG", "AGREE_DEG", "CHECK_HARMONICS", "CheckPlan", "InAirCheck",
-           "plan_check", "square_wave", "harmonic_points", "check_margin", "backed_off_gains"]
+__all__ = ["PM_MIN_DEG", "AGREE_DEG", "MAX_STEADY_SE", "CHECK_HARMONICS", "CHECK_AMPLITUDE_RAD",
+           "CheckPlan", "InAirCheck", "Verification", "SquareWaveProbe", "plan_check",
+           "square_wave", "harmonic_points", "check_margin", "backed_off_gains"]
 
 #: the least phase margin the written loop must show in the air (deg)
 PM_MIN_DEG = 15.0
@@ -41,6 +45,13 @@ AGREE_DEG = 3.0
 CHECK_HARMONICS = (1, 3, 5)
 #: whole cycles measured (one more runs first, to let the start transient die out)
 CHECK_CYCLES = 3
+#: a fundamental whose cycle-to-cycle spread is larger (relative standard error) is not a
+#: steady response to the square wave: a loop that oscillates on its own reads as any margin
+#: (in-process, a written loop at -1 deg: 0.35 and "27 deg"; steady loops 0.05-0.06)
+MAX_STEADY_SE = 0.15
+#: the square wave's amplitude on the attitude set point (rad): 2 deg, some 6 deg of swing
+#: at a 20 deg loop's resonance, well clear of noise and of the tilt limits
+CHECK_AMPLITUDE_RAD = 0.035
 
 
 @dataclass(frozen=True)
@@ -86,8 +97,14 @@ class InAirCheck:
     fit_rms: float
 
     @property
+    def steady(self) -> bool:
+        """The response followed the square wave cycle after cycle."""
+        return bool(self.se[0] <= MAX_STEADY_SE)
+
+    @property
     def passed(self) -> bool:
-        return bool(np.isfinite(self.measured_pm_deg) and self.measured_pm_deg >= PM_MIN_DEG)
+        return bool(self.steady and np.isfinite(self.measured_pm_deg)
+                     and self.measured_pm_deg >= PM_MIN_DEG)
 
     @property
     def agrees(self) -> bool:
@@ -210,3 +227,90 @@ def backed_off_gains(plan: CheckPlan, check: InAirCheck) -> PD:
     w = frequency_grid(m.T_prop, m.T1, tau)
     G = check.k * inner_response(m.K, m.T_prop, m.T1, tau, w)[0]
     return optimal_pd(G, w).pd
+
+
+@dataclass(frozen=True)
+class Verification:
+    """How one written loop was checked in the air (the report's ``verification``)."""
+
+    method: str
+    passed: bool
+    predicted_pm_deg: float = math.nan
+    measured_pm_deg: float = math.nan
+    action: str = "none"
+    note: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        def num(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+        return {"method": self.method, "passed": self.passed,
+                "predicted_pm_deg": num(self.predicted_pm_deg),
+                "measured_pm_deg": num(self.measured_pm_deg), "action": self.action,
+                "note": self.note or None}
+
+    def line(self) -> str:
+        """What a user reads, e.g. ``verified: PM 21 deg measured (predicted 20)``."""
+        if not math.isfinite(self.measured_pm_deg):
+            return f"{'checked' if self.passed else 'not verified'}: {self.note or self.method}"
+        word = "verified" if self.passed else "NOT verified"
+        tail = f"; {self.action}" if self.action != "none" else ""
+        return (f"{word}: PM {self.measured_pm_deg:.0f} deg measured (predicted "
+                f"{self.predicted_pm_deg:.0f}){tail}")
+
+
+class SquareWaveProbe:
+    """The set points of a check on roll and pitch at once, and the record of the test.
+
+    ``step(now_s, t_att_s, roll, pitch)`` is called on every setpoint tick with the ground
+    station's monotonic time and the latest ATTITUDE sample (vehicle time); it returns
+    the roll and pitch set points (rad) about ``centre``. The record maps the commands
+    onto the vehicle clock by the least ``now - t_att`` seen during the test (the link's
+    quickest delivery), so no clock offset from earlier in the session enters it.
+    """
+
+    def __init__(self, plans: dict[Loop, CheckPlan],
+                 centre: tuple[float, float] = (0.0, 0.0)) -> None:
+        self.plans = dict(plans)
+        self.centre = centre
+        self.duration_s = max(p.duration_s for p in self.plans.values())
+        self.reset()
+
+    def reset(self) -> None:
+        self.t0: float | None = None
+        self.cmd: list[tuple[float, float, float]] = []  # now, roll_sp, pitch_sp
+        self.smp: dict[float, tuple[float, float]] = {}  # t_att -> roll, pitch
+        self.offset = math.inf
+
+    @property
+    def done(self) -> bool:
+        return bool(self.cmd) and self.cmd[-1][0] - self.cmd[0][0] >= self.duration_s
+
+    def step(self, now_s: float, t_att_s: float, roll: float, pitch: float
+             ) -> tuple[float, float]:
+        if self.t0 is None:
+            self.t0 = now_s
+        self.offset = min(self.offset, now_s - t_att_s)
+        self.smp[t_att_s] = (roll, pitch)
+        t = now_s - self.t0
+        out = [c + (square_wave(t, p.period_s, p.amplitude) if (p := self.plans.get(lp))
+                    else 0.0)
+               for lp, c in zip((Loop.ROLL, Loop.PITCH), self.centre, strict=True)]
+        self.cmd.append((now_s, out[0], out[1]))
+        return out[0], out[1]
+
+    def points(self, link_delay_s: float = 0.0
+               ) -> dict[Loop, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Closed-loop points per checked loop (:func:`harmonic_points`)."""
+        c = np.asarray(self.cmd, float)
+        ts = np.asarray(sorted(self.smp), float)
+        y = np.asarray([self.smp[t] for t in ts], float)
+        t_cmd = c[:, 0] - self.offset  # on the vehicle clock
+        out = {}
+        for i, lp in enumerate((Loop.ROLL, Loop.PITCH)):
+            p = self.plans.get(lp)
+            if p is None:
+                continue
+            out[lp] = harmonic_points(t_cmd, c[:, 1 + i], ts, y[:, i], p.period_s,
+                                      t_cmd[0] + p.period_s, p.cycles,
+                                      link_delay_s=link_delay_s)
+        return out

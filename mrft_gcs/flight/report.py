@@ -56,6 +56,7 @@ def _loop(lr: LoopResult) -> dict[str, Any]:
         "gains": {"Kc": _num(lr.gains.Kc), "Kd": _num(lr.gains.Kd)} if lr.gains else None,
         "tuned_after_s": _num(lr.t_tuned_s),
         "residual": _residual(lr),
+        "verification": lr.verification.as_dict() if lr.verification else None,
         "note": lr.note or None,
     }
 
