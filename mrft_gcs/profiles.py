@@ -141,6 +141,9 @@ class AltitudeParams:
     #: throttle per m/s^2 of acceleration error per unit of ``accel_p``: 0.1 where the
     #: loop works in cm/s^2 (PSC_ACCZ_P), 1 where it works in m/s^2 (PSC_D_ACC_P)
     accel_p_per_m_s2: float = 0.1
+    #: why a tune must not write this cascade's gains ('' : it may): a mapping not yet
+    #: proven in the autopilot's own hold mode
+    not_written: str = ""
 
 
 @dataclass(frozen=True)
@@ -182,8 +185,8 @@ class AutopilotProfile:
         """Every parameter a full tune writes or needs (hover thrust), in write order."""
         names: list[str] = []
         for group in (self.roll, self.pitch, self.altitude, self.side):
-            for v in vars(group).values():
-                if isinstance(v, str) and v not in names:
+            for key, v in vars(group).items():
+                if isinstance(v, str) and v not in names and key != "not_written":
                     names.append(v)
         return names
 
@@ -300,7 +303,8 @@ def parse_profile(data: Mapping[str, Any], source: str = "<profile>") -> Autopil
         _pname(alt_t, "vel_d", wal), _pname(alt_t, "hover_thrust", wal),
         accel_p=_optional_pname(alt_t, "accel_p", wal),
         accel_p_value=_positive(alt_t, "accel_p_value", wal, 0.5),
-        accel_p_per_m_s2=_positive(alt_t, "accel_p_per_m_s2", wal, 0.1))
+        accel_p_per_m_s2=_positive(alt_t, "accel_p_per_m_s2", wal, 0.1),
+        not_written=str(alt_t.get("not_written", "")))
     alternatives = ap.get("alternatives", [])
     if not (isinstance(alternatives, list) and all(isinstance(a, str) for a in alternatives)):
         raise UsageError(f"{w}: 'alternatives' must be a list of profile names")

@@ -112,6 +112,15 @@ def test_metre_based_acceleration_gain_gives_the_same_climb_rate_gain():
     assert new["PSC_D_POS_P"] == pytest.approx(old["PSC_POSZ_P"])
 
 
+def test_unproven_altitude_mapping_is_not_written_and_refused_when_asked(tmp_path):
+    prof = load_profile("ardupilot")
+    assert prof.altitude.not_written and prof.altitude.not_written not in prof.parameter_names()
+    assert not load_profile("px4").altitude.not_written
+    with pytest.raises(UsageError, match="altitude cannot be written with profile ardupilot: "
+                                         ".*PSC_ACCZ_P"):
+        tune("udp:127.0.0.1:9", "ardupilot", loops=["altitude", "x"], backup_dir=tmp_path)
+
+
 # ---------------------------------------------------------------- hover check
 def _window(n=100, height=1.0, wobble_m=0.0, tilt_rad=0.0, vz=0.0):
     t = np.arange(n) * 0.02

@@ -108,7 +108,7 @@ def check_hover(t_s: np.ndarray, xyz_up_m: np.ndarray, vz_up_m_s: np.ndarray,
         problems.append(f"not airborne: {low:.2f} m above the take-off point "
                         f"(needs >= {limits.min_height_m:g} m)")
     if fast > limits.max_climb_m_s:
-        problems.append(f"not airborne: vertical speed reached "
+        problems.append(f"not holding its height: vertical speed reached "
                         f"{fast:.2f} m/s (needs <= {limits.max_climb_m_s:g} m/s)")
     steady = err <= limits.max_error_m and tmax <= limits.max_tilt_deg
     if err > limits.max_error_m:
