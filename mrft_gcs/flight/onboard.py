@@ -268,18 +268,20 @@ class Retarget:
         Phase margin of ``gains`` on the identified model with ``tau - gcs.lo_s`` (deg;
         NaN: not an inner loop).
     gcs : GcsDelay
+    cap_s : float
+        The most that may be re-targeted: half the identified delay (s).
     """
 
     gains: PD
     delay_s: float
     pm_deg: float
     gcs: GcsDelay
+    cap_s: float = math.inf
 
     @property
     def held_back(self) -> bool:
-        return self.delay_s < min(self.gcs.estimate_s, self._cap) - 1e-9
-
-    _cap: float = math.inf
+        """Less was re-targeted than the estimate (within the cap) to keep the margin."""
+        return self.delay_s < min(self.gcs.estimate_s, self.cap_s) - 1e-9
 
     def note(self) -> str:
         """``re-targeted by X ms (measured Y ms, plausible Z..W ms)`` and why, if so."""
@@ -290,7 +292,7 @@ class Retarget:
         out = (f"re-targeted by {self.delay_s * 1e3:.1f} ms ({got}; plausible "
                f"{g.lo_s * 1e3:.1f}..{g.hi_s * 1e3:.1f} ms)")
         if self.held_back:
-            out += (f", held back from {min(g.estimate_s, self._cap) * 1e3:.1f} ms to keep "
+            out += (f", held back from {min(g.estimate_s, self.cap_s) * 1e3:.1f} ms to keep "
                     f"PM {self.pm_deg:.0f} deg at {g.lo_s * 1e3:.1f} ms")
         return out
 
