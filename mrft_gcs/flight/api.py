@@ -45,6 +45,14 @@ from mrft_gcs.errors import (
 )
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.flight.hover import HoverCheck, check_hover_states
+from mrft_gcs.flight.inair import (
+    CHECK_AMPLITUDE_RAD,
+    SquareWaveProbe,
+    Verification,
+    backed_off_gains,
+    check_margin,
+    plan_check,
+)
 from mrft_gcs.flight.onboard import (
     Retarget,
     measure_gcs_delay,
@@ -59,6 +67,7 @@ from mrft_gcs.flight.sequence import (
     Phase,
     SequenceConfig,
     TuningSequence,
+    quat_from_euler,
 )
 from mrft_gcs.identify import (
     Identification,
@@ -90,7 +99,7 @@ from mrft_gcs.link.latency import CpuWakeLatency
 from mrft_gcs.link.quality import LinkQuality
 from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.params import ParamChange, ParamClient
-from mrft_gcs.plant import PD
+from mrft_gcs.plant import PD, InnerModel
 from mrft_gcs.profiles import (
     Actuation,
     AutopilotProfile,
@@ -184,6 +193,8 @@ class LoopResult:
     band: float = math.nan  # the relay's noise band (loop output units)
     #: the GCS delay re-targeted out of the written gains (s; NaN: written as identified)
     gcs_delay_s: float = math.nan
+    #: how the written loop was checked in the air (None: no check ran; ``note`` says why)
+    verification: Verification | None = None
 
 
 @dataclass(frozen=True)
@@ -294,6 +305,15 @@ class _ReceiveClock:
         if isinstance(event, Attitude | LocalPosition):
             rx = getattr(self._link, "_last_telemetry", None)
             self.model.update(time.monotonic() if rx is None else rx, event.t_s)
+
+
+_CHECK_METHOD = ("square wave on the attitude set point at the predicted crossover of the "
+                 "written loop; closed loop measured at its 1st, 3rd and 5th harmonics")
+
+
+def _check_note(plan, check) -> str:
+    return (f"crossover predicted at {plan.wc_rad_s:.3g} rad/s; measured onboard plant "
+            f"{check.k:.2f} x the model's gain, {check.extra_delay_s * 1e3:+.1f} ms of delay")
 
 
 def _one_way_latency_s(q: LinkQuality | None) -> float:
@@ -468,6 +488,10 @@ class _Run:
         self.config = SequenceConfig()
         self.written: dict[Loop, PD] = {}
         self.residuals = True
+        #: the in-air check's set points while it runs (read on the stream's ticks)
+        self.probe: SquareWaveProbe | None = None
+        self.probe_yaw = 0.0
+        self.verification: dict[Loop, Verification] = {}
         self.requested: frozenset[Loop] = frozenset(Loop)
         self.firmware: Firmware | None = None
         self.hover_check: HoverCheck | None = None
@@ -491,7 +515,7 @@ class _Run:
                 ident, self.written.get(lp, ident.gains if ident else None),
                 t.t_tuned_s - (seq.t_start_s if seq is not None else math.nan), t.note,
                 (snap.t_s, snap.u, snap.y) if snap else None, t.band,
-                self.delays.get(lp, math.nan))
+                self.delays.get(lp, math.nan), self._verification(lp, status))
         stream = self.streamer.stats() if self.streamer is not None else None
         return TuneResult(
             connection=self.connection, autopilot=self.link.family.value, profile=self.prof.name,
@@ -508,6 +532,20 @@ class _Run:
                         + ([tilt_note(seq.max_tilt_by_phase)]
                            if seq and seq.max_tilt_by_phase else [])),
             firmware=self.firmware, hover_check=self.hover_check)
+
+    def _verification(self, lp: Loop, status: str) -> Verification | None:
+        """The in-air check of ``lp``; a written loop it does not measure is checked by the
+        hover on the written gains (:meth:`_hand_over`), which passed where status is ok."""
+        ver = self.verification.get(lp)
+        if ver is not None or lp not in self.written or not self.changes:
+            return ver
+        if status != "ok":
+            return None
+        mode = self.prof.modes["position"].name
+        return Verification(
+            f"hover in {mode} on the written gains for {self.hover_check_s:g} s", True,
+            note=f"held within {self.hover_error_m:.2f} m; this loop's phase margin is not "
+                 f"measured in the air (the in-air check measures roll and pitch)")
 
     def _log_notes(self) -> list[str]:
         error = self.link.tlog_error
@@ -687,6 +725,13 @@ class _Run:
                     self.limit_hit = err
                     raise
             out = seq.step(s)
+            probe = self.probe
+            if probe is not None and not probe.done and isinstance(out, ActuatorTarget):
+                # the written attitude loop flies the check's set points; altitude stays on
+                # the ground station's PD
+                r, p = probe.step(time.monotonic(), s.t_att_s, s.roll_rad, s.pitch_rad)
+                out = AttitudeTarget(out.t_s, quat_from_euler(r, p, self.probe_yaw),
+                                     out.thrust)
             ages.record(telemetry.att, telemetry.pos)  # the command leaves right after
             return out
 
@@ -718,6 +763,7 @@ class _Run:
         self._run_tests()
         self._hold(0.5)
         self._write_back(client)
+        self._verify_written(client)
         self._hand_over()
 
     def _check_stream(self) -> None:
@@ -863,6 +909,102 @@ class _Run:
             return
         result = client.write(values, self.backup_dir, label="backup")
         self.changes, self.backup = result.changes, str(result.backup_path)
+        self._check_stream()
+
+    def _verify_written(self, client: ParamClient) -> None:
+        """The in-air check of the written roll and pitch gains (:mod:`mrft_gcs.flight.inair`):
+        measure the margin the autopilot's own loop achieves; back off and re-write once
+        where it is short; land if the re-written gains are short too."""
+        if self.act is not Actuation.TORQUE:
+            return  # the autopilot keeps its own attitude gains: nothing written to check
+        plans = {}
+        for lp in _ATTITUDE_LOOPS:
+            ident = self.seq.loops[lp].identification if self.seq else None
+            gains = self.written.get(lp)
+            if ident is None or gains is None or not isinstance(ident.model, InnerModel):
+                continue
+            m = ident.model
+            model = dataclasses.replace(m, tau=max(m.tau - self.delays.get(lp, 0.0), 1e-4))
+            try:
+                plans[lp] = plan_check(model, gains, CHECK_AMPLITUDE_RAD)
+            except ValueError as err:
+                self.verification[lp] = Verification(_CHECK_METHOD, False, note=str(err))
+        for attempt in (1, 2):
+            if not plans:
+                return
+            checks = self._probe(plans)
+            short = {}
+            for lp, (plan, check) in checks.items():
+                if check.passed:
+                    before = self.verification.get(lp)
+                    action = before.action if before is not None else "none"
+                    self.verification[lp] = Verification(
+                        _CHECK_METHOD, True, check.predicted_pm_deg, check.measured_pm_deg,
+                        action, _check_note(plan, check))
+                elif attempt == 1:
+                    short[lp] = plan, check
+                else:
+                    self.verification[lp] = Verification(
+                        _CHECK_METHOD, False, check.predicted_pm_deg, check.measured_pm_deg,
+                        "landed", _check_note(plan, check))
+                    raise SafetyAbort(
+                        f"{lp.value}: the re-written gains keep only "
+                        f"{check.measured_pm_deg:.0f} deg of phase margin measured in the air "
+                        f"(needs 15); landing commanded (restore the backup {self.backup})")
+            plans = {}
+            for lp, (plan, check) in short.items():
+                ident = self.seq.loops[lp].identification if self.seq else None
+                assert ident is not None and isinstance(ident.model, InnerModel)
+                if check.steady:
+                    new = backed_off_gains(plan, check)
+                    model = dataclasses.replace(
+                        plan.model, K=plan.model.K * check.k,
+                        tau=max(plan.model.tau + check.extra_delay_s, 1e-4))
+                    how = "backed off"
+                else:
+                    # no steady response, no model to correct: the gains of the ground-station
+                    # loop, which carried more delay than the onboard one
+                    new, model = ident.gains, ident.model
+                    how = "not steady under the check; re-target undone"
+                self.verification[lp] = Verification(
+                    _CHECK_METHOD, False, check.predicted_pm_deg, check.measured_pm_deg,
+                    f"{how}: Kc {plan.gains.Kc:.3g}, Kd {plan.gains.Kd:.3g} -> Kc "
+                    f"{new.Kc:.3g}, Kd {new.Kd:.3g}, re-written", _check_note(plan, check))
+                self.written[lp] = new
+                plans[lp] = plan_check(model, new, CHECK_AMPLITUDE_RAD)
+            if plans:
+                self._rewrite(client, {lp: self.written[lp] for lp in plans})
+
+    def _probe(self, plans: dict) -> dict:
+        """Fly the square waves of ``plans`` and return ``{loop: (plan, InAirCheck)}``."""
+        assert self.streamer is not None
+        probe = SquareWaveProbe(plans)
+        s = _Telemetry(self.link).latest()
+        self.probe_yaw = s.yaw_rad if s is not None else 0.0
+        self.probe = probe
+        try:
+            end = time.monotonic() + probe.duration_s + 2.0
+            while not probe.done:
+                if time.monotonic() > end:
+                    raise LinkError("the in-air check of the written gains got no telemetry: "
+                                    "check the link")
+                time.sleep(0.02)
+                self._check_stream()
+        finally:
+            self.probe = None
+        points = probe.points()
+        return {lp: (plans[lp], check_margin(plans[lp], *points[lp])) for lp in points}
+
+    def _rewrite(self, client: ParamClient, gains: dict[Loop, PD]) -> None:
+        values = params_in_range(self.prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in gains.items()},
+                                 self.hover).values
+        result = client.write(values, self.backup_dir, label="backup-recheck")
+        first = {c.name: c for c in self.changes}
+        merged = {c.name: c for c in self.changes}
+        for c in result.changes:  # the old value stays the one from before the tune
+            merged[c.name] = ParamChange(c.name, first[c.name].old if c.name in first else c.old,
+                                         c.new)
+        self.changes = tuple(merged.values())
         self._check_stream()
 
     def _retarget(self, lp: Loop, ident: Identification, snap: CycleSnapshot | None
