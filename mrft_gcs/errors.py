@@ -76,6 +76,11 @@ class SafetyAbort(MrftError):
     exit_code = 5
 
 
+class PilotTookOver(SafetyAbort):
+    """The flight mode left the tool's offboard mode (an RC take-over or a firmware failsafe):
+    streaming stopped, nothing written, and no landing commanded (the pilot has the vehicle)."""
+
+
 class IdentificationError(MrftError):
     """No steady relay oscillation found, or the classifier could not decide."""
 

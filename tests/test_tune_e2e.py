@@ -233,6 +233,37 @@ def test_telemetry_cut_mid_test_lands_with_exit_code_5(tmp_path):
     assert partial.stream.sent > 100
 
 
+def test_a_pilot_taking_over_stops_the_tool_without_a_landing(tmp_path):
+    """Mid-test the vehicle is switched to POSCTL by someone else (as an RC mode switch
+    would): the tool stops streaming, writes nothing and commands no landing."""
+    from mrft_gcs.errors import PilotTookOver
+    from mrft_gcs.link.modes import PX4_MODES
+
+    with SitlProcess(vehicle="qdrone", port=None, seed=6) as sitl:
+        pilot = VehicleLink.connect(sitl.connection_string)
+        switch = threading.Thread(target=pilot.set_mode, args=(PX4_MODES["position"],),
+                                  daemon=True)
+
+        def progress(snap: dict) -> None:
+            if snap["stream_sent"] > 500 and switch.ident is None:  # two seconds in the air
+                switch.start()
+
+        try:
+            with pytest.raises(PilotTookOver) as err:
+                tune(sitl.connection_string, "sitl", backup_dir=tmp_path, relay=RELAY,
+                     identifier=_truth("qdrone"), on_progress=progress)
+            switch.join(3.0)
+            time.sleep(1.5)  # a land command, had one been sent, would show by now
+            mode = pilot.heartbeat.custom_mode
+            armed = pilot.heartbeat.armed
+        finally:
+            pilot.close()
+    assert err.value.exit_code == 5 and "left OFFBOARD" in str(err.value)
+    assert "nothing was written" in str(err.value)
+    assert (mode >> 16) & 0xFF == 3 and armed  # still POSCTL, flying: no land command
+    assert err.value.partial_result.parameters == ()
+
+
 def test_tilt_limit_aborts_and_lands(tmp_path):
     from mrft_gcs.identify import RelaySettings
     from mrft_gcs.profiles import load_profile

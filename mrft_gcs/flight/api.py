@@ -39,6 +39,7 @@ from mrft_gcs.errors import (
     LinkError,
     MrftError,
     ParameterError,
+    PilotTookOver,
     SafetyAbort,
     SetpointNotCrossed,
     UsageError,
@@ -96,6 +97,7 @@ from mrft_gcs.link import (
 from mrft_gcs.link.clock import ClockFit, ClockModel
 from mrft_gcs.link.firmware import Firmware, detect_firmware, torque_path_refusal
 from mrft_gcs.link.latency import CpuWakeLatency
+from mrft_gcs.link.modes import CustomMode, mode_matches
 from mrft_gcs.link.quality import LinkQuality
 from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.params import ParamChange, ParamClient
@@ -490,6 +492,10 @@ class _Run:
         self.residuals = True
         #: the in-air check's set points while it runs (read on the stream's ticks)
         self.probe: SquareWaveProbe | None = None
+        #: the mode the vehicle must stay in while the tool flies it (None: not watched)
+        self.mode_watch: CustomMode | None = None
+        self.seen_armed = False
+        self.taken_over = False
         self.probe_yaw = 0.0
         self.verification: dict[Loop, Verification] = {}
         self.requested: frozenset[Loop] = frozenset(Loop)
@@ -701,6 +707,8 @@ class _Run:
             self.streamer.stop()
         if self.seq is not None and self.seq.phase not in (Phase.DONE, Phase.PREFLIGHT):
             self.seq.finish(Phase.ABORTED)
+        if self.taken_over:
+            return  # the pilot (or the firmware's failsafe) flies it: a land command would fight
         try:
             self.link.land(wait_ack=False)
         except MrftError:
@@ -750,6 +758,7 @@ class _Run:
         time.sleep(0.3)  # PX4 needs the stream before OFFBOARD
         self._check_stream()
         link.set_mode(self.prof.modes["offboard"])
+        self.mode_watch = self.prof.modes["offboard"]
         link.arm()
         deadline = time.monotonic() + 1.0
         while (s := telemetry.latest()) is None and time.monotonic() < deadline:
@@ -772,6 +781,25 @@ class _Run:
             raise self.limit_hit
         if self.streamer.abort_reason is not None:
             raise SafetyAbort(self.streamer.abort_reason)
+        self._watch_mode()
+
+    def _watch_mode(self) -> None:
+        """Stop at once when the vehicle leaves the offboard mode or disarms in flight: the
+        pilot took over by RC (or a failsafe did). Nothing is written after that."""
+        hb, mode = self.link.heartbeat, self.mode_watch
+        if mode is None or hb is None:
+            return
+        self.seen_armed = self.seen_armed or hb.armed
+        if mode_matches(self.link.family, mode, hb.custom_mode) and (hb.armed
+                                                                     or not self.seen_armed):
+            return
+        self.taken_over = True
+        what = (f"the vehicle left {mode.name} (custom mode {hb.custom_mode})" if hb.armed
+                else "the vehicle disarmed")
+        written = ("; the parameters written before it stay (restore the backup "
+                   f"{self.backup})" if self.changes else "; nothing was written")
+        raise PilotTookOver(f"{what}: an RC take-over or a failsafe; the tool stopped streaming "
+                            f"and commands nothing more{written}")
 
     def _progress(self) -> None:
         if self.on_progress is not None and self.seq is not None:
@@ -1031,6 +1059,7 @@ class _Run:
         """Switch to the autopilot's position mode, stop streaming, check it hovers."""
         seq, link = self.seq, self.link
         assert seq is not None and self.streamer is not None and self.monitor is not None
+        self.mode_watch = None  # the tool leaves offboard itself from here
         link.set_mode(self.prof.modes["position"])
         self.streamer.stop()
         seq.finish(Phase.DONE)
