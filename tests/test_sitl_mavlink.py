@@ -234,3 +234,22 @@ def test_attitude_target_is_tracked_by_onboard_cascade(fast_sitl):
     att = fresh(gcs, "ATTITUDE")
     assert att.roll == pytest.approx(roll, abs=0.03)
     command(gcs, M.MAV_CMD_NAV_LAND)
+
+
+def test_timesync_is_answered_at_once_and_times_the_link():
+    """TIMESYNC answered from the vehicle clock: the tool times the link with it, and a
+    random vehicle with its link delay each way shows twice that as the round trip."""
+    from mrft_gcs.link import VehicleLink, measure_link
+    from mrft_gcs.link.quality import timesync_rtts
+    from mrft_gcs.sitl.population import random_airframe
+
+    with SitlProcess(vehicle="qdrone", port=None) as sitl:
+        with VehicleLink.connect(sitl.connection_string) as link:
+            quick, lost = timesync_rtts(link, pings=10)
+            assert measure_link(link).rtt_method == "TIMESYNC"
+    assert lost == 0 and max(quick) < 20.0
+    delay_ms = random_airframe(4).link_delay_s * 1e3  # 6.1 ms each way
+    with SitlProcess(port=None, random_seed=4) as sitl:
+        with VehicleLink.connect(sitl.connection_string) as link:
+            slow, _ = timesync_rtts(link, pings=10)
+    assert 2 * delay_ms - 1.0 < min(slow) < 2 * delay_ms + 8.0

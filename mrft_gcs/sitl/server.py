@@ -10,7 +10,8 @@ Served: HEARTBEAT (1 Hz), COMMAND_LONG / COMMAND_INT -> COMMAND_ACK
 MAV_CMD_NAV_LAND, MAV_CMD_REQUEST_MESSAGE for AUTOPILOT_VERSION; anything else is answered
 MAV_RESULT_UNSUPPORTED), SET_MODE, SET_ACTUATOR_CONTROL_TARGET (group 0),
 SET_ATTITUDE_TARGET, PARAM_REQUEST_LIST / PARAM_REQUEST_READ / PARAM_SET -> PARAM_VALUE,
-STATUSTEXT. Streams (rates set with MAV_CMD_SET_MESSAGE_INTERVAL, up to 1000 Hz): ATTITUDE
+TIMESYNC (a request answered at once with the vehicle clock in ns), STATUSTEXT.
+Streams (rates set with MAV_CMD_SET_MESSAGE_INTERVAL, up to 1000 Hz): ATTITUDE
 (default 50 Hz), ATTITUDE_QUATERNION (50 Hz), LOCAL_POSITION_NED (30 Hz), HIGHRES_IMU (off),
 SYS_STATUS and EXTENDED_SYS_STATE (1 Hz).
 
@@ -343,6 +344,9 @@ class SitlServer:
                 mode = FlightMode.from_px4((cm >> 16) & 0xFF, (cm >> 24) & 0xFF)
                 if mode is not None:
                     ap.set_mode(mode)
+        elif kind == "TIMESYNC":
+            if msg.tc1 == 0:  # a request: answered at once with the vehicle's clock, as PX4 does
+                self.mav.timesync_send(int(self.vehicle.time_s * 1e9), msg.ts1)
         elif kind == "PARAM_REQUEST_LIST":
             if self._for_us(msg):
                 for name in ap.params.names:
