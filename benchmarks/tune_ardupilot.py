@@ -1,0 +1,188 @@
+"""Tune a real ArduCopter (its own SITL build) and compare LOITER hold before and after.
+
+    python benchmarks/tune_ardupilot.py [--hold-s 10] [--instance N] [--runs 1]
+
+Starts ArduCopter SITL with ``../shared/external/ardupilot-sitl/start.sh`` (parameters wiped,
+an instance of its own; ``$ARDUPILOT_SITL_DIR`` the build), then per run:
+
+1. *before*: take off in GUIDED to 1 m, LOITER for ``--hold-s``, land (the firmware's own
+   gains);
+2. ``tune(profile=--profile)`` (default ``ardupilot``) from the ground (time to tune, loops
+   written, the hover check after the hand-over to LOITER); land;
+3. *after*: the same take-off and LOITER hold on the written gains; land; restore the backup.
+
+Hold quality over the LOITER window, from an observer link (SERIAL2): altitude spread
+(max - min) and its standard deviation, largest |climb rate|, largest horizontal distance from
+where the hold began, largest tilt, and throttle saturation (share of VFR_HUD samples at 0 %
+or 100 %). ArduPilot's own AUTOTUNE is not run here yet (minutes per axis).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from pymavlink import mavutil
+
+from mrft_gcs.errors import MrftError
+from mrft_gcs.flight.api import tune
+from mrft_gcs.link import VehicleLink
+from mrft_gcs.params import ParamClient
+
+RECIPE = Path(os.environ.get("ARDUPILOT_SITL_RECIPE", Path(__file__).resolve().parents[2]
+                             / "shared" / "external" / "ardupilot-sitl"))
+GUIDED, LOITER, LAND = 4, 5, 9
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def start_sitl(instance: int, run_dir: str) -> str:
+    env = dict(os.environ, INSTANCE=str(instance), NOWAIT="1", WIPE="1", RUN_DIR=run_dir,
+               READY_TIMEOUT="120")
+    out = subprocess.run([str(RECIPE / "start.sh")], env=env, capture_output=True, text=True,
+                         timeout=180, check=True)
+    return out.stdout.strip().splitlines()[-1]
+
+
+class Observer:
+    """A second MAVLink link (SERIAL2) that flies the before/after holds and records them."""
+
+    def __init__(self, connection: str) -> None:
+        self.m = mavutil.mavlink_connection(connection, source_system=254)
+        self.m.wait_heartbeat(timeout=10)
+        for msg_id in (30, 32, 74):  # ATTITUDE, LOCAL_POSITION_NED, VFR_HUD at 25 Hz
+            self.command(511, msg_id, 40_000)
+
+    def command(self, cmd: int, *p: float) -> None:
+        params = list(p) + [0.0] * (7 - len(p))
+        self.m.mav.command_long_send(self.m.target_system, self.m.target_component, cmd, 0,
+                                     *params)
+        self.m.recv_match(type="COMMAND_ACK", blocking=True, timeout=2)
+
+    def mode(self, number: int) -> None:
+        self.command(176, 1, number)
+
+    def record(self, seconds: float) -> dict[str, np.ndarray]:
+        rows: dict[str, list[tuple[float, ...]]] = {"pos": [], "att": [], "thr": []}
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            msg = self.m.recv_match(type=["LOCAL_POSITION_NED", "ATTITUDE", "VFR_HUD"],
+                                    blocking=True, timeout=0.2)
+            if msg is None:
+                continue
+            kind = msg.get_type()
+            if kind == "LOCAL_POSITION_NED":
+                rows["pos"].append((msg.x, msg.y, -msg.z, -msg.vz))
+            elif kind == "ATTITUDE":
+                rows["att"].append((msg.roll, msg.pitch))
+            else:
+                rows["thr"].append((msg.throttle,))
+        return {k: np.asarray(v, float) for k, v in rows.items()}
+
+    def height(self) -> float:
+        msg = self.m.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=2)
+        return -msg.z if msg is not None else math.nan
+
+    def armed(self) -> bool:
+        msg = self.m.recv_match(type="HEARTBEAT", blocking=True, timeout=2)
+        return bool(msg and msg.base_mode & 128)
+
+    def land_and_wait(self, timeout_s: float = 30.0) -> None:
+        self.mode(LAND)
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end and self.armed():
+            time.sleep(0.2)
+
+    def loiter_hold(self, hold_s: float, altitude_m: float = 1.0) -> dict[str, float]:
+        """Take off in GUIDED, hold in LOITER, land; the hold's figures."""
+        self.mode(GUIDED)
+        self.command(400, 1)
+        self.command(22, 0, 0, 0, 0, 0, 0, altitude_m)
+        end = time.monotonic() + 20
+        while time.monotonic() < end and self.height() < 0.9 * altitude_m:
+            pass
+        time.sleep(2.0)
+        self.mode(LOITER)
+        data = self.record(hold_s)
+        self.land_and_wait()
+        return hold_figures(data)
+
+
+def hold_figures(data: dict[str, np.ndarray]) -> dict[str, float]:
+    pos, att, thr = data["pos"], data["att"], data["thr"]
+    z = pos[:, 2]
+    tilt = np.degrees(np.arccos(np.cos(att[:, 0]) * np.cos(att[:, 1])))
+    return {"alt_spread_m": float(z.max() - z.min()), "alt_std_m": float(z.std()),
+            "max_climb_m_s": float(np.abs(pos[:, 3]).max()),
+            "max_drift_m": float(np.hypot(pos[:, 0] - pos[0, 0], pos[:, 1] - pos[0, 1]).max()),
+            "max_tilt_deg": float(tilt.max()),
+            "throttle_saturated": float(np.mean((thr[:, 0] <= 0) | (thr[:, 0] >= 100)))
+            if len(thr) else math.nan}
+
+
+def line(name: str, f: dict[str, float]) -> str:
+    return (f"{name:7s} alt spread {f['alt_spread_m']:.3f} m (std {f['alt_std_m']:.3f}), "
+            f"|climb| <= {f['max_climb_m_s']:.2f} m/s, drift {f['max_drift_m']:.3f} m, tilt "
+            f"<= {f['max_tilt_deg']:.1f} deg, throttle saturated "
+            f"{100 * f['throttle_saturated']:.0f} %")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hold-s", type=float, default=10.0)
+    ap.add_argument("--instance", type=int, default=None)
+    ap.add_argument("--runs", type=int, default=1)
+    ap.add_argument("--profile", default="ardupilot", help="profile name or .toml (a copy "
+                    "without [altitude] not_written writes the altitude gains too)")
+    args = ap.parse_args()
+    instance = args.instance if args.instance is not None else next(
+        i for i in range(61, 99) if not _listening(5760 + 10 * i))
+    base = 5760 + 10 * instance
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.monotonic()
+        pid = start_sitl(instance, tmp)
+        print(f"ArduCopter SITL instance {instance} ready after {time.monotonic() - t:.0f} s; "
+              f"load {os.getloadavg()[0]:.1f}", flush=True)
+        try:
+            obs = Observer(f"tcp:127.0.0.1:{base + 3}")
+            for run in range(args.runs):
+                before = obs.loiter_hold(args.hold_s)
+                print(line("before", before), flush=True)
+                t = time.monotonic()
+                try:
+                    result = tune(f"tcp:127.0.0.1:{base}", args.profile, backup_dir=tmp,
+                                  heartbeat_timeout_s=10)
+                    status, error = result.status, ""
+                except MrftError as err:
+                    result = err.partial_result  # type: ignore[attr-defined]
+                    status, error = result.status, str(err)
+                written = [c.name for c in result.parameters]
+                print(f"run {run}: tune {status} in {time.monotonic() - t:.1f} s "
+                      f"({result.duration_s:.1f} s from take-off); written {written}; "
+                      f"hover check {result.hover_check}; link "
+                      f"{result.link.line() if result.link else '-'} {error}", flush=True)
+                obs.land_and_wait()
+                if not result.backup:
+                    continue
+                after = obs.loiter_hold(args.hold_s)
+                print(line("after", after), flush=True)
+                with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
+                    ParamClient(link).restore(result.backup, tmp)
+        finally:
+            subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
