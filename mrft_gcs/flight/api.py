@@ -379,9 +379,12 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
         Delay the GCS-side relay adds to the identified inner loops (s); the written
         gains are re-targeted to the onboard loop without it
         (:func:`mrft_gcs.flight.onboard.onboard_gains`). Default: measured per loop over
-        its identified cycles, how old telemetry was when the command answering it left
-        (:func:`mrft_gcs.flight.onboard.command_delay_s`); half a setpoint period
-        where that cannot be measured.
+        its identified cycles, how old telemetry was when the command answering it left,
+        on the vehicle clock tracked over the session (:mod:`mrft_gcs.link.clock`),
+        checked for plausibility (:func:`mrft_gcs.flight.onboard.measure_gcs_delay`: half
+        a setpoint period where it cannot be measured or is implausible) and held back
+        where the written gains would keep less than 15 deg of phase margin at the least
+        plausible delay (:func:`mrft_gcs.flight.onboard.robust_onboard_gains`).
     config : SequenceConfig, optional
         Sequence settings (relay noise bands, amplitudes...); actuation, altitude,
         hover guess and tilt command limit are always taken from the tune's arguments.
