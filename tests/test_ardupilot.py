@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 
-from mrft_gcs.errors import ParameterError, UsageError
+from mrft_gcs.errors import LinkError, ParameterError, UsageError
 from mrft_gcs.flight.api import tune
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.flight.hover import HoverLimits, check_hover, check_hover_states
@@ -166,16 +166,17 @@ def test_hover_check_fails_on_samples_recorded_from_a_vehicle_on_the_ground():
 
 
 # ---------------------------------------------------------------- the bundled SITL
-def test_bundled_sitl_falls_back_to_heartbeat_and_parameter_reads():
+def test_bundled_sitl_is_known_as_px4_and_timed():
     sitl = pytest.importorskip("mrft_gcs.sitl")
     port = _free_udp_port()
     with sitl.SitlProcess(vehicle="qdrone", port=port, speedup=1.0, seed=0), \
             VehicleLink.connect(f"udp:127.0.0.1:{port}") as link:
         fw = detect_firmware(link)
-        assert fw.family is AutopilotFamily.PX4 and fw.source == "HEARTBEAT"
+        # PX4 1.13 where it answers AUTOPILOT_VERSION, else known from its heartbeat only
+        assert fw.family is AutopilotFamily.PX4 and fw.version in (None, (1, 13, 0)), fw
         assert torque_path_refusal(fw) is None  # its torque path is the point of the SITL
         q = measure_link(link, rate_hz=250.0, window_s=0.5)
-        assert q.rtt_method == RTT_PARAM_READ and q.rtt_lost == 0, q.line()
+        assert q.rtt_method == RTT_TIMESYNC and q.rtt_lost == 0, q.line()
         require_relay_capable(q)
 
 
@@ -185,11 +186,12 @@ class ArduCopterLike(threading.Thread):
     AUTOPILOT_VERSION 4.7.0-dev on request, TIMESYNC at once, PARAM_REQUEST_READ only
     from a 10 Hz parameter stream, ATTITUDE and LOCAL_POSITION_NED at 250 Hz."""
 
-    def __init__(self, port: int, params: dict[str, float]) -> None:
+    def __init__(self, port: int, params: dict[str, float], timesync: bool = True) -> None:
         super().__init__(daemon=True)
         self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1,
                                                source_component=1)
         self.params = params
+        self.timesync = timesync
         self.commands: list[int] = []
         self.stop = threading.Event()
 
@@ -217,7 +219,7 @@ class ArduCopterLike(threading.Thread):
             if msg is None:
                 continue
             kind = msg.get_type()
-            if kind == "TIMESYNC" and msg.tc1 == 0:
+            if kind == "TIMESYNC" and msg.tc1 == 0 and self.timesync:
                 mav.timesync_send(time.monotonic_ns(), msg.ts1)
             elif kind == "PARAM_REQUEST_READ":
                 pid = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode()
@@ -249,6 +251,16 @@ def test_ardupilot_like_peer_is_known_and_timed_with_timesync():
         q = measure_link(link, rate_hz=250.0, window_s=0.5)
         assert q.rtt_method == RTT_TIMESYNC and q.rtt_lost == 0, q.line()
         assert q.rtt_p50_ms < 50, q.line()  # a parameter read would take ~100 ms here
+
+
+def test_peer_without_timesync_is_timed_with_parameter_reads_and_refused_when_slow():
+    port = _free_udp_port()
+    with ArduCopterLike(port, OLD_NAMES, timesync=False), \
+            VehicleLink.connect(f"udp:127.0.0.1:{port}") as link:
+        q = measure_link(link, rate_hz=250.0, window_s=0.5, pings=3)
+        assert q.rtt_method == RTT_PARAM_READ and q.rtt_p50_ms > 50, q.line()
+        with pytest.raises(LinkError, match=r"round trip \(PARAM_REQUEST_READ\) \d+ ms"):
+            require_relay_capable(q)
 
 
 def test_torque_on_ardupilot_is_refused_before_arming(tmp_path):

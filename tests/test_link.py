@@ -172,7 +172,7 @@ def test_link_with_sitl_telemetry_quality_tlog(tmp_path):
     frames = _tlog_frames(tlog)
     sent = [m for sys_id, m in frames if sys_id == 255]
     got = [m for sys_id, m in frames if sys_id != 255]
-    assert 76 in sent and 20 in sent  # COMMAND_LONG, PARAM_REQUEST_READ out
+    assert 76 in sent and 111 in sent and 111 in got  # COMMAND_LONG, TIMESYNC out; TIMESYNC in
     assert got.count(30) >= 200 and 77 in got  # ATTITUDE, COMMAND_ACK in
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,11 +122,15 @@ def timesync_rtts(link: VehicleLink, pings: int = 10, timeout_s: float = 0.25,
     """
     rtts: list[float] = []
     lost = 0
+
+    def answers(sent: int) -> Callable[[TimesyncReply], bool]:
+        return lambda e: e.ts1_ns == sent
+
     with link.subscribe(TimesyncReply) as sub:
         for i in range(pings):
             ts1 = time.monotonic_ns()
             link.send_timesync(ts1)
-            if sub.wait_for(lambda e, sent=ts1: e.ts1_ns == sent, timeout_s) is None:
+            if sub.wait_for(answers(ts1), timeout_s) is None:
                 lost += 1
                 if not rtts and i + 1 >= give_up_after:
                     return [], lost
