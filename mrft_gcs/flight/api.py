@@ -48,11 +48,16 @@ from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.flight.hover import HoverCheck, check_hover_states
 from mrft_gcs.flight.inair import (
     CHECK_AMPLITUDE_RAD,
+    CHECK_ROUNDS,
+    PM_HIGH_DEG,
+    PM_MIN_DEG,
+    CheckPlan,
+    InAirCheck,
     SquareWaveProbe,
     Verification,
-    backed_off_gains,
     check_margin,
     plan_check,
+    redesigned_gains,
 )
 from mrft_gcs.flight.onboard import (
     Retarget,
@@ -311,6 +316,38 @@ class _ReceiveClock:
 
 _CHECK_METHOD = ("square wave on the attitude set point at the predicted crossover of the "
                  "written loop; closed loop measured at its 1st, 3rd and 5th harmonics")
+
+
+def _verified(plan: CheckPlan, check: InAirCheck, action: str = "none") -> Verification:
+    return Verification(_CHECK_METHOD, True, check.predicted_pm_deg, check.measured_pm_deg,
+                        action, _check_note(plan, check))
+
+
+def _story(tried: list[tuple[CheckPlan, InAirCheck]], kept: CheckPlan | None = None) -> str:
+    """What the checks of one loop did, e.g. ``PM 38 -> 16 deg measured, the second kept``."""
+    if len(tried) == 1:
+        return "none"
+    pms = " -> ".join(_pm_text(c).removeprefix("PM ").removesuffix(" deg") for _, c in tried)
+    which = ("", "first", "second", "third", "fourth")
+    out = f"{len(tried)} checks, re-designed on the measured loop: PM {pms} deg"
+    if kept is not None:
+        i = next(i for i, (p, _) in enumerate(tried) if p is kept)
+        out += f"; the {which[i + 1] if i + 1 < len(which) else str(i + 1)} gains kept"
+    return out
+
+
+def _pm_text(check: InAirCheck) -> str:
+    if not check.steady:
+        return "no steady response"
+    return f"PM {check.measured_pm_deg:.0f} deg"
+
+
+def _round_trip_s(q: LinkQuality | None) -> float:
+    """The link's median round trip where TIMESYNC timed it (s), else 0: the set points go up
+    and the angles come down over it, outside the loop the check measures."""
+    if q is None or getattr(q, "rtt_method", None) != "TIMESYNC" or not q.rtt_p50_ms > 0:
+        return 0.0
+    return 1e-3 * q.rtt_p50_ms
 
 
 def _check_note(plan, check) -> str:
@@ -943,12 +980,17 @@ class _Run:
         self._check_stream()
 
     def _verify_written(self, client: ParamClient) -> None:
-        """The in-air check of the written roll and pitch gains (:mod:`mrft_gcs.flight.inair`):
-        measure the margin the autopilot's own loop achieves; back off and re-write once
-        where it is short; land if the re-written gains are short too."""
+        """The in-air check of the written roll and pitch gains (:mod:`mrft_gcs.flight.inair`).
+
+        Each loop is measured on the autopilot's own loop. Within the band
+        [:data:`PM_MIN_DEG`, :data:`PM_HIGH_DEG`] it is done. Outside it, its gains are
+        re-designed on the measured loop (an unsteady loop gets the ground-station loop's
+        gains back), written and checked again, up to :data:`CHECK_ROUNDS` checks in all.
+        Then the gains whose check came nearest the design's 20 deg among those that passed
+        stay written; where none passed, the vehicle lands."""
         if self.act is not Actuation.TORQUE:
             return  # the autopilot keeps its own attitude gains: nothing written to check
-        plans = {}
+        plans: dict[Loop, CheckPlan] = {}
         for lp in _ATTITUDE_LOOPS:
             ident = self.seq.loops[lp].identification if self.seq else None
             gains = self.written.get(lp)
@@ -960,51 +1002,47 @@ class _Run:
                 plans[lp] = plan_check(model, gains, CHECK_AMPLITUDE_RAD)
             except ValueError as err:
                 self.verification[lp] = Verification(_CHECK_METHOD, False, note=str(err))
-        for attempt in (1, 2):
+        history: dict[Loop, list[tuple[CheckPlan, InAirCheck]]] = {lp: [] for lp in plans}
+        for n in range(CHECK_ROUNDS):
             if not plans:
-                return
-            checks = self._probe(plans)
-            short = {}
-            for lp, (plan, check) in checks.items():
-                if check.passed:
-                    before = self.verification.get(lp)
-                    action = before.action if before is not None else "none"
-                    self.verification[lp] = Verification(
-                        _CHECK_METHOD, True, check.predicted_pm_deg, check.measured_pm_deg,
-                        action, _check_note(plan, check))
-                elif attempt == 1:
-                    short[lp] = plan, check
-                else:
-                    self.verification[lp] = Verification(
-                        _CHECK_METHOD, False, check.predicted_pm_deg, check.measured_pm_deg,
-                        "landed", _check_note(plan, check))
-                    raise SafetyAbort(
-                        f"{lp.value}: the re-written gains keep only "
-                        f"{check.measured_pm_deg:.0f} deg of phase margin measured in the air "
-                        f"(needs 15); landing commanded (restore the backup {self.backup})")
-            plans = {}
-            for lp, (plan, check) in short.items():
-                ident = self.seq.loops[lp].identification if self.seq else None
-                assert ident is not None and isinstance(ident.model, InnerModel)
+                break
+            nxt: dict[Loop, CheckPlan] = {}
+            for lp, (plan, check) in self._probe(plans).items():
+                history[lp].append((plan, check))
+                if (check.passed and check.measured_pm_deg <= PM_HIGH_DEG) or (
+                        n + 1 == CHECK_ROUNDS):
+                    continue
                 if check.steady:
-                    new = backed_off_gains(plan, check)
-                    model = dataclasses.replace(
-                        plan.model, K=plan.model.K * check.k,
-                        tau=max(plan.model.tau + check.extra_delay_s, 1e-4))
-                    how = "backed off"
+                    model, new = check.corrected_model(plan), redesigned_gains(plan, check)
                 else:
                     # no steady response, no model to correct: the gains of the ground-station
                     # loop, which carried more delay than the onboard one
-                    new, model = ident.gains, ident.model
-                    how = "not steady under the check; re-target undone"
+                    ident = self.seq.loops[lp].identification if self.seq else None
+                    assert ident is not None and isinstance(ident.model, InnerModel)
+                    model, new = ident.model, ident.gains
+                self.written[lp] = new
+                nxt[lp] = plan_check(model, new, CHECK_AMPLITUDE_RAD)
+            if nxt:
+                self._rewrite(client, {lp: self.written[lp] for lp in nxt})
+            plans = nxt
+        back: dict[Loop, PD] = {}
+        for lp, tried in history.items():
+            passed = [(p, c) for p, c in tried if c.passed]
+            if not passed:
+                plan, check = tried[-1]
                 self.verification[lp] = Verification(
                     _CHECK_METHOD, False, check.predicted_pm_deg, check.measured_pm_deg,
-                    f"{how}: Kc {plan.gains.Kc:.3g}, Kd {plan.gains.Kd:.3g} -> Kc "
-                    f"{new.Kc:.3g}, Kd {new.Kd:.3g}, re-written", _check_note(plan, check))
-                self.written[lp] = new
-                plans[lp] = plan_check(model, new, CHECK_AMPLITUDE_RAD)
-            if plans:
-                self._rewrite(client, {lp: self.written[lp] for lp in plans})
+                    f"{_story(tried)}; landed", _check_note(plan, check))
+                raise SafetyAbort(
+                    f"{lp.value}: none of the gains tried kept {PM_MIN_DEG:.0f} deg of phase "
+                    f"margin measured in the air ({_story(tried)}); landing commanded (restore "
+                    f"the backup {self.backup})")
+            plan, check = min(passed, key=lambda pc: abs(pc[1].measured_pm_deg - 20.0))
+            if plan.gains != self.written[lp]:
+                back[lp] = self.written[lp] = plan.gains
+            self.verification[lp] = _verified(plan, check, _story(tried, plan))
+        if back:
+            self._rewrite(client, back)
 
     def _probe(self, plans: dict) -> dict:
         """Fly the square waves of ``plans`` and return ``{loop: (plan, InAirCheck)}``."""
@@ -1023,7 +1061,7 @@ class _Run:
                 self._check_stream()
         finally:
             self.probe = None
-        points = probe.points()
+        points = probe.points(link_delay_s=_round_trip_s(self.quality))
         return {lp: (plans[lp], check_margin(plans[lp], *points[lp])) for lp in points}
 
     def _rewrite(self, client: ParamClient, gains: dict[Loop, PD]) -> None:

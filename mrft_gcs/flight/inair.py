@@ -12,8 +12,9 @@ onboard plant ``G = T / (Kc - T (Kc + Kd s))`` and the open loop
 ``L = (Kc + Kd s) G``. What one short test leaves open is fitted as a gain ``k`` and
 an extra delay ``d`` on the predicted onboard model (``G_true = k e^{-d s} G``); the
 measured phase margin is that of the corrected loop. Where it is short of
-:data:`PM_MIN_DEG`, the gains are re-designed on the corrected model (the project's
-ISE-optimal PD, PM >= 20 deg on it) and written again.
+:data:`PM_MIN_DEG`, or beyond :data:`PM_HIGH_DEG` (gains more cautious than the loop needs),
+the gains are re-designed on the corrected model (the project's ISE-optimal PD, PM >= 20
+deg on it) and written and checked again.
 
 The link's round trip lies outside the loop (the set point leaves the ground station
 and the angle comes back over it): it is taken out of the measured points where it is
@@ -35,10 +36,21 @@ from mrft_gcs.plant import PD, InnerModel, inner_response
 
 __all__ = ["PM_MIN_DEG", "AGREE_DEG", "MAX_STEADY_SE", "CHECK_HARMONICS", "CHECK_AMPLITUDE_RAD",
            "CheckPlan", "InAirCheck", "Verification", "SquareWaveProbe", "plan_check",
-           "square_wave", "harmonic_points", "check_margin", "backed_off_gains"]
+           "square_wave", "harmonic_points", "check_margin", "redesigned_gains",
+           "PM_HIGH_DEG", "CHECK_ROUNDS"]
 
 #: the least phase margin the written loop must show in the air (deg)
 PM_MIN_DEG = 15.0
+#: a written loop measured with more margin than this is re-designed on the measured loop
+#: (tighter gains, checked in turn; written back to the first ones if they fail): the
+#: ground station cannot see every delay it removes (a link's fixed latency, an onboard filter)
+PM_HIGH_DEG = 30.0
+#: tightened gains aim at this margin on the measured model (deg; the design's own is 20)
+TIGHTEN_PM_DEG = 25.0
+#: and move at most this many times from the gains checked, per check
+TIGHTEN_MAX = 2.0
+#: checks of one loop at most (each re-designs on the loop measured by the one before)
+CHECK_ROUNDS = 3
 #: predicted and measured margins that differ by more are reported as a disagreement (deg)
 AGREE_DEG = 3.0
 #: odd harmonics of the square wave at which the closed loop is measured
@@ -95,6 +107,11 @@ class InAirCheck:
     T: np.ndarray
     se: np.ndarray
     fit_rms: float
+
+    def corrected_model(self, plan: CheckPlan) -> InnerModel:
+        """The plan's model with the measured gain and extra delay: the onboard loop's plant."""
+        m = plan.model
+        return InnerModel(m.K * self.k, m.T_prop, m.T1, max(m.tau + self.extra_delay_s, 1e-4))
 
     @property
     def steady(self) -> bool:
@@ -220,13 +237,22 @@ def check_margin(plan: CheckPlan, w, T, se) -> InAirCheck:
                       float(np.sqrt(np.mean(resid**2))))
 
 
-def backed_off_gains(plan: CheckPlan, check: InAirCheck) -> PD:
-    """The ISE-optimal PD (PM >= 20 deg) of the corrected model ``k e^{-d s} G``."""
-    m = plan.model
-    tau = max(m.tau + check.extra_delay_s, 1e-4)
-    w = frequency_grid(m.T_prop, m.T1, tau)
-    G = check.k * inner_response(m.K, m.T_prop, m.T1, tau, w)[0]
-    return optimal_pd(G, w).pd
+def redesigned_gains(plan: CheckPlan, check: InAirCheck) -> PD:
+    """The ISE-optimal PD of the measured onboard model ``k e^{-d s} G``.
+
+    Backing off (margin short), the design's own PM >= 20 deg. Tightening (margin beyond
+    :data:`PM_HIGH_DEG`), PM >= :data:`TIGHTEN_PM_DEG` and at most :data:`TIGHTEN_MAX` times
+    the gains checked: the model was measured about the old crossover, and the new one lies
+    above it, where the fitted gain and delay are an extrapolation.
+    """
+    m = check.corrected_model(plan)
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    G = inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0]
+    if not check.passed:
+        return optimal_pd(G, w).pd
+    new = optimal_pd(G, w, pm_min_deg=TIGHTEN_PM_DEG).pd
+    up = max(new.Kc / plan.gains.Kc, new.Kd / plan.gains.Kd)
+    return new if up <= TIGHTEN_MAX else PD(new.Kc * TIGHTEN_MAX / up, new.Kd * TIGHTEN_MAX / up)
 
 
 @dataclass(frozen=True)
