@@ -64,12 +64,12 @@ from mrft_gcs.errors import IdentificationError, MrftError
 from mrft_gcs.identify import CycleDetector, Identification, identify
 from mrft_gcs.logs import decode_log, log_truncation, read_csv_metadata, summarize_log
 from mrft_gcs.logs.describe import LogSummary
-from mrft_gcs.logs.replay import to_telemetry_log
+from mrft_gcs.logs.replay import DecodedLog, to_telemetry_log
 from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.plant import PD, InnerModel, SideModel
 from mrft_gcs.residual import RelayTest, ResidualReport, analyse_residual
 from mrft_gcs.residual.cycles import noise_std
-from mrft_gcs.telemetry import TelemetryLog
+from mrft_gcs.telemetry import ParamValue, TelemetryLog
 
 if TYPE_CHECKING:
     from mrft_gcs.flight.onboard import GcsDelay
@@ -1173,7 +1173,7 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
     InputFileError
         The log cannot be read.
     """
-    decoded = decode_log(path).cleaned()
+    decoded = _before_write_back(decode_log(path).cleaned())
     log = to_telemetry_log(decoded)
     info: dict[str, str] = {}
     if Path(path).suffix.lower() == ".csv" or log.loops:
@@ -1236,6 +1236,26 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
     cut = log_truncation(path)
     return DryRunResult(str(path), summarize_log(log), results, why, params,
                         warnings=(cut,) if cut else ())
+
+
+def _before_write_back(decoded: DecodedLog) -> DecodedLog:
+    """Attitude set points up to the gains' write-back only: a tune writes its gains after
+    its relay tests, and what it sends after that (the in-air check's square wave on the
+    attitude set point) is no relay test. The write-back is the first PARAM_VALUE logged
+    after the first command."""
+    atg = decoded.attitude_target
+    cmds = [t[0, 0] for t in (decoded.actuator, atg) if len(t)]
+    if not cmds or not len(atg):
+        return decoded
+    first = min(cmds)
+    written = [e.t_s for e in decoded.events if isinstance(e, ParamValue) and e.t_s > first]
+    if not written:
+        return decoded
+    keep = atg[:, 0] < min(written)
+    order = dict(decoded.file_order)
+    if "attitude_target" in order:
+        order["attitude_target"] = order["attitude_target"][keep]
+    return replace(decoded, attitude_target=atg[keep], file_order=order)
 
 
 def _hover(log: TelemetryLog, profile) -> float | None:

@@ -172,8 +172,9 @@ def test_bundled_sitl_is_known_as_px4_and_timed():
     with sitl.SitlProcess(vehicle="qdrone", port=port, speedup=1.0, seed=0), \
             VehicleLink.connect(f"udp:127.0.0.1:{port}") as link:
         fw = detect_firmware(link)
-        # PX4 1.13 where it answers AUTOPILOT_VERSION, else known from its heartbeat only
-        assert fw.family is AutopilotFamily.PX4 and fw.version in (None, (1, 13, 0)), fw
+        # it answers AUTOPILOT_VERSION as a PX4 1.13 (the last with the torque path)
+        assert fw.family is AutopilotFamily.PX4 and fw.version == (1, 13, 0), fw
+        assert fw.source == "AUTOPILOT_VERSION"
         assert torque_path_refusal(fw) is None  # its torque path is the point of the SITL
         q = measure_link(link, rate_hz=250.0, window_s=0.5)
         assert q.rtt_method == RTT_TIMESYNC and q.rtt_lost == 0, q.line()

@@ -84,8 +84,8 @@ def test_tune_over_udp_report_and_readback(tuned):
     firmware = rep["vehicle"].pop("firmware")
     assert rep["vehicle"] == {"connection": result.connection, "autopilot": "px4",
                               "profile": "sitl", "actuation": "torque"}
-    # the bundled SITL answers no AUTOPILOT_VERSION: the heartbeat names the autopilot
-    assert firmware["autopilot"] == "px4" and firmware["source"] == "HEARTBEAT"
+    # the bundled SITL answers AUTOPILOT_VERSION as a PX4 1.13
+    assert firmware["autopilot"] == "px4" and firmware["source"] == "AUTOPILOT_VERSION"
     assert rep["hover_check"]["passed"] and rep["hover_check"]["min_height_m"] > 0.3
     assert rep["parameters"][0].keys() == {"name", "old", "new"}
     assert write_report(result, folder / "r.json").is_file()

@@ -424,9 +424,14 @@ class SitlServer:
         caps = (M.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
                 | M.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
                 | M.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
-                | M.MAV_PROTOCOL_CAPABILITY_SET_ACTUATOR_TARGET)
+                | _CAPABILITY_SET_ACTUATOR_TARGET)
         self.mav.autopilot_version_send(caps, (1 << 24) | (13 << 16) | (0xFF), 0, 0, 0,
                                         [0] * 8, [0] * 8, [0] * 8, 0, 0, 1)
+
+
+#: MAV_PROTOCOL_CAPABILITY_SET_ACTUATOR_TARGET (256): the torque path's message, as PX4 up to
+#: 1.13 announced it; newer pymavlink dialects no longer name it
+_CAPABILITY_SET_ACTUATOR_TARGET = getattr(M, "MAV_PROTOCOL_CAPABILITY_SET_ACTUATOR_TARGET", 256)
 
 
 def _param_name(raw: object) -> str:
