@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from mrft_gcs.features import cycle_features
 from mrft_gcs.identify import identify
 from mrft_gcs.identify.runtime import MODELS_DIR, _softmax, load_bundle
 from mrft_gcs.loops import LoopKind
-from mrft_gcs.features import cycle_features
 from mrft_gcs.simulate import simulate_mrft
 
 
@@ -28,8 +28,8 @@ def main() -> None:
         run = simulate_mrft(1.0, b.shape_params[0, 0] * 0.5, 0.5, b.shape_params[0, 2] * 0.5,
                             beta=b.beta, h=b.h, duration_s=8.0)
         f = cycle_features(run.t, run.u[0], run.y[0])
-        for what, fn in (("network only", lambda: b.logits(f.x)),
-                         ("features + network + gains", lambda: _softmax(
+        for what, fn in (("network only", lambda b=b, f=f: b.logits(f.x)),
+                         ("features + network + gains", lambda b=b, run=run: _softmax(
                              b.logits(cycle_features(run.t[-3000:], run.u[0, -3000:],
                                                      run.y[0, -3000:]).x)[0]))):
             fn()
@@ -54,7 +54,8 @@ def main() -> None:
     manifest = json.loads((Path(MODELS_DIR) / "manifest.json").read_text())
     for kind, steps in manifest.items():
         if isinstance(steps, dict) and "train" in steps:
-            print(f"{kind}: training {steps['train']['seconds']:.0f} s, chose {steps['train']['config']}")
+            print(f"{kind}: training {steps['train']['seconds']:.0f} s, "
+                  f"chose {steps['train']['config']}")
 
 
 if __name__ == "__main__":

@@ -28,13 +28,15 @@ def rate(engine: str, n: int, duration: float, noise: float) -> float:
 
 
 def main() -> None:
-    print(f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}")
+    print(f"machine: {platform.processor() or platform.machine()}, "
+          f"python {platform.python_version()}")
     engines = ["numba", "numpy"] if _kernels.AVAILABLE else ["numpy"]
     for engine in engines:
         n = 2000 if engine == "numba" else 500
         for noise in (0.0, 1e-3):
             r = rate(engine, n, 10.0, noise)
-            print(f"{engine:5s} n={n:5d} noise={noise:g}: {r:12,.0f} simulated process-s per wall s")
+            print(f"{engine:5s} n={n:5d} noise={noise:g}: {r:12,.0f} simulated process-s "
+                  f"per wall s")
 
 
 if __name__ == "__main__":

@@ -12,12 +12,14 @@ without); the floor is measured before it, without.
 The stream races two worker threads pinned to different CPUs for each tick where this
 process may use two, each sleeping right to the deadline (``--workers 1``: one unpinned
 thread that spins before each deadline, as before; see
-:func:`mrft_gcs.link.streamer.stream_cpus`). The floor is a fixed-margin pacing loop (sleep to 0.4 ms before each deadline, then
-spin) with nothing to send, in a thread with the same OS latency hints as the stream
+:func:`mrft_gcs.link.streamer.stream_cpus`). The floor is a fixed-margin pacing loop (sleep
+to 0.4 ms before each deadline, then spin) with nothing to send, in a thread with the same
+OS latency hints as the stream
 (:func:`mrft_gcs.link.latency.latency_hints`): what the scheduler's sleeps alone allow
 at that moment. The stream adapts its spin margin to how late sleeps wake
 (:func:`mrft_gcs.link.streamer.spin_margin_s`); its final margin and the CPU share its
-thread used are printed: precise pacing on a machine with late wake-ups costs CPU. The 1-minute load average is printed with both;
+thread used are printed: precise pacing on a machine with late wake-ups costs CPU. The
+1-minute load average is printed with both;
 on a shared machine they move together.
 
     .venv/bin/python benchmarks/streamer_jitter.py [--seconds 10] [--rate 250] [--workers 2]

@@ -194,7 +194,8 @@ def line(rec: dict) -> str:
     where = f" in {max(phases, key=lambda ph: phases[ph] or 0)}" if phases else ""
     return (f"{head} load {rec.get('load_1min', math.nan):.2f}, {rec['status']}, "
             f"{rec['duration_s'] or math.nan:5.2f} s (loops tuned at {at} s), tilt "
-            f"{rec['max_tilt_deg'] or math.nan:4.1f} deg{where}, stream {rec.get('stream_hz', 0):.1f} Hz "
+            f"{rec['max_tilt_deg'] or math.nan:4.1f} deg{where}, "
+            f"stream {rec.get('stream_hz', 0):.1f} Hz "
             f"p99 jitter {rec.get('jitter_p99_ms', math.nan):.2f} ms; J {js}{f8}")
 
 

@@ -893,10 +893,10 @@ def _side_segments(log: TelemetryLog, order: dict[str, np.ndarray],
             continue
         lo, hi = float(u[a:b].min()), float(u[a:b].max())
         t = pos[rows, 0]
-        seg = _segment(lp, "attitude PD", t[a:b], u[a:b] - 0.5 * (lo + hi), y[a:b], meta,
-                       pair.gcs_period_s, inner[_SIDE_INNER[lp]].identification)
+        side = _segment(lp, "attitude PD", t[a:b], u[a:b] - 0.5 * (lo + hi), y[a:b], meta,
+                        pair.gcs_period_s, inner[_SIDE_INNER[lp]].identification)
         found[lp] = replace(
-            seg, tilt=_axis_tilt(att, lp, yaw_ref if frame else None, t[a:b]))
+            side, tilt=_axis_tilt(att, lp, yaw_ref if frame else None, t[a:b]))
     return found, why
 
 

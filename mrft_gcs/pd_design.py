@@ -148,7 +148,8 @@ class PDDesign:
             "ise": self.ise,
             "pm_deg": self.margins.pm_deg,
             "gm": self.margins.gm,
-            "gm_db": float(20 * np.log10(self.margins.gm)) if np.isfinite(self.margins.gm) else np.inf,
+            "gm_db": (float(20 * np.log10(self.margins.gm)) if np.isfinite(self.margins.gm)
+                      else np.inf),
             "wc_rad_s": self.margins.wc,
             "stable": self.margins.stable,
         }

@@ -27,8 +27,8 @@ band``, so measurement noise cannot fire a switch when ``beta < 0`` (where the
 threshold sits between the extreme and zero). Strong leads (``beta`` near -1)
 therefore need an amplitude of ``band / (1 + beta)``; with the noise bands used
 here that is why the tests stay at ``beta >= -0.7``. (A floor on ``1 + beta``
-was tried: it let noise fire switches on slow processes, measured.) Until the first switch the relay is a
-plain sign relay (``e_max = e_min = 0``, as the paper starts it) whose switch
+was tried: it let noise fire switches on slow processes, measured.) Until the first
+switch the relay is a plain sign relay (``e_max = e_min = 0``, as the paper starts it) whose switch
 also waits for the error to leave the band.
 
 One guard keeps noise from stranding the relay: while a state is not yet
@@ -84,7 +84,8 @@ class MRFT:
     def __init__(self, beta, h, bias=0.0, band=0.0, n: int | None = None) -> None:
         arrays = [np.atleast_1d(np.asarray(a, dtype=float)) for a in (beta, h, bias, band)]
         size = n if n is not None else max(a.size for a in arrays)
-        self.beta, self.h, self.bias, self.band = (np.broadcast_to(a, (size,)).copy() for a in arrays)
+        self.beta, self.h, self.bias, self.band = (np.broadcast_to(a, (size,)).copy()
+                                                   for a in arrays)
         if np.any(np.abs(self.beta) >= 1):
             raise ValueError("MRFT beta must lie in (-1, 1)")
         if np.any(self.h <= 0):
@@ -121,7 +122,8 @@ class MRFT:
         switch = down | up
         if switch.any():
             self.state = np.where(switch, -self.state, self.state)
-            self.ext = np.where(switch, np.where(down, np.minimum(e, 0), np.maximum(e, 0)), self.ext)
+            self.ext = np.where(switch, np.where(down, np.minimum(e, 0), np.maximum(e, 0)),
+                                self.ext)
             self.entry = np.where(switch, e, self.entry)
             self.first &= ~switch
             self.switches += switch

@@ -297,7 +297,7 @@ def simulate_side_mrft(inner, pd, side, beta, h, *, bias=0.0, noise_std=0.0, dur
 
 
 def simulate_pd_step(K, T_prop, T1, tau, Kc, Kd, *, duration_s=10.0, dt=1e-3) -> np.ndarray:
-    """Unit-step response of the inner plant under the deployed PD; returns ``y`` of shape (n, m)."""
+    """Unit-step response of the inner plant under the deployed PD; ``y`` of shape (n, m)."""
     K, T_prop, T1, tau, Kc, Kd = _broadcast(K, T_prop, T1, tau, Kc, Kd)
     plant = inner_plant(K, T_prop, T1, tau, dt)
     steps = int(round(duration_s / dt))

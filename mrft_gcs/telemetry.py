@@ -133,7 +133,8 @@ class ParamValue:
     count: int = -1
 
 
-Sample = Attitude | LocalPosition | ActuatorTarget | AttitudeTarget | StatusText | Heartbeat | ParamValue
+Sample = (Attitude | LocalPosition | ActuatorTarget | AttitudeTarget | StatusText | Heartbeat
+          | ParamValue)
 
 
 class EndOfStream(Exception):

@@ -295,7 +295,7 @@ def test_two_stream_workers_send_each_tick_once():
         time.sleep(1.0)
     stats = s.stats()
     assert stats.sent == len(sent)
-    assert all(b > a for (a, _), (b, _) in zip(sent, sent[1:]))  # in order
+    assert all(b > a for (a, _), (b, _) in zip(sent, sent[1:], strict=False))  # in order
     # one second: 250 ticks, each sent once or skipped (both sending would make ~500)
     assert len(sent) + stats.skipped == pytest.approx(250, rel=0.05)
     if s.workers == 2:

@@ -40,7 +40,8 @@ def client(sitl_port):
 # ---------------------------------------------------------------- the .params file format
 def test_params_file_is_qgc_format_and_round_trips(tmp_path):
     path = tmp_path / "b.params"
-    params = [Param("MC_ROLL_P", 6.5), Param("MC_ROLLRATE_P", 0.15), Param("SYS_AUTOSTART", 4001, 6)]
+    params = [Param("MC_ROLL_P", 6.5), Param("MC_ROLLRATE_P", 0.15),
+              Param("SYS_AUTOSTART", 4001, 6)]
     write_params_file(path, params, vehicle_id=1, component_id=1, stack="px4")
     lines = path.read_text().splitlines()
     assert lines[0] == "# Onboard parameters for Vehicle 1"

@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mrft_gcs.plant import InnerModel, closed_inner_response, inner_response, modal_form, side_response
+from mrft_gcs.plant import (
+    InnerModel,
+    closed_inner_response,
+    inner_response,
+    modal_form,
+    side_response,
+)
 
 
 def test_inner_response_matches_formula():

@@ -82,7 +82,7 @@ def test_pd_step_settles_to_setpoint():
 def test_compiled_and_numpy_engines_agree_with_noise_and_bias():
     rng = np.random.default_rng(3)
     n = 40
-    Tp, T1, tau = (rng.uniform(lo, hi, n) for lo, hi in zip(D_ALT.low, D_ALT.high))
+    Tp, T1, tau = (rng.uniform(lo, hi, n) for lo, hi in zip(D_ALT.low, D_ALT.high, strict=True))
     kw = dict(beta=-0.3, h=0.1, bias=rng.uniform(-0.05, 0.05, n), noise_std=0.002, seed=7,
               duration_s=3.0, keep_s=1.0, band=0.004)
     a = simulate_mrft(1.0, Tp, T1, tau, engine="numpy", **kw)
@@ -152,7 +152,8 @@ def test_oscillation_is_orbitally_stable_from_different_starts():
     # The band delays the first switches, so each run starts its cycle from a different
     # state; all converge to the one limit cycle (Loeb's condition, checked in time).
     p = (1.0, 0.1, 1.0, 0.02)
-    runs = [simulate_mrft(*p, beta=-0.3, h=1.0, duration_s=20.0, band=b) for b in (0.0, 0.005, 0.01)]
+    runs = [simulate_mrft(*p, beta=-0.3, h=1.0, duration_s=20.0, band=b)
+            for b in (0.0, 0.005, 0.01)]
     cyc = [find_cycle(r.u[0], r.y[0], r.dt) for r in runs]
     assert all(c.steady for c in cyc)
     periods = np.array([c.period_s for c in cyc])

@@ -180,7 +180,7 @@ class TakeoffController:
         if not self.switched or not math.isfinite(self.u_z0):
             return False
         ok = hover is not None and math.isfinite(hover) and 0.0 < hover < 1.0
-        self.relay_bias = float(hover) if ok else self.u_z0
+        self.relay_bias = float(hover) if ok and hover is not None else self.u_z0
         self.switched = False
         self.relay = None
         self.t_prev = self.t_climb = self.t_rest = None

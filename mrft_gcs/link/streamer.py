@@ -176,7 +176,7 @@ def stream_cpus(workers: int | None = None) -> list[int | None]:
         allowed = []
     if workers == 1 or len(allowed) < 2 or not hasattr(os, "sched_setaffinity"):
         return [None]
-    return allowed[-2:]
+    return list[int | None](allowed[-2:])
 
 
 class SetpointStreamer:
@@ -202,7 +202,8 @@ class SetpointStreamer:
 
     Examples
     --------
-    >>> with SetpointStreamer(link, lambda t: ActuatorTarget(t, 0, 0, 0, 0.5)) as s:  # doctest: +SKIP
+    >>> stream = SetpointStreamer(link, lambda t: ActuatorTarget(t, 0, 0, 0, 0.5))  # doctest: +SKIP
+    >>> with stream as s:  # doctest: +SKIP
     ...     time.sleep(2.0)
     ...     s.raise_if_aborted()
     """
