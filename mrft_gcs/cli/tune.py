@@ -41,15 +41,17 @@ def result_table(result: TuneResult) -> Table:
     """Final table: identified models and gains, and loops left alone with the reason."""
     table = Table(title=f"tune {result.status}: {_f(result.duration_s, '.1f')} s from take-off "
                         f"to the last gains ({result.actuation} path)")
-    for col in ("loop", "state", "model", "class", "period (s)", "Kc", "Kd", "note"):
+    for col in ("loop", "state", "model", "class", "period (s)", "Kc", "Kd", "in the air",
+                "note"):
         table.add_column(col, overflow="fold")
     for lp, lr in result.loops.items():
         ident = lr.identification
         model = ", ".join(f"{k} {v:.3g}" for k, v in ident.model.as_dict().items()) if ident \
             else "-"
+        check = lr.verification.line() if lr.verification else "-"
         table.add_row(lp.value, lr.state, model, str(ident.class_index) if ident else "-",
                       _f(lr.period_s), _f(lr.gains.Kc) if lr.gains else "-",
-                      _f(lr.gains.Kd) if lr.gains else "-", lr.note or "")
+                      _f(lr.gains.Kd) if lr.gains else "-", check, lr.note or "")
     return table
 
 

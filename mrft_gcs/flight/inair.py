@@ -277,7 +277,7 @@ class Verification:
     def line(self) -> str:
         """What a user reads, e.g. ``verified: PM 21 deg measured (predicted 20)``."""
         if not math.isfinite(self.measured_pm_deg):
-            return f"{'checked' if self.passed else 'not verified'}: {self.note or self.method}"
+            return f"{'checked' if self.passed else 'not verified'}: {self.method}"
         word = "verified" if self.passed else "NOT verified"
         tail = f"; {self.action}" if self.action != "none" else ""
         return (f"{word}: PM {self.measured_pm_deg:.0f} deg measured (predicted "
