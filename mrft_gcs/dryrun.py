@@ -45,9 +45,10 @@ velocity (:class:`mrft_gcs.flight.noise.ComplementaryFilter`).
 A relay stretch is a run of at least ``MIN_SWITCHES`` level changes, each level
 held for two samples or more, alternating between two values; the last one in
 the log is used (a tune ends each relay test by switching to the identified PD).
-``h`` is half the level difference, the bias the mid level; ``beta`` comes from
-where the switches happen relative to the error extremes (``e_switch = -beta e_max``)
-and is snapped to the classifier's beta when within 0.1, unless metadata gives it.
+``h`` is half the level difference, the bias the mid level; ``beta`` and the set point
+come from where the switches happen relative to the extremes (``e_switch = -beta e_max``,
+per pair of half cycles, :func:`infer_relay`) and ``beta`` is snapped to the
+classifier's beta when within 0.1, unless metadata gives it.
 """
 
 from __future__ import annotations
@@ -76,7 +77,7 @@ if TYPE_CHECKING:
     from mrft_gcs.link.clock import ClockFit
 
 __all__ = ["RelaySegment", "LoopResult", "DryRunResult", "find_relay_segments", "infer_beta",
-           "analyse_segment", "dry_run", "MIN_SWITCHES"]
+           "infer_relay", "RelayInference", "analyse_segment", "dry_run", "MIN_SWITCHES"]
 
 #: Level changes a relay stretch needs (three full cycles).
 MIN_SWITCHES = 6
@@ -127,6 +128,10 @@ class RelaySegment:
     clock : ClockFit or None
         With ``age_s``: the log's clock fit (``DecodedLog.clock``), whose slips and skew
         decide whether the ages are plausible.
+    setpoint, crossed : float
+        The relay's set point inferred from the switches (units of ``y``) and the fraction
+        of half cycles whose extreme lay beyond it (:class:`RelayInference`; NaN: not
+        inferred).
     """
 
     loop: Loop
@@ -142,6 +147,8 @@ class RelaySegment:
     tilt: np.ndarray | None = None
     age_s: np.ndarray | None = None
     clock: ClockFit | None = None
+    setpoint: float = math.nan
+    crossed: float = math.nan
 
     @property
     def duration_s(self) -> float:
@@ -175,6 +182,8 @@ class LoopResult:
         seg = self.segment
         out: dict = {"beta": seg.beta, "h": seg.h, "bias": seg.bias, "source": seg.source,
                      "steady": self.steady, "notes": list(self.notes)}
+        if math.isfinite(seg.setpoint):
+            out["setpoint"] = seg.setpoint
         if ident is not None:
             g = self.gains or ident.gains
             out.update(model=ident.model.as_dict(), **{"class": ident.class_index},
@@ -296,44 +305,106 @@ def _relay_stretch(u: np.ndarray, regular: bool = False,
     return int(starts[i0]), int(starts[i1] + lengths[i1]), ""
 
 
-def infer_beta(u: np.ndarray, y: np.ndarray) -> float:
-    """MRFT ``beta`` from where the relay switched relative to the error extremes.
+@dataclass(frozen=True)
+class RelayInference:
+    """The relay's ``beta`` and set point, inferred from where it switched.
+
+    Attributes
+    ----------
+    beta : float
+        Median over pairs of consecutive half cycles (clipped to [-0.95, 0.95]).
+    setpoint : float
+        The relay's set point (units of ``y``).
+    spread : float
+        Median absolute deviation of the per-pair ``beta`` (0: every cycle agrees).
+    pairs : int
+        Pairs of half cycles used.
+    crossed : float
+        Fraction of half cycles whose extreme lies beyond the set point (1 for a relay
+        oscillating about it; a cycle that has drifted off it is no MRFT test).
+    """
+
+    beta: float
+    setpoint: float
+    spread: float
+    pairs: int
+    crossed: float
+
+
+def _local_fit(y: np.ndarray, lo: int, hi: int, at: float | None = None,
+               low: bool = True) -> float:
+    """A quadratic fitted to ``y[lo:hi]`` (noise-averaged): its value at index ``at``, or
+    its extreme (``low``: the minimum) when ``at`` is None, kept within the window."""
+    k = np.arange(max(lo, 0), min(hi, y.size))
+    if k.size < 4:
+        if at is not None:
+            return float(np.interp(at, k, y[k]))
+        return float(y[k].min() if low else y[k].max())
+    c = np.polyfit(k - k.mean(), y[k], 2)
+    if at is not None:
+        return float(np.polyval(c, at - k.mean()))
+    x = k - k.mean()
+    if c[0] != 0 and ((low and c[0] > 0) or (not low and c[0] < 0)):
+        v = -c[1] / (2 * c[0])
+        if x[0] <= v <= x[-1]:
+            return float(np.polyval(c, v))
+    vals = np.polyval(c, x)
+    return float(vals.min() if low else vals.max())
+
+
+def infer_relay(u: np.ndarray, y: np.ndarray) -> RelayInference:
+    """MRFT ``beta`` and set point from where the relay switched relative to the extremes.
 
     With ``e = r - y`` (``r``: the relay's set point), the relay leaves the high level
-    when ``e <= -beta e_max`` (``e_max`` the largest error in that state), and the low
-    level when ``e >= -beta e_min``. The set point is not logged and need not be the
-    oscillation's centre (a torque bias moves the cycle off it): it is taken where the
-    ratios of both states agree best (least spread, searched over the middle half of
-    the range of ``y``); ``beta`` is the median ratio there.
+    when ``e <= -beta e_max`` (``e_max = r - y_min``, the largest error in that half
+    cycle), and the low level when ``e >= -beta e_min`` (``e_min = r - y_max``). Both
+    are one line: ``y_switch = (1 + beta) r - beta y_extreme``. Over two consecutive half
+    cycles (one per level) the set point cancels, so each pair gives ``beta`` on its
+    own, whatever the bias of the relay or of the plant moves the cycle off ``r``;
+    ``beta`` is the median over pairs, ``r`` the median intercept. Extremes and switch
+    levels are taken from quadratics fitted to the samples around them (a noisy maximum
+    lies beyond the true one by about two noise deviations).
+
+    Raises
+    ------
+    IdentificationError
+        Fewer than three switches.
     """
     mid = 0.5 * (u.min() + u.max())
     high = u > mid
     sw = np.flatnonzero(high[1:] != high[:-1]) + 1
-    y_sw, y_ext, sign = [], [], []
+    ext, lvl, state = [], [], []
     for a, b in zip(sw[:-1], sw[1:], strict=False):
         if b >= y.size:
             continue
+        w = int(np.clip((b - a) // 6, 2, 8))
         seg = y[a:b]
-        # high state: e = r - y is largest where y is smallest; the threshold was crossed
-        # between the last two samples before the switch
-        y_ext.append(seg.min() if high[a] else seg.max())
-        y_sw.append(0.5 * (y[b] + y[b - 1]))
-        sign.append(1.0 if high[a] else -1.0)
-    if not y_sw:
+        i = a + int(np.argmin(seg) if high[a] else np.argmax(seg))
+        ext.append(_local_fit(y, max(a, i - w), min(b, i + w + 1), low=bool(high[a])))
+        # the threshold was crossed between the last two samples before the switch
+        lvl.append(_local_fit(y, b - w, b + w, at=b - 0.5))
+        state.append(bool(high[a]))
+    if len(ext) < 2:
         raise IdentificationError("cannot infer the relay's beta: too few switches; give "
                                   "beta in the CSV metadata ('# beta=... h=...')")
-    y_sw_a, y_ext_a = np.asarray(y_sw), np.asarray(y_ext)
-    centre, half = 0.5 * (y.max() + y.min()), 0.5 * float(np.ptp(y))
-    r = centre + np.linspace(-0.5, 0.5, 101)[:, None] * half
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratios = -(r - y_sw_a) / (r - y_ext_a)
-    ok = np.isfinite(ratios)
-    med = np.array([np.median(row[m]) if m.any() else np.nan for row, m in zip(ratios, ok,
-                                                                            strict=True)])
-    spread = np.array([np.median(np.abs(row[m] - c)) if m.any() else np.inf
-                       for row, m, c in zip(ratios, ok, med, strict=True)])
-    best = int(np.argmin(spread))
-    return float(np.clip(med[best], -0.95, 0.95))
+    x, z, s = np.asarray(ext), np.asarray(lvl), np.asarray(state)
+    pair = s[:-1] != s[1:]
+    dx = x[:-1] - x[1:]
+    pair &= np.abs(dx) > 0
+    if not pair.any():
+        raise IdentificationError("cannot infer the relay's beta: the half cycles do not "
+                                  "alternate; give beta in the CSV metadata ('# beta=...')")
+    b_k = -(z[:-1] - z[1:])[pair] / dx[pair]
+    beta = float(np.clip(np.median(b_k), -0.95, 0.95))
+    r = float(np.median(z + beta * x)) / (1.0 + beta)
+    crossed = float(np.mean(np.where(s, x < r, x > r)))
+    return RelayInference(beta, r, float(np.median(np.abs(b_k - np.median(b_k)))),
+                          int(pair.sum()), crossed)
+
+
+def infer_beta(u: np.ndarray, y: np.ndarray) -> float:
+    """MRFT ``beta`` from where the relay switched (:func:`infer_relay`)."""
+    return infer_relay(u, y).beta
 
 
 # ------------------------------------------------------------------ commands and samples
@@ -704,15 +775,24 @@ def _segment(loop, source, t, u, y, meta, gcs_period_s: float = 0.0,
     if loop is Loop.ALTITUDE and source != "csv" and "bias" not in meta:
         # Collective thrust: the loop input is the deviation from hover (the mid level).
         u, bias = u - 0.5 * (hi + lo), 0.0
+    try:
+        inf: RelayInference | None = infer_relay(u, y)
+    except IdentificationError:
+        if "beta" not in meta:
+            raise
+        inf = None
     if "beta" in meta:
         beta, frm = float(meta["beta"]), "metadata"
     else:
-        beta, frm = infer_beta(u, y), "switches"
+        assert inf is not None
+        beta, frm = inf.beta, "switches"
         dom = _domain_beta(loop, inner)
         if dom is not None and abs(dom - beta) < 0.1:
             # A tune runs the domain's beta; the inferred value is that one, blurred by sampling.
             beta, frm = dom, "domain"
-    return RelaySegment(loop, t, u, y, beta, h, bias, source, frm, gcs_period_s, age_s=age_s)
+    sp, crossed = (inf.setpoint, inf.crossed) if inf is not None else (math.nan, math.nan)
+    return RelaySegment(loop, t, u, y, beta, h, bias, source, frm, gcs_period_s, age_s=age_s,
+                        setpoint=sp, crossed=crossed)
 
 
 def _domain_beta(loop: Loop, inner: Identification | None = None) -> float | None:
@@ -1121,6 +1201,11 @@ def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
     analysis (e.g. a known model while the classifiers are not bundled).
     """
     ident, cyc, steady, notes = _live_cycles(seg, inner)
+    if seg.crossed < 0.9 and seg.beta_from == "switches":
+        notes.insert(0, f"the oscillation does not cross the relay's set point every half cycle "
+                        f"({100 * seg.crossed:.0f} % do): the relay lost its set point, so its "
+                        f"beta cannot be read from the switches ({seg.beta:.2f}); give beta "
+                        f"('--beta' or '# beta=...' in a CSV)")
     gains, delay = None, math.nan
     if ident is not None:
         gains = ident.gains

@@ -218,3 +218,90 @@ def test_dry_run_clamps_parameters_into_the_profile_range(tmp_path):
     assert f"the tuned {gains['Kc'] / gains['Kd']:.4g} is above the profile's range 0 to 0.5; " \
            f"0.5 written (roll angle loop slower than designed; in effect Kc " in notes[0]
     assert notes[0] in data["explanation"]
+
+
+def _independent_relay_logs(folder: Path, n: int = 30, seed: int = 22):
+    """``n`` MRFT logs in the documented CSV format, no beta in their metadata: attitude
+    plants drawn log-uniformly over the attitude domain (gains 5-60), relay beta -0.7 with
+    a bias of 0.2-0.26 h (either sign), a set point off zero, measurement noise (0.5-2 %
+    of the amplitude) on the logged angle, 250 Hz. Draws whose relay lost its set point
+    (the cycle no longer crosses it every half cycle, then the relay's guard drives it: no
+    MRFT test) are replaced by the next draw. Returns ``[(path, truth)]``."""
+    from mrft_gcs.domains import D_ATT
+    from mrft_gcs.simulate import simulate_mrft
+
+    rng = np.random.default_rng(seed)
+    m = 2 * n
+    p = D_ATT.sample_log_uniform(m, rng)
+    K = np.exp(rng.uniform(np.log(5.0), np.log(60.0), m))
+    h = rng.uniform(0.03, 0.1, m)
+    bias = rng.uniform(0.2, 0.26, m) * h * rng.choice([-1.0, 1.0], m)
+    run = simulate_mrft(K, p[:, 0], p[:, 1], p[:, 2], -0.7, h, bias=bias, duration_s=20.0,
+                        dt=0.004)
+    out = []
+    for i in range(m):
+        u, y = run.u[i], run.y[i]
+        high = u > bias[i]
+        sw = np.flatnonzero(high[1:] != high[:-1]) + 1
+        sw = sw[sw > u.size // 2]
+        if not all((y[a:b].min() < 0) if high[a] else (y[a:b].max() > 0)
+                   for a, b in zip(sw[:-1], sw[1:], strict=False)):
+            continue
+        amp = 0.5 * float(np.ptp(y[u.size // 2:]))
+        r0 = float(rng.uniform(-0.05, 0.05))
+        y = y + r0 + rng.uniform(0.005, 0.02) * amp * rng.standard_normal(u.size)
+        path = folder / f"relay{i:02d}.csv"
+        rows = "\n".join(f"{a:.4f},roll,{b:.5f},{c:.6f}"
+                         for a, b, c in zip(run.t, u, y, strict=True))
+        path.write_text(f"# mrft-gcs loop csv v1\nt,loop,u,y\n{rows}\n")
+        out.append((path, {"setpoint": r0, "amplitude": amp, "h": float(h[i]),
+                           "bias": float(bias[i]),
+                           "params": tuple(map(float, p[i]))}))
+        if len(out) == n:
+            return out
+    raise AssertionError("too few draws kept their set point")
+
+
+def test_beta_and_set_point_of_biased_relays_without_metadata(tmp_path):
+    """30 independent-looking MRFT logs with a biased relay (0.2-0.26 h) and no beta in
+    their metadata: every one gives beta -0.7 and its set point from the switches, and
+    dry-run identifies every one (an estimate from the error extremes of one state, biased
+    cycles off-centre, had given beta -0.91 and a refusal on some)."""
+    from mrft_gcs.dryrun import infer_relay
+
+    logs = _independent_relay_logs(tmp_path)
+    have_models = MODELS.exists() and list((MODELS.parent / "attitude").glob("*.onnx"))
+    refused = []
+    for path, truth in logs:
+        data = np.genfromtxt(path, delimiter=",", skip_header=2, usecols=(0, 2, 3))
+        inf = infer_relay(data[:, 1], data[:, 2])
+        assert inf.beta == pytest.approx(-0.7, abs=0.03), (path.name, truth)
+        assert inf.setpoint == pytest.approx(truth["setpoint"], abs=0.05 * truth["amplitude"])
+        assert inf.crossed > 0.95  # the first half cycle may still be settling
+        if not have_models:
+            continue
+        r = dry_run(path).loops[0]
+        assert r.segment.beta == -0.7 and r.segment.beta_from == "domain"
+        assert r.segment.h == pytest.approx(truth["h"], rel=1e-3)
+        if r.identification is None:
+            refused.append((path.name, r.notes))
+    assert refused == []
+
+
+def test_a_relay_that_lost_its_set_point_is_explained(tmp_path):
+    """Noise in the loop fired the first switch before the plant moved; the lead relay
+    (beta -0.7) switches before the angle comes back, so the cycle drifts off the set
+    point and the relay's guard drives it: no MRFT test. dry-run says so instead of
+    naming some beta."""
+    from mrft_gcs.simulate import simulate_mrft
+
+    run = simulate_mrft(8.3, 0.072, 0.8, 0.0034, -0.7, 0.06, noise_std=5e-4, band=2e-3,
+                        duration_s=12.0, dt=0.004, seed=0, engine="numpy")
+    path = tmp_path / "drift.csv"
+    rows = "\n".join(f"{a:.4f},roll,{b:.5f},{c:.6f}"
+                     for a, b, c in zip(run.t, run.u[0], run.y[0], strict=True))
+    path.write_text(f"# mrft-gcs loop csv v1\nt,loop,u,y\n{rows}\n")
+    r = dry_run(path).loops[0]
+    assert r.segment.crossed < 0.9 and r.segment.beta_from == "switches"
+    assert r.identification is None
+    assert "lost its set point" in r.notes[0] and "--beta" in r.notes[0]
