@@ -26,6 +26,7 @@ __all__ = [
     "LocalPosition",
     "ActuatorTarget",
     "AttitudeTarget",
+    "AttitudeSetpoint",
     "StatusText",
     "Heartbeat",
     "ParamValue",
@@ -85,6 +86,18 @@ class AttitudeTarget:
 
     t_s: float
     q_wxyz: tuple[float, float, float, float]
+    thrust: float
+
+
+@dataclass(frozen=True, slots=True)
+class AttitudeSetpoint:
+    """The attitude set point the vehicle's own controller tracks, on the vehicle clock
+    (MAVLink ATTITUDE_TARGET, sent by the vehicle): Euler angles in rad, thrust in [0, 1]."""
+
+    t_s: float
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
     thrust: float
 
 

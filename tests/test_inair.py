@@ -158,3 +158,27 @@ def test_check_refuses_a_loop_that_oscillates_on_its_own():
     assert _pm(true, gains) < 5.0
     _, check = _fly_check(gains.Kc, gains.Kd, short)
     assert not check.steady and not check.passed
+
+
+def test_the_vehicles_record_of_the_set_point_is_an_unbiased_input():
+    """The set point as the vehicle tracked it, sampled at 250 Hz with its switches between
+    samples (ATTITUDE_TARGET), read linearly between samples, gives the margin as the exact
+    held input does; read as held from each sample it would lag by half a sample."""
+    from mrft_gcs.flight.inair import SquareWaveProbe
+
+    gains = _optimal(MODEL)
+    plan = plan_check(MODEL, gains, 0.05)
+    t, u, ty, y = _square_wave_test(MODEL, gains, plan.period_s, 0.05)
+    ts = np.arange(0.0013, t[-1], 1 / 250.0)  # the vehicle's samples, off the switch grid
+    us = np.array([square_wave(x, plan.period_s, 0.05) for x in ts])
+    w, T, se = harmonic_points(ts, us, ty, y, plan.period_s, plan.period_s, 3, sampled_u=True)
+    assert abs(check_margin(plan, w, T, se).measured_pm_deg - plan.predicted_pm_deg) < 1.0
+    from mrft_gcs.loops import Loop
+
+    probe = SquareWaveProbe({Loop.ROLL: plan})
+    for x, yy in zip(ty, y, strict=True):
+        probe.step(x, x, yy, 0.0)
+    for x, v in zip(ts, us, strict=True):
+        probe.track(x, v, 0.0)
+    probe.points()
+    assert probe.used_tracked[Loop.ROLL]

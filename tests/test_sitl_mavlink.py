@@ -253,3 +253,18 @@ def test_timesync_is_answered_at_once_and_times_the_link():
         with VehicleLink.connect(sitl.connection_string) as link:
             slow, _ = timesync_rtts(link, pings=10)
     assert 2 * delay_ms - 1.0 < min(slow) < 2 * delay_ms + 8.0
+
+
+def test_attitude_target_is_reported_when_asked(fast_sitl):
+    """ATTITUDE_TARGET (the set point the attitude loop tracks) streams once asked for, with
+    the vehicle clock, as PX4 and ArduPilot send it."""
+    from mrft_gcs.link import VehicleLink
+    from mrft_gcs.telemetry import AttitudeSetpoint
+
+    with VehicleLink.connect(fast_sitl.connection_string) as link:
+        with link.subscribe(AttitudeSetpoint) as sub:
+            assert sub.get(0.3) is None  # off by default
+            link.request_message_interval(83, 100.0)
+            got = [sub.get(1.0) for _ in range(20)]
+    assert all(isinstance(g, AttitudeSetpoint) for g in got)
+    assert got[-1].t_s > got[0].t_s and abs(got[-1].roll_rad) < 1e-6

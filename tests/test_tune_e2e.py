@@ -76,6 +76,7 @@ def test_tune_over_udp_report_and_readback(tuned):
         ver = rep["loops"][name]["verification"]
         assert ver["passed"] and ver["method"].startswith("square wave")
         assert ver["measured_pm_deg"] >= 15 and ver["predicted_pm_deg"] >= 15
+        assert "ATTITUDE_TARGET" in ver["note"]  # the vehicle's own record was the input
     for name in ("altitude", "x", "y"):  # checked by the hover on the written gains
         ver = rep["loops"][name]["verification"]
         assert ver["passed"] and ver["method"].startswith("hover") and ver["note"]

@@ -10,7 +10,7 @@ from rich.table import Table
 
 from mrft_gcs.cli.app import DECLINED, app, console, err_console, heartbeat_wait
 from mrft_gcs.errors import UsageError
-from mrft_gcs.link import VehicleLink
+from mrft_gcs.link import VehicleLink, parse_connection_string
 from mrft_gcs.params import ParamClient, WriteResult, read_params_file, write_params_file
 from mrft_gcs.profiles import load_profile
 
@@ -29,6 +29,7 @@ Timeout = Annotated[float, typer.Option("--timeout", help="seconds to wait for a
 
 def _connect(connect: str, baud: int | None, signing_key: Path | None,
              timeout: float) -> VehicleLink:
+    parse_connection_string(connect, baud)  # a typo is one line, not a wait and then an error
     with heartbeat_wait(connect, timeout):
         return VehicleLink.connect(connect, baud=baud, timeout_s=timeout, signing_key=signing_key)
 

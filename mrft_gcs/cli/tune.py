@@ -16,6 +16,7 @@ from mrft_gcs.flight import TuneResult, tune
 from mrft_gcs.flight.api import parse_actuation, requested_loops
 from mrft_gcs.flight.report import write_report
 from mrft_gcs.link import load_signing_key, parse_connection_string
+from mrft_gcs.link.latency import CpuWakeLatency
 from mrft_gcs.profiles import load_profile
 
 __all__ = ["tune_command", "progress_table", "result_table"]
@@ -124,6 +125,7 @@ def tune_command(
     parse_connection_string(connect, baud)  # so is a typo here or in the key file
     if signing_key is not None:
         load_signing_key(signing_key)
+    CpuWakeLatency()  # and a bad MRFT_CPU_LATENCY_US
     if not (yes or dry_link):
         console.print(f"The vehicle at {connect} will arm, take off to {altitude:g} m and "
                       f"oscillate on purpose (limits: tilt {limits.max_tilt_deg:g} deg, "

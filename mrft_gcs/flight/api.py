@@ -49,8 +49,8 @@ from mrft_gcs.flight.hover import HoverCheck, check_hover_states
 from mrft_gcs.flight.inair import (
     CHECK_AMPLITUDE_RAD,
     CHECK_ROUNDS,
+    PASS_PM_DEG,
     PM_HIGH_DEG,
-    PM_MIN_DEG,
     CheckPlan,
     InAirCheck,
     SquareWaveProbe,
@@ -116,7 +116,13 @@ from mrft_gcs.profiles import (
     load_profile,
     params_in_range,
 )
-from mrft_gcs.telemetry import ActuatorTarget, Attitude, AttitudeTarget, LocalPosition
+from mrft_gcs.telemetry import (
+    ActuatorTarget,
+    Attitude,
+    AttitudeSetpoint,
+    AttitudeTarget,
+    LocalPosition,
+)
 
 __all__ = ["tune", "TuneResult", "LoopResult", "Identifier", "YAW_NOTE", "SCHEMA",
            "requested_loops", "parse_actuation", "NOT_REQUESTED"]
@@ -342,6 +348,11 @@ def _pm_text(check: InAirCheck) -> str:
     return f"PM {check.measured_pm_deg:.0f} deg"
 
 
+#: MAVLink ATTITUDE_TARGET's message id, and the command that sets a stream's rate
+ATTITUDE_TARGET_ID = 83
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+
+
 def _round_trip_s(q: LinkQuality | None) -> float:
     """The link's median round trip where TIMESYNC timed it (s), else 0: the set points go up
     and the angles come down over it, outside the loop the check measures."""
@@ -350,9 +361,10 @@ def _round_trip_s(q: LinkQuality | None) -> float:
     return 1e-3 * q.rtt_p50_ms
 
 
-def _check_note(plan, check) -> str:
+def _check_note(plan: CheckPlan, check: InAirCheck) -> str:
     return (f"crossover predicted at {plan.wc_rad_s:.3g} rad/s; measured onboard plant "
-            f"{check.k:.2f} x the model's gain, {check.extra_delay_s * 1e3:+.1f} ms of delay")
+            f"{check.k:.2f} x the model's gain, {check.extra_delay_s * 1e3:+.1f} ms of delay"
+            + (f"; input: {check.source}" if check.source else ""))
 
 
 def _one_way_latency_s(q: LinkQuality | None) -> float:
@@ -648,6 +660,7 @@ class _Run:
             if lp not in self.requested:
                 self.seq.leave_alone(lp, f"{NOT_REQUESTED}: not relay-tested; held where it "
                                          f"was and its parameters left as they were")
+        test_backup = self._set_test_params(client)
         try:
             self._fly(client)
         except KeyboardInterrupt:
@@ -656,9 +669,32 @@ class _Run:
         except BaseException:
             self._emergency_land()
             raise
+        finally:
+            self._restore_test_params(client, test_backup)
         if self.residuals:
             self._residuals()
         return self.result("ok")
+
+    def _set_test_params(self, client: ParamClient) -> Path | None:
+        """The profile's ``test_params`` (e.g. ArduCopter's throttle filter, so that the
+        altitude relay flies the filter the onboard altitude loop has), backed up first."""
+        if not self.prof.test_params:
+            return None
+        result = client.write(dict(self.prof.test_params), self.backup_dir, label="test")
+        changed = [f"{c.name} {c.old:g} -> {c.new:g}" for c in result.changes if c.old != c.new]
+        if changed:
+            self.notes.append(f"for the tests only ({self.prof.name} test_params): "
+                              f"{', '.join(changed)}; restored after the flight")
+        return result.backup_path
+
+    def _restore_test_params(self, client: ParamClient, backup: Path | None) -> None:
+        if backup is None:
+            return
+        try:
+            client.restore(backup, self.backup_dir)
+        except MrftError as err:
+            self.notes.append(f"the test parameters were not restored ({err}): restore "
+                              f"{backup} by hand")
 
     def _know_firmware(self) -> None:
         """Ask the firmware what it is, take the profile whose parameter names it has, and
@@ -970,7 +1006,15 @@ class _Run:
                     f"not written ({NOT_REQUESTED}): on the autopilot's own {inner_lp.value} "
                     f"gains the written {lp.value} gains hold only as far as the two agree")
         gains = {lp: PDGains(g.Kc, g.Kd) for lp, g in self.written.items()}
-        ranged = params_in_range(self.prof, gains, self.hover)  # clamped as dry-run does
+        models = {}
+        alt_ident = seq.loops[Loop.ALTITUDE].identification
+        if Loop.ALTITUDE in gains and alt_ident is not None and isinstance(alt_ident.model,
+                                                                             InnerModel):
+            # the cascade is matched on the onboard loop: the GCS delay taken out, as above
+            m = alt_ident.model
+            models[Loop.ALTITUDE] = dataclasses.replace(
+                m, tau=max(m.tau - self.delays.get(Loop.ALTITUDE, 0.0), 1e-4))
+        ranged = params_in_range(self.prof, gains, self.hover, models)  # clamped as dry-run does
         self.notes.extend(ranged.notes)
         values = ranged.values
         if not values:
@@ -983,7 +1027,7 @@ class _Run:
         """The in-air check of the written roll and pitch gains (:mod:`mrft_gcs.flight.inair`).
 
         Each loop is measured on the autopilot's own loop. Within the band
-        [:data:`PM_MIN_DEG`, :data:`PM_HIGH_DEG`] it is done. Outside it, its gains are
+        [:data:`PASS_PM_DEG`, :data:`PM_HIGH_DEG`] it is done. Outside it, its gains are
         re-designed on the measured loop (an unsteady loop gets the ground-station loop's
         gains back), written and checked again, up to :data:`CHECK_ROUNDS` checks in all.
         Then the gains whose check came nearest the design's 20 deg among those that passed
@@ -1034,7 +1078,7 @@ class _Run:
                     _CHECK_METHOD, False, check.predicted_pm_deg, check.measured_pm_deg,
                     f"{_story(tried)}; landed", _check_note(plan, check))
                 raise SafetyAbort(
-                    f"{lp.value}: none of the gains tried kept {PM_MIN_DEG:.0f} deg of phase "
+                    f"{lp.value}: none of the gains tried kept {PASS_PM_DEG:.0f} deg of phase "
                     f"margin measured in the air ({_story(tried)}); landing commanded (restore "
                     f"the backup {self.backup})")
             plan, check = min(passed, key=lambda pc: abs(pc[1].measured_pm_deg - 20.0))
@@ -1050,19 +1094,40 @@ class _Run:
         probe = SquareWaveProbe(plans)
         s = _Telemetry(self.link).latest()
         self.probe_yaw = s.yaw_rad if s is not None else 0.0
-        self.probe = probe
-        try:
-            end = time.monotonic() + probe.duration_s + 2.0
-            while not probe.done:
-                if time.monotonic() > end:
-                    raise LinkError("the in-air check of the written gains got no telemetry: "
-                                    "check the link")
-                time.sleep(0.02)
-                self._check_stream()
-        finally:
-            self.probe = None
+        with self.link.subscribe(AttitudeSetpoint) as tracked:
+            asked = self._ask_setpoints(self.rate_hz)
+            self.probe = probe
+            try:
+                end = time.monotonic() + probe.duration_s + 2.0
+                while not probe.done:
+                    if time.monotonic() > end:
+                        raise LinkError("the in-air check of the written gains got no "
+                                        "telemetry: check the link")
+                    time.sleep(0.02)
+                    while (sp := tracked.get(0.0)) is not None:
+                        probe.track(sp.t_s, sp.roll_rad, sp.pitch_rad)
+                    self._check_stream()
+            finally:
+                self.probe = None
+                if asked:
+                    self._ask_setpoints(0.0)
         points = probe.points(link_delay_s=_round_trip_s(self.quality))
-        return {lp: (plans[lp], check_margin(plans[lp], *points[lp])) for lp in points}
+        source = {lp: ("the set point the vehicle reported tracking (ATTITUDE_TARGET)" if used
+                       else "the set point as sent") for lp, used in probe.used_tracked.items()}
+        return {lp: (plans[lp], dataclasses.replace(check_margin(plans[lp], *points[lp]),
+                                                    source=source[lp])) for lp in points}
+
+    def _ask_setpoints(self, rate_hz: float) -> bool:
+        """Ask for ATTITUDE_TARGET (the set point the vehicle tracks) at ``rate_hz``, or back
+        to its default with 0; False where the vehicle refuses (the check then times the
+        set points as sent)."""
+        try:
+            self.link.command(MAV_CMD_SET_MESSAGE_INTERVAL,
+                              (float(ATTITUDE_TARGET_ID), 1e6 / rate_hz if rate_hz > 0 else 0.0),
+                              timeout_s=0.5)
+        except LinkError:
+            return False
+        return True
 
     def _rewrite(self, client: ParamClient, gains: dict[Loop, PD]) -> None:
         values = params_in_range(self.prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in gains.items()},

@@ -39,6 +39,7 @@ from mrft_gcs.link.tlog import TlogSink
 from mrft_gcs.telemetry import (
     ActuatorTarget,
     Attitude,
+    AttitudeSetpoint,
     AttitudeTarget,
     AutopilotFamily,
     Heartbeat,
@@ -125,7 +126,7 @@ class TimesyncReply:
 
 #: answers that go to subscribers only, never into the telemetry queue
 _REPLIES = (CommandAck, AutopilotVersion, TimesyncReply)
-Event = Sample | CommandAck | ParamReport | AutopilotVersion | TimesyncReply
+Event = Sample | CommandAck | ParamReport | AutopilotVersion | TimesyncReply | AttitudeSetpoint
 
 
 @dataclass
@@ -377,6 +378,10 @@ class VehicleLink:
         if isinstance(event, _REPLIES):
             self._publish(event)
             return
+        if isinstance(event, AttitudeSetpoint):  # for whoever subscribed; not telemetry
+            if is_finite_sample(event):
+                self._publish(event)
+            return
         if isinstance(event, ParamReport):
             self._publish(event)
             event = ParamValue(self._boot_s, event.name, event.value, event.index, event.count)
@@ -408,6 +413,9 @@ class VehicleLink:
             self._boot_s = m.time_boot_ms * 1e-3
             return Attitude(self._boot_s, m.roll, m.pitch, m.yaw,
                             m.rollspeed, m.pitchspeed, m.yawspeed)
+        if kind == "ATTITUDE_TARGET":
+            r, p, y = _euler(m.q)
+            return AttitudeSetpoint(m.time_boot_ms * 1e-3, r, p, y, m.thrust)
         if kind == "LOCAL_POSITION_NED":
             self._boot_s = m.time_boot_ms * 1e-3
             return LocalPosition(self._boot_s, m.x, m.y, m.z, m.vx, m.vy, m.vz)
@@ -620,3 +628,12 @@ class VehicleLink:
 def _clip(v: float, lo: float, hi: float) -> float:
     return lo if v < lo else hi if v > hi else float(v)
 
+
+
+def _euler(q: Any) -> tuple[float, float, float]:
+    """ZYX Euler angles (rad) of a quaternion ``(w, x, y, z)``."""
+    w, x, y, z = (float(v) for v in q)
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw

@@ -345,6 +345,8 @@ class Autopilot:
         self._sp_kind: str | None = None  # "actuator" | "attitude"
         self._sp_actuator = (0.0, 0.0, 0.0, 0.0)
         self._sp_att = ((1.0, 0.0, 0.0, 0.0), 0.0)
+        #: the attitude set point the attitude loop last tracked (w, x, y, z)
+        self.attitude_sp: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0)
         self._hold_pos = (0.0, 0.0, 0.0)  # north, east, up
         self._hold_yaw = 0.0
         self._last_meas: tuple[tuple[float, ...], tuple[float, ...]] | None = None
@@ -481,6 +483,7 @@ class Autopilot:
     def _attitude(self, q_sp: tuple[float, ...],
                   att: tuple[float, ...]) -> tuple[float, float, float]:
         prm = self.params
+        self.attitude_sp = tuple(q_sp)  # what ATTITUDE_TARGET reports
         q = _quat_euler(att[0], att[1], att[2])
         qe = _quat_mul((q[0], -q[1], -q[2], -q[3]), q_sp)
         # rotation vector of the error (exactly the angle error for a single-axis error)

@@ -13,6 +13,7 @@ SET_ATTITUDE_TARGET, PARAM_REQUEST_LIST / PARAM_REQUEST_READ / PARAM_SET -> PARA
 TIMESYNC (a request answered at once with the vehicle clock in ns), STATUSTEXT.
 Streams (rates set with MAV_CMD_SET_MESSAGE_INTERVAL, up to 1000 Hz): ATTITUDE
 (default 50 Hz), ATTITUDE_QUATERNION (50 Hz), LOCAL_POSITION_NED (30 Hz), HIGHRES_IMU (off),
+ATTITUDE_TARGET (off; the set point the attitude loop last tracked),
 SYS_STATUS and EXTENDED_SYS_STATE (1 Hz).
 
 Timing: simulated time follows a monotonic clock times ``speedup``; physics runs in 1 ms
@@ -55,6 +56,7 @@ DEFAULT_STREAM_HZ: dict[int, float] = {
     M.MAVLINK_MSG_ID_HIGHRES_IMU: 0.0,
     M.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
     M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1.0,
+    M.MAVLINK_MSG_ID_ATTITUDE_TARGET: 0.0,
 }
 _FORCE_DISARM = 21196.0
 _UNSIGNED_OK = {M.MAVLINK_MSG_ID_HEARTBEAT, M.MAVLINK_MSG_ID_RADIO_STATUS}
@@ -252,6 +254,10 @@ class SitlServer:
                        | M.MAV_SYS_STATUS_SENSOR_3D_MAG | M.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE)
             self.mav.sys_status_send(sensors, sensors, sensors, 100, 16000, -1, 100,
                                      0, 0, 0, 0, 0, 0)
+        elif mid == M.MAVLINK_MSG_ID_ATTITUDE_TARGET:
+            ap = self.vehicle.autopilot
+            self.mav.attitude_target_send(ms, 0b0000_0111, [float(v) for v in ap.attitude_sp],
+                                          0.0, 0.0, 0.0, float(ap._sp_att[1]))
         elif mid == M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             landed = (M.MAV_LANDED_STATE_ON_GROUND if self.vehicle.autopilot.landed
                       else M.MAV_LANDED_STATE_IN_AIR)
