@@ -128,14 +128,15 @@ def hold_figures(data: dict[str, np.ndarray]) -> dict[str, float]:
             "max_drift_m": float(np.hypot(pos[:, 0] - pos[0, 0], pos[:, 1] - pos[0, 1]).max()),
             "max_tilt_deg": float(tilt.max()),
             "throttle_saturated": float(np.mean((thr[:, 0] <= 0) | (thr[:, 0] >= 100)))
-            if len(thr) else math.nan}
+            if len(thr) else math.nan,
+            "throttle_std_pct": float(thr[:, 0].std()) if len(thr) else math.nan}
 
 
 def line(name: str, f: dict[str, float]) -> str:
     return (f"{name:7s} alt spread {f['alt_spread_m']:.3f} m (std {f['alt_std_m']:.3f}), "
             f"|climb| <= {f['max_climb_m_s']:.2f} m/s, drift {f['max_drift_m']:.3f} m, tilt "
             f"<= {f['max_tilt_deg']:.1f} deg, throttle saturated "
-            f"{100 * f['throttle_saturated']:.0f} %")
+            f"{100 * f['throttle_saturated']:.0f} % (std {f['throttle_std_pct']:.1f} %)")
 
 
 def main() -> int:
@@ -143,8 +144,12 @@ def main() -> int:
     ap.add_argument("--hold-s", type=float, default=10.0)
     ap.add_argument("--instance", type=int, default=None)
     ap.add_argument("--runs", type=int, default=1)
-    ap.add_argument("--profile", default="ardupilot", help="profile name or .toml (a copy "
-                    "without [altitude] not_written writes the altitude gains too)")
+    ap.add_argument("--profile", default="ardupilot", help="profile name or .toml")
+    ap.add_argument("--baro-noise", type=float, default=None, metavar="M",
+                    help="SIM_BARO_RND for the whole run (the SITL's default is 0)")
+    ap.add_argument("--gust", type=float, default=0.0, metavar="M_S",
+                    help="turbulent wind in the LOITER holds only (SIM_WIND_SPD, half of it "
+                    "SIM_WIND_TURB, 30 deg up from level: a vertical disturbance)")
     args = ap.parse_args()
     instance = args.instance if args.instance is not None else next(
         i for i in range(61, 99) if not _listening(5760 + 10 * i))
@@ -156,8 +161,30 @@ def main() -> int:
               f"load {os.getloadavg()[0]:.1f}", flush=True)
         try:
             obs = Observer(f"tcp:127.0.0.1:{base + 3}")
+            if args.baro_noise is not None:
+                with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
+                    ParamClient(link).write({"SIM_BARO_RND": args.baro_noise}, tmp, label="sim")
+                print(f"SIM_BARO_RND {args.baro_noise} m", flush=True)
+            wind = {"SIM_WIND_SPD": args.gust, "SIM_WIND_TURB": args.gust / 2,
+                    "SIM_WIND_DIR_Z": 30.0, "SIM_WIND_T": 1.0} if args.gust else {}
+            calm = dict.fromkeys(wind, 0.0)
+
+            def hold() -> dict[str, float]:
+                with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
+                    if wind:
+                        ParamClient(link).write(wind, tmp, label="sim")
+                try:
+                    return obs.loiter_hold(args.hold_s)
+                finally:
+                    if wind:
+                        with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
+                            ParamClient(link).write(calm, tmp, label="sim")
+
+            if wind:
+                print(f"holds in wind {args.gust} m/s, turbulence {args.gust / 2} m/s, 30 deg "
+                      f"up", flush=True)
             for run in range(args.runs):
-                before = obs.loiter_hold(args.hold_s)
+                before = hold()
                 print(line("before", before), flush=True)
                 t = time.monotonic()
                 try:
@@ -167,16 +194,24 @@ def main() -> int:
                 except MrftError as err:
                     result = err.partial_result  # type: ignore[attr-defined]
                     status, error = result.status, str(err)
-                written = [c.name for c in result.parameters]
+                written = {c.name: f"{c.old:.4g}->{c.new:.4g}" for c in result.parameters}
+                tuned = [lp.value for lp, r in result.loops.items() if r.state == "tuned"]
                 print(f"run {run}: tune {status} in {time.monotonic() - t:.1f} s "
-                      f"({result.duration_s:.1f} s from take-off); written {written}; "
+                      f"({result.duration_s:.1f} s from take-off, load "
+                      f"{os.getloadavg()[0]:.1f}); loops tuned {tuned}; written {written}; "
                       f"hover check {result.hover_check}; link "
                       f"{result.link.line() if result.link else '-'} {error}", flush=True)
                 obs.land_and_wait()
                 if not result.backup:
                     continue
-                after = obs.loiter_hold(args.hold_s)
+                after = hold()
                 print(line("after", after), flush=True)
+                worse = [k for k in ("alt_spread_m", "max_climb_m_s", "throttle_saturated")
+                         if after[k] > 1.2 * before[k] + (0.01 if k != "throttle_saturated"
+                                                          else 0.0)]
+                print(f"run {run}: hold after the tune "
+                      f"{'worse in ' + ', '.join(worse) if worse else 'as good or better'}"
+                      f"; backup restored", flush=True)
                 with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
                     ParamClient(link).restore(result.backup, tmp)
         finally:

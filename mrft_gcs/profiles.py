@@ -26,10 +26,15 @@ altitude (``u``: normalised collective-thrust deviation; ``Kc`` [1/m], ``Kd`` [s
     position P = Kc/Kd, velocity I = D = 0.
     ArduPilot (``accel_p`` set): throttle = hover + 0.001 ACCZ_P (a_sp - a) with
     accelerations in cm/s^2, i.e. ``A = 0.1 ACCZ_P`` of throttle per m/s^2 (the
-    metre-based PSC_D_ACC_P is that 0.1 ACCZ_P itself: ``accel_p_per_m_s2`` 1); with the
-    measured acceleration a = g du / hover fed straight back, du = A/(1 + A g/hover)
-    a_sp. So VELZ_P = Kd (1 + A g / hover) / A and POSZ_P = Kc/Kd. Assumes the
-    acceleration feedback is fast next to the altitude loop and ACCZ_I small.
+    metre-based PSC_D_ACC_P is that 0.1 ACCZ_P itself: ``accel_p_per_m_s2`` 1), plus
+    ACCZ_I, error filters on the velocity and acceleration loops and a 2 Hz throttle
+    low-pass. With the identified altitude model, POSZ_P and VELZ_P are chosen so that
+    this whole cascade equals the PD at the PD's crossover
+    (:func:`ardupilot_altitude_cascade`), the throttle filter being in the model when the
+    relay flew through it (the profile's ``test_params``). Without a model (dry
+    conversions): the measured acceleration a = g du / hover fed straight back gives
+    du = A/(1 + A g/hover) a_sp, so VELZ_P = Kd (1 + A g / hover) / A and POSZ_P =
+    Kc/Kd, which holds only where the acceleration loop is fast next to the altitude loop.
 """
 
 from __future__ import annotations
@@ -43,9 +48,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from mrft_gcs.errors import ParameterError, UsageError
 from mrft_gcs.link.modes import CustomMode
 from mrft_gcs.loops import Loop
+from mrft_gcs.plant import InnerModel
 from mrft_gcs.telemetry import AutopilotFamily
 
 if TYPE_CHECKING:
@@ -71,6 +79,8 @@ __all__ = [
     "clamp_note",
     "params_in_range",
     "fit_profile",
+    "AltitudeCascade",
+    "ardupilot_altitude_cascade",
 ]
 
 G_M_S2 = 9.80665
@@ -141,6 +151,18 @@ class AltitudeParams:
     #: throttle per m/s^2 of acceleration error per unit of ``accel_p``: 0.1 where the
     #: loop works in cm/s^2 (PSC_ACCZ_P), 1 where it works in m/s^2 (PSC_D_ACC_P)
     accel_p_per_m_s2: float = 0.1
+    #: ArduPilot's acceleration loop beyond its P, written with the gains so that the
+    #: cascade the conversion matches is the one on the vehicle (None: not written, the
+    #: value is assumed): I (same units as ``accel_p``), the input filter on its error (Hz)
+    accel_i: str | None = None
+    accel_i_value: float = 1.0
+    accel_filt: str | None = None
+    accel_filt_hz: float = 20.0
+    #: the velocity PID's input filter on its error (Hz)
+    vel_filt: str | None = None
+    vel_filt_hz: float = 5.0
+    #: the low-pass on the measured acceleration (ArduPilot INS_ACCEL_FILTER, Hz; 0: none)
+    accel_meas_filt_hz: float = 0.0
     #: why a tune must not write this cascade's gains ('' : it may): a mapping not yet
     #: proven in the autopilot's own hold mode
     not_written: str = ""
@@ -168,6 +190,10 @@ class AutopilotProfile:
     versions: tuple[tuple[int, int], tuple[int, int]] | None = None
     #: bundled profiles of the same autopilot with other parameter names (another version)
     alternatives: tuple[str, ...] = ()
+    #: ``name -> value`` set before arming so that the relay tests see the plant the
+    #: written gains will fly (``[test_params]``); backed up, restored after the flight
+    #: and on any abort
+    test_params: Mapping[str, float] = field(default_factory=dict)
 
     def fits_version(self, version: tuple[int, ...] | None) -> bool:
         """True if ``version`` is in :attr:`versions` (or either is unknown)."""
@@ -260,6 +286,30 @@ def _positive(table: Mapping[str, Any], key: str, where: str, default: float) ->
     return value
 
 
+def _nonnegative(table: Mapping[str, Any], key: str, where: str, default: float) -> float:
+    value = table.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (
+            math.isfinite(value) and value >= 0):
+        raise UsageError(f"{where}: '{key}' must be a number >= 0, got {value!r}")
+    return float(value)
+
+
+def _test_params(data: Mapping[str, Any], source: str) -> dict[str, float]:
+    """``[test_params]``: ``NAME = value`` set for the flight and restored after it."""
+    where = f"{source} [test_params]"
+    table = data.get("test_params", {})
+    if not isinstance(table, dict):
+        raise UsageError(f"{where}: must be a table of NAME = value")
+    out: dict[str, float] = {}
+    for name, value in table.items():
+        _pname({"name": name}, "name", where)
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(
+                value):
+            raise UsageError(f"{where}: '{name}' must be a finite number, got {value!r}")
+        out[name] = float(value)
+    return out
+
+
 def parse_profile(data: Mapping[str, Any], source: str = "<profile>") -> AutopilotProfile:
     """Validate a parsed TOML table into a profile (UsageError naming the field)."""
     ap = _need(data, "autopilot", dict, source)
@@ -304,6 +354,13 @@ def parse_profile(data: Mapping[str, Any], source: str = "<profile>") -> Autopil
         accel_p=_optional_pname(alt_t, "accel_p", wal),
         accel_p_value=_positive(alt_t, "accel_p_value", wal, 0.5),
         accel_p_per_m_s2=_positive(alt_t, "accel_p_per_m_s2", wal, 0.1),
+        accel_i=_optional_pname(alt_t, "accel_i", wal),
+        accel_i_value=_nonnegative(alt_t, "accel_i_value", wal, 1.0),
+        accel_filt=_optional_pname(alt_t, "accel_filt", wal),
+        accel_filt_hz=_nonnegative(alt_t, "accel_filt_hz", wal, 20.0),
+        vel_filt=_optional_pname(alt_t, "vel_filt", wal),
+        vel_filt_hz=_nonnegative(alt_t, "vel_filt_hz", wal, 5.0),
+        accel_meas_filt_hz=_nonnegative(alt_t, "accel_meas_filt_hz", wal, 0.0),
         not_written=str(alt_t.get("not_written", "")))
     alternatives = ap.get("alternatives", [])
     if not (isinstance(alternatives, list) and all(isinstance(a, str) for a in alternatives)):
@@ -313,7 +370,7 @@ def parse_profile(data: Mapping[str, Any], source: str = "<profile>") -> Autopil
         description=str(ap.get("description", "")), actuation=actuation, modes=modes,
         safety=safety, roll=angle("roll"), pitch=angle("pitch"), side=side,
         altitude=altitude, source=source, versions=_versions(ap, w),
-        alternatives=tuple(alternatives))
+        alternatives=tuple(alternatives), test_params=_test_params(data, source))
     return replace(prof, param_ranges=_ranges(data, source, prof.parameter_names()))
 
 
@@ -351,8 +408,115 @@ def _accel_gain(alt: AltitudeParams, accel_p: float | None = None) -> float:
     return alt.accel_p_per_m_s2 * (alt.accel_p_value if accel_p is None else accel_p)
 
 
+@dataclass(frozen=True)
+class AltitudeCascade:
+    """ArduCopter's altitude cascade matched to a PD on an identified altitude model.
+
+    Attributes
+    ----------
+    pos_p, vel_p : float
+        PSC_POSZ_P [1/s] and PSC_VELZ_P [1/s] (the same numbers in the metre-based names).
+    crossover_rad_s : float
+        Where the PD's loop ``G (Kc + Kd s)`` crosses 1 [rad/s]; the onboard loop equals it
+        there in gain and phase.
+    pd_margin_deg, cascade_margin_deg : float
+        Phase margins of the PD's loop and of the onboard cascade's loop [deg].
+    cascade_crossover_rad_s : float
+        Where the onboard loop crosses 1 [rad/s].
+    cascade_gain_margin : float
+        Factor on the onboard loop's gain that would make it cross -180 deg at unit gain
+        above its crossover (inf: it never crosses there).
+    low_gain_ratio : float
+        ``|L_cascade| / |L_pd|`` at a fifth of the crossover (> 1: the acceleration loop's
+        integrator adds low-frequency gain).
+    """
+
+    pos_p: float
+    vel_p: float
+    crossover_rad_s: float
+    pd_margin_deg: float
+    cascade_margin_deg: float
+    cascade_crossover_rad_s: float
+    cascade_gain_margin: float
+    low_gain_ratio: float
+
+
+def _lowpass(hz: float, s: np.ndarray) -> np.ndarray:
+    return np.ones_like(s) if hz <= 0 else 1.0 / (1.0 + s / (2 * math.pi * hz))
+
+
+def _crossover(w: np.ndarray, loop: np.ndarray) -> int:
+    """Index of the first frequency of ``w`` at which ``|loop|`` falls through 1 (-1: none)."""
+    above = np.abs(loop) >= 1.0
+    idx = np.flatnonzero(above[:-1] & ~above[1:])
+    return int(idx[0]) + 1 if len(idx) else -1
+
+
+def ardupilot_altitude_cascade(model: InnerModel, gains: PDGains,
+                               alt: AltitudeParams) -> AltitudeCascade:
+    """PSC_POSZ_P and PSC_VELZ_P whose closed cascade equals ``gains`` at the crossover.
+
+    ArduCopter's altitude controller (AC_PosControl::update_U_controller) is
+    ``u = C_a (a_sp - F_m a)``, ``a_sp = V F_v (P (z_sp - z) - v)`` with ``C_a = A (1 +
+    I/(P_a s)) F_a`` (``A = accel_p_per_m_s2 ACCZ_P`` throttle per m/s^2, ``F_a`` its error
+    filter), ``F_v`` the velocity error filter and ``F_m`` the low-pass on the measured
+    acceleration ``a = s^2 z``. Its loop is ``L = G C_a (V F_v (P + s) + s^2 F_m)``
+    against the PD's ``G (Kc + Kd s)``. Equal at the PD's crossover ``w``:
+    ``V (P + jw) = ((Kc + j w Kd) / C_a(jw) + w^2 F_m(jw)) / F_v(jw)``, one complex
+    equation for the two real gains. The throttle low-pass the controller adds (2 Hz) is
+    in ``G`` when the relay test flew through the same filter (``test_params``).
+
+    Raises
+    ------
+    ValueError
+        The PD does not cross over, or the match needs a gain <= 0.
+    """
+    w = np.geomspace(0.05, 500.0, 4000)
+    s = 1j * w
+    g = model.K * np.exp(-model.tau * s) / (s * (model.T_prop * s + 1) * (model.T1 * s + 1))
+    pd = g * (gains.Kc + gains.Kd * s)
+    i = _crossover(w, pd)
+    if i < 0:
+        raise ValueError("the altitude PD's loop never crosses unit gain")
+    wc = float(w[i])
+    sc = 1j * wc
+    a = _accel_gain(alt)
+    ratio_i = alt.accel_i_value / alt.accel_p_value  # the I term's zero [rad/s]
+
+    def c_acc(x: Any) -> Any:
+        return a * (1 + ratio_i / x) * _lowpass(alt.accel_filt_hz, x)
+
+    fm = _lowpass(alt.accel_meas_filt_hz, np.array([sc]))[0]
+    fv = _lowpass(alt.vel_filt_hz, np.array([sc]))[0]
+    z = ((gains.Kc + gains.Kd * sc) / c_acc(sc) + wc ** 2 * fm) / fv
+    if not (z.imag > 0 and z.real > 0):
+        raise ValueError(f"no positive PSC_POSZ_P / PSC_VELZ_P match the altitude PD at "
+                         f"{wc:.3g} rad/s (acceleration loop too slow for it)")
+    vel_p = float(z.imag / wc)
+    pos_p = float(z.real / vel_p)
+    cas = g * c_acc(s) * (vel_p * _lowpass(alt.vel_filt_hz, s) * (pos_p + s)
+                          + s ** 2 * _lowpass(alt.accel_meas_filt_hz, s))
+    j = _crossover(w, cas)
+    if j < 0:
+        raise ValueError("the matched cascade's loop never crosses unit gain")
+
+    def phase_from(loop: np.ndarray, k: int) -> np.ndarray:
+        """Phase [deg] from index k up, unwrapped, starting in (-360, 0]."""
+        ph = np.degrees(np.unwrap(np.angle(loop[k:])))
+        return ph - 360.0 * math.ceil(ph[0] / 360.0)
+
+    ph = phase_from(cas, j)
+    beyond = np.flatnonzero((ph[:-1] > -180) & (ph[1:] <= -180))
+    gm = float(1 / np.abs(cas[j + beyond[0] + 1])) if len(beyond) else math.inf
+    k5 = int(np.searchsorted(w, wc / 5))
+    return AltitudeCascade(pos_p, vel_p, wc, float(180.0 + phase_from(pd, i)[0]),
+                           float(180.0 + ph[0]), float(w[j]), gm,
+                           float(np.abs(cas[k5]) / np.abs(pd[k5])))
+
+
 def gains_to_params(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
-                    hover_thrust: float) -> dict[str, float]:
+                    hover_thrust: float,
+                    models: Mapping[Loop, InnerModel] | None = None) -> dict[str, float]:
     """Parameter values for the loops in ``gains`` (others are left out).
 
     Parameters
@@ -360,6 +524,16 @@ def gains_to_params(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
     hover_thrust : float
         The vehicle's hover thrust in [0, 1] (``MPC_THR_HOVER`` / ``MOT_THST_HOVER``),
         read from the vehicle; used by the altitude conversion.
+    models : mapping, optional
+        Identified models; with the altitude model, a profile with an acceleration loop
+        (``accel_p``: ArduPilot) gets the cascade matched at the crossover
+        (:func:`ardupilot_altitude_cascade`, with its acceleration I and filters written
+        too); without it, the fast-acceleration-loop approximation of the module docstring.
+
+    Raises
+    ------
+    UsageError
+        Gains not positive and finite, or no cascade matches the altitude PD.
 
     Examples
     --------
@@ -382,7 +556,20 @@ def gains_to_params(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
     if Loop.ALTITUDE in gains:
         g, alt = gains[Loop.ALTITUDE], profile.altitude
         out[alt.pos_p] = _ratio(g, Loop.ALTITUDE)
-        if alt.accel_p:
+        model = (models or {}).get(Loop.ALTITUDE)
+        if alt.accel_p and model is not None:
+            try:
+                cas = ardupilot_altitude_cascade(model, g, alt)
+            except ValueError as err:
+                raise UsageError(f"altitude: {err}") from None
+            out[alt.pos_p], out[alt.vel_p] = cas.pos_p, cas.vel_p
+            out[alt.accel_p] = alt.accel_p_value
+            for name, value in ((alt.accel_i, alt.accel_i_value),
+                                (alt.accel_filt, alt.accel_filt_hz),
+                                (alt.vel_filt, alt.vel_filt_hz)):
+                if name:
+                    out[name] = value
+        elif alt.accel_p:
             a = _accel_gain(alt)
             out[alt.accel_p] = alt.accel_p_value
             out[alt.vel_p] = g.Kd * (1 + a * G_M_S2 / hover_thrust) / a
@@ -432,7 +619,9 @@ def params_to_gains(profile: AutopilotProfile, values: Mapping[str, float]) -> d
 #: what each profile key is, in words; I and D terms the design sets to zero
 _STAGES = {"angle_p": "angle", "rate_p": "rate", "rate_k": "rate", "pos_p": "position",
            "vel_p": "velocity", "accel_p": "acceleration", "hover_thrust": "hover thrust",
-           "rate_i": "rate I", "rate_d": "rate D", "vel_i": "velocity I", "vel_d": "velocity D"}
+           "rate_i": "rate I", "rate_d": "rate D", "vel_i": "velocity I", "vel_d": "velocity D",
+           "accel_i": "acceleration I", "accel_filt": "acceleration filter",
+           "vel_filt": "velocity filter"}
 
 
 def _roles(profile: AutopilotProfile) -> dict[str, tuple[tuple[Loop, ...], str]]:
@@ -527,7 +716,8 @@ def clamp_note(profile: AutopilotProfile, clamp: Clamp, designed: Mapping[Loop, 
 
 
 def params_in_range(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
-                    hover_thrust: float) -> ClampedParams:
+                    hover_thrust: float,
+                    models: Mapping[Loop, InnerModel] | None = None) -> ClampedParams:
     """:func:`gains_to_params`, clamped into the profile's ranges, with a note per clamp.
 
     What a tune writes (and dry-run reports): a value outside its range is replaced by
@@ -542,14 +732,18 @@ def params_in_range(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
     >>> r.notes[0].split(";")[0]
     "MC_ROLL_P: the tuned 4 is above the profile's range 0 to 3"
     """
-    wanted = gains_to_params(profile, gains, hover_thrust)
+    wanted = gains_to_params(profile, gains, hover_thrust, models)
     values, clamps = clamp_to_ranges(profile, wanted)
     hover = {profile.altitude.hover_thrust: hover_thrust}
     designed = params_to_gains(profile, {**wanted, **hover})
     in_effect = params_to_gains(profile, {**values, **hover})
     notes = tuple(clamp_note(profile, c, designed, in_effect) for c in clamps)
+    # a loop nothing was clamped on keeps its gains (the altitude cascade matched at the
+    # crossover does not invert to them by the fast-acceleration-loop formula)
+    moved = {lp for c in clamps for lp in c.loops}
     return ClampedParams(values, tuple(clamps), notes,
-                         {lp: g for lp, g in in_effect.items() if lp in gains})
+                         {lp: (g if lp in moved else PDGains(gains[lp].Kc, gains[lp].Kd))
+                          for lp, g in in_effect.items() if lp in gains})
 
 
 # ---------------------------------------------------------------------- firmware

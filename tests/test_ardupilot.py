@@ -13,6 +13,8 @@ from __future__ import annotations
 import socket
 import threading
 import time
+import tomllib
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -31,7 +33,16 @@ from mrft_gcs.link.firmware import (
 )
 from mrft_gcs.link.quality import RTT_PARAM_READ, RTT_TIMESYNC
 from mrft_gcs.loops import Loop
-from mrft_gcs.profiles import PDGains, fit_profile, gains_to_params, load_profile
+from mrft_gcs.plant import InnerModel
+from mrft_gcs.profiles import (
+    PROFILE_DIR,
+    PDGains,
+    ardupilot_altitude_cascade,
+    fit_profile,
+    gains_to_params,
+    load_profile,
+    parse_profile,
+)
 from mrft_gcs.telemetry import Attitude, AutopilotFamily, LocalPosition
 
 OLD_NAMES = {n: 1.0 for n in load_profile("ardupilot").parameter_names()}
@@ -112,13 +123,85 @@ def test_metre_based_acceleration_gain_gives_the_same_climb_rate_gain():
     assert new["PSC_D_POS_P"] == pytest.approx(old["PSC_POSZ_P"])
 
 
-def test_unproven_altitude_mapping_is_not_written_and_refused_when_asked(tmp_path):
+def test_altitude_mapping_not_written_when_a_profile_says_so_and_refused_when_asked(tmp_path):
+    assert not load_profile("ardupilot").altitude.not_written  # proven in LOITER (profile)
     prof = load_profile("ardupilot")
-    assert prof.altitude.not_written and prof.altitude.not_written not in prof.parameter_names()
-    assert not load_profile("px4").altitude.not_written
+    prof = replace(prof, altitude=replace(prof.altitude, not_written="not proven here"))
     with pytest.raises(UsageError, match="altitude cannot be written with profile ardupilot: "
-                                         ".*PSC_ACCZ_P"):
-        tune("udp:127.0.0.1:9", "ardupilot", loops=["altitude", "x"], backup_dir=tmp_path)
+                                         "not proven here"):
+        tune("udp:127.0.0.1:9", prof, loops=["altitude", "x"], backup_dir=tmp_path)
+
+
+# ArduCopter SITL's altitude through the 2 Hz throttle filter (PILOT_THR_FILT 2, baro noise
+# 0.2 m) as the relay identified it, with its PD; and what the relay found without the filter
+SITL_ALT = (InnerModel(K=12.92, T_prop=0.1529, T1=0.3139, tau=0.00203),
+            PDGains(Kc=2.9915, Kd=0.65085))
+UNFILTERED = (InnerModel(K=2.926, T_prop=0.00548, T1=0.0949, tau=0.00457),
+              PDGains(Kc=134.7, Kd=3.28))
+
+
+def _arducopter_loop(m: InnerModel, w: float, pos_p: float, vel_p: float, acc_p: float,
+                     acc_i: float, hz_acc: float, hz_vel: float, hz_imu: float) -> complex:
+    """AC_PosControl::update_U_controller as a loop at w rad/s, in cm and cm/s^2 as it runs:
+    vel_target = POSZ_P e; accel_target [cm/s^2] = VELZ_P lpf(vel_target - v) [cm/s];
+    throttle = 0.001 (ACCZ_P + ACCZ_I/s) lpf(accel_target - accel_measured) [cm/s^2]."""
+    s = 1j * w
+
+    def lpf(hz):
+        return 1 / (1 + s / (2 * np.pi * hz))
+
+    plant = m.K * np.exp(-m.tau * s) / (s * (m.T_prop * s + 1) * (m.T1 * s + 1))  # m/unit
+    z_cm = 100 * plant  # cm per unit throttle
+    accel_target = vel_p * lpf(hz_vel) * (pos_p * -z_cm - s * z_cm)  # for a unit throttle
+    error = accel_target - s * s * z_cm * lpf(hz_imu)
+    return -0.001 * (acc_p + acc_i / s) * lpf(hz_acc) * error  # loop = -(throttle back)
+
+
+def test_altitude_cascade_equals_the_pd_at_its_crossover():
+    model, gains = SITL_ALT
+    prof = load_profile("ardupilot")
+    out = gains_to_params(prof, {Loop.ALTITUDE: gains}, 0.39, {Loop.ALTITUDE: model})
+    cas = ardupilot_altitude_cascade(model, gains, prof.altitude)
+    w = cas.crossover_rad_s
+    s = 1j * w
+    pd = model.K * np.exp(-model.tau * s) / (s * (model.T_prop * s + 1) * (model.T1 * s + 1)) \
+        * (gains.Kc + gains.Kd * s)
+    assert abs(pd) == pytest.approx(1.0, abs=0.01)
+    onboard = _arducopter_loop(model, w, out["PSC_POSZ_P"], out["PSC_VELZ_P"],
+                               out["PSC_ACCZ_P"], out["PSC_ACCZ_I"], out["PSC_ACCZ_FLTE"],
+                               out["PSC_VELZ_FLTE"], 20.0)
+    assert onboard == pytest.approx(pd, rel=1e-6)
+    assert cas.cascade_margin_deg == pytest.approx(cas.pd_margin_deg, abs=0.5)
+    assert 10 < cas.pd_margin_deg < 60 and cas.cascade_gain_margin > 3
+    assert cas.low_gain_ratio > 1  # ACCZ_I: more low-frequency gain than the PD
+    # in ArduPilot's documented range neighbourhood, not the 61 / 227 of the fast-loop mapping
+    assert 2 < out["PSC_POSZ_P"] < 15 and 5 < out["PSC_VELZ_P"] < 40
+    assert {out[n] for n in ("PSC_VELZ_I", "PSC_VELZ_D")} == {0.0}
+    # the metre-based names: the same gains, the acceleration loop's P and I x 0.1
+    ned = gains_to_params(load_profile("ardupilot-ned"), {Loop.ALTITUDE: gains}, 0.39,
+                          {Loop.ALTITUDE: model})
+    assert ned["PSC_D_POS_P"] == pytest.approx(out["PSC_POSZ_P"])
+    assert ned["PSC_D_VEL_P"] == pytest.approx(out["PSC_VELZ_P"])
+    assert ned["PSC_D_ACC_P"] == pytest.approx(0.1 * out["PSC_ACCZ_P"])
+    assert ned["PSC_D_ACC_I"] == pytest.approx(0.1 * out["PSC_ACCZ_I"])
+
+
+def test_altitude_pd_beyond_the_acceleration_loop_is_refused():
+    """The 0.08 s cycles of a relay flown without the throttle filter design a PD crossing
+    over near 100 rad/s: no positive POSZ_P / VELZ_P reach it through ArduCopter's loop."""
+    model, gains = UNFILTERED
+    with pytest.raises(UsageError, match="no positive PSC_POSZ_P / PSC_VELZ_P"):
+        gains_to_params(load_profile("ardupilot"), {Loop.ALTITUDE: gains}, 0.39,
+                        {Loop.ALTITUDE: model})
+
+
+def test_test_params_are_parsed_and_checked():
+    assert load_profile("ardupilot").test_params == {"PILOT_THR_FILT": 2.0}
+    assert load_profile("px4").test_params == {}
+    data = tomllib.loads((PROFILE_DIR / "ardupilot.toml").read_text())
+    for bad in ({"PILOT_THR_FILT": "2"}, {"BAD NAME": 1.0}, {"X": float("nan")}):
+        with pytest.raises(UsageError, match="test_params"):
+            parse_profile({**data, "test_params": bad})
 
 
 # ---------------------------------------------------------------- hover check

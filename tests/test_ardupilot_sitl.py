@@ -25,6 +25,7 @@ from mrft_gcs.flight.api import tune
 from mrft_gcs.link import VehicleLink, measure_link, require_relay_capable
 from mrft_gcs.link.firmware import detect_firmware
 from mrft_gcs.link.quality import RTT_TIMESYNC, _param_read_rtts
+from mrft_gcs.loops import Loop
 from mrft_gcs.params import ParamClient
 from mrft_gcs.telemetry import AutopilotFamily
 
@@ -143,14 +144,16 @@ def test_parameters_backed_up_written_read_back_and_restored(copter, tmp_path):
         assert {n: p.value for n, p in client.read_many(names).items()} == pytest.approx(before)
 
 
-def test_tune_on_arducopter_writes_what_is_proven_and_gates_ok_on_the_hover(copter, tmp_path):
-    """The whole tune through the stock firmware (attitude path): x and y written and read
-    back, altitude flown and identified but never written (its mapping is not proven on
-    ArduCopter). Status ok only with the hover check in LOITER passed; where the hand-over
-    is not steady (the ground station's altitude PD from an altitude identification that is
-    not yet reliable on this firmware can leave a chattering throttle for LOITER to start
-    from) the tune must fail on the hover check, land, and say so. Then restore."""
+def test_tune_on_arducopter_writes_altitude_x_y_and_gates_ok_on_the_hover(copter, tmp_path):
+    """The whole tune through the stock firmware (attitude path). The altitude relay flies
+    through the 2 Hz throttle filter ArduCopter's own altitude loop has (test parameter
+    PILOT_THR_FILT, restored after), so its cycle is long and tall enough to identify, and
+    the altitude gains are matched to ArduCopter's cascade at the crossover: written and read
+    back with x and y. Status ok only with the hover check in LOITER passed (otherwise the
+    tune must fail on it, land and say so). Then restore."""
     serial0, _, _ = copter
+    with VehicleLink.connect(serial0, timeout_s=10) as link:
+        thr_filt = ParamClient(link).read("PILOT_THR_FILT").value
     t = time.monotonic()
     try:
         result = tune(serial0, "ardupilot", backup_dir=tmp_path, heartbeat_timeout_s=10)
@@ -161,18 +164,27 @@ def test_tune_on_arducopter_writes_what_is_proven_and_gates_ok_on_the_hover(copt
     except SafetyAbort as err:
         result = err.partial_result  # type: ignore[attr-defined]
         assert "hover check on the written gains in LOITER failed" in str(err), err
+    alt = result.loops[Loop.ALTITUDE]
     print(f"tune {result.status} after {time.monotonic() - t:.1f} s, {result.duration_s:.1f} s "
-          f"from take-off; {result.link.line() if result.link else ''}; {result.hover_check}")
+          f"from take-off (load {os.getloadavg()[0]:.1f}); altitude cycle {alt.period_s:.3f} s "
+          f"{alt.amplitude * 100:.1f} cm, {alt.identification.model if alt.identification else ''}"
+          f"; {result.link.line() if result.link else ''}; {result.hover_check}")
     try:
         assert result.hover_check is not None
         assert result.hover_check.passed == (result.status == "ok"), result.hover_check
+        # through the filter: cycles of ~0.6 s and centimetres, not 0.08 s and 0.6 mm
+        assert alt.period_s > 0.3 and alt.amplitude > 0.005, (alt.period_s, alt.amplitude)
+        assert any("PILOT_THR_FILT 0 -> 2" in n for n in result.notes), result.notes
         written = {c.name: c.new for c in result.parameters}
-        assert {"PSC_POSXY_P", "PSC_VELXY_P"} <= set(written)
-        assert not {"PSC_POSZ_P", "PSC_VELZ_P", "PSC_ACCZ_P"} & set(written)
-        assert any("altitude gains not written" in n for n in result.notes)
+        assert {"PSC_POSXY_P", "PSC_VELXY_P", "PSC_POSZ_P", "PSC_VELZ_P",
+                "PSC_ACCZ_P", "PSC_ACCZ_I"} <= set(written)
+        # the cascade match, not the 42-61 / 150-227 of the fast-loop mapping
+        assert 1 < written["PSC_POSZ_P"] < 20 and 3 < written["PSC_VELZ_P"] < 50, written
         with VehicleLink.connect(serial0, timeout_s=10) as link:
-            back = ParamClient(link).read_many(written)
+            client = ParamClient(link)
+            back = client.read_many(written)
             assert {n: p.value for n, p in back.items()} == pytest.approx(written)
+            assert client.read("PILOT_THR_FILT").value == thr_filt  # test parameter restored
     finally:
         with VehicleLink.connect(serial0, timeout_s=10) as link:
             link.land()

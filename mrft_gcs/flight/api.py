@@ -660,6 +660,7 @@ class _Run:
             if lp not in self.requested:
                 self.seq.leave_alone(lp, f"{NOT_REQUESTED}: not relay-tested; held where it "
                                          f"was and its parameters left as they were")
+        test_backup = self._set_test_params(client)
         try:
             self._fly(client)
         except KeyboardInterrupt:
@@ -668,9 +669,32 @@ class _Run:
         except BaseException:
             self._emergency_land()
             raise
+        finally:
+            self._restore_test_params(client, test_backup)
         if self.residuals:
             self._residuals()
         return self.result("ok")
+
+    def _set_test_params(self, client: ParamClient) -> Path | None:
+        """The profile's ``test_params`` (e.g. ArduCopter's throttle filter, so that the
+        altitude relay flies the filter the onboard altitude loop has), backed up first."""
+        if not self.prof.test_params:
+            return None
+        result = client.write(dict(self.prof.test_params), self.backup_dir, label="test")
+        changed = [f"{c.name} {c.old:g} -> {c.new:g}" for c in result.changes if c.old != c.new]
+        if changed:
+            self.notes.append(f"for the tests only ({self.prof.name} test_params): "
+                              f"{', '.join(changed)}; restored after the flight")
+        return result.backup_path
+
+    def _restore_test_params(self, client: ParamClient, backup: Path | None) -> None:
+        if backup is None:
+            return
+        try:
+            client.restore(backup, self.backup_dir)
+        except MrftError as err:
+            self.notes.append(f"the test parameters were not restored ({err}): restore "
+                              f"{backup} by hand")
 
     def _know_firmware(self) -> None:
         """Ask the firmware what it is, take the profile whose parameter names it has, and
@@ -982,7 +1006,15 @@ class _Run:
                     f"not written ({NOT_REQUESTED}): on the autopilot's own {inner_lp.value} "
                     f"gains the written {lp.value} gains hold only as far as the two agree")
         gains = {lp: PDGains(g.Kc, g.Kd) for lp, g in self.written.items()}
-        ranged = params_in_range(self.prof, gains, self.hover)  # clamped as dry-run does
+        models = {}
+        alt_ident = seq.loops[Loop.ALTITUDE].identification
+        if Loop.ALTITUDE in gains and alt_ident is not None and isinstance(alt_ident.model,
+                                                                             InnerModel):
+            # the cascade is matched on the onboard loop: the GCS delay taken out, as above
+            m = alt_ident.model
+            models[Loop.ALTITUDE] = dataclasses.replace(
+                m, tau=max(m.tau - self.delays.get(Loop.ALTITUDE, 0.0), 1e-4))
+        ranged = params_in_range(self.prof, gains, self.hover, models)  # clamped as dry-run does
         self.notes.extend(ranged.notes)
         values = ranged.values
         if not values:
