@@ -285,6 +285,10 @@ def run_live(seed: int) -> dict:
     rec["max_tilt_by_phase"] = {k: _num(x) for k, x in r.max_tilt_by_phase.items()}
     rec["notes"] = list(r.notes)
     rec["hover_error_m"] = _num(r.hover_error_m)
+    rec["verification"] = {
+        lp.value: {"passed": v.passed, "predicted_pm_deg": _num(v.predicted_pm_deg),
+                   "measured_pm_deg": _num(v.measured_pm_deg), "action": v.action}
+        for lp, lr in r.loops.items() if (v := lr.verification) is not None}
     identified = {lp: lr.identification for lp, lr in r.loops.items()
                   if lr.identification is not None}
     rec["identified"] = {lp.value: {"class": i.class_index, "model": i.model.as_dict(),
@@ -379,6 +383,17 @@ def summary(recs: list[dict]) -> list[str]:
             out.append(f"the same loops GCS-side (identified PD, GCS delay): PM min "
                        f"{min(gp):.1f} deg, {sum(p < 15 for p in gp)} under 15 deg; J max "
                        f"{max((j for j in gj if j is not None), default=math.nan):.1f} %")
+    pairs = [(v["measured_pm_deg"], r["loops"][k]["onboard_pm_deg"]) for r in recs
+             for k, v in r.get("verification", {}).items()
+             if v["measured_pm_deg"] is not None and k in r.get("loops", {})
+             and r["loops"][k]["onboard_pm_deg"] is not None]
+    if pairs:
+        err = [abs(m - t) for m, t in pairs]
+        redone = sum("re-designed" in v["action"] for r in recs
+                     for v in r.get("verification", {}).values())
+        out.append(f"in-air check: {len(pairs)} loops measured, |measured - onboard truth| PM "
+                   f"mean {np.mean(err):.1f} deg, max {max(err):.1f} deg, "
+                   f"{sum(e <= 3 for e in err)}/{len(err)} within 3 deg; {redone} re-designed")
     tilts = [r["max_tilt_deg"] for r in recs if r.get("max_tilt_deg") is not None]
     if tilts:
         out.append(f"largest tilt {max(tilts):.1f} deg; {sum(t > 35 for t in tilts)} vehicles "
