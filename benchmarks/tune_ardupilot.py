@@ -1,6 +1,7 @@
 """Tune a real ArduCopter (its own SITL build) and compare LOITER hold before and after.
 
     python benchmarks/tune_ardupilot.py [--hold-s 10] [--instance N] [--runs 1]
+                                        [--baro-noise 0.2] [--gust 4]
 
 Starts ArduCopter SITL with ``../shared/external/ardupilot-sitl/start.sh`` (parameters wiped,
 an instance of its own; ``$ARDUPILOT_SITL_DIR`` the build), then per run:
@@ -13,8 +14,12 @@ an instance of its own; ``$ARDUPILOT_SITL_DIR`` the build), then per run:
 
 Hold quality over the LOITER window, from an observer link (SERIAL2): altitude spread
 (max - min) and its standard deviation, largest |climb rate|, largest horizontal distance from
-where the hold began, largest tilt, and throttle saturation (share of VFR_HUD samples at 0 %
-or 100 %). ArduPilot's own AUTOTUNE is not run here yet (minutes per axis).
+where the hold began, largest tilt, throttle saturation (share of VFR_HUD samples at 0 % or
+100 %) and the throttle's standard deviation. ``--baro-noise 0.2`` turns on the SITL's baro
+noise for the whole run (tune included); ``--gust 4`` flies both holds in turbulent wind
+with an upward component, so that the altitude loop has something to reject. The hold
+after is called worse where altitude spread, its deviation, drift or saturation grew by
+more than 20 % (and 5 mm). ArduPilot's own AUTOTUNE is not run here yet (minutes per axis).
 """
 
 from __future__ import annotations
@@ -206,8 +211,12 @@ def main() -> int:
                     continue
                 after = hold()
                 print(line("after", after), flush=True)
-                worse = [k for k in ("alt_spread_m", "max_climb_m_s", "throttle_saturated")
-                         if after[k] > 1.2 * before[k] + (0.01 if k != "throttle_saturated"
+                # a hold is judged on how far altitude and position wander and on throttle
+                # saturation; a stiffer loop answers gusts with faster, smaller corrections,
+                # so its climb-rate peaks are reported but not held against it
+                worse = [k for k in ("alt_spread_m", "alt_std_m", "max_drift_m",
+                                     "throttle_saturated")
+                         if after[k] > 1.2 * before[k] + (0.005 if k != "throttle_saturated"
                                                           else 0.0)]
                 print(f"run {run}: hold after the tune "
                       f"{'worse in ' + ', '.join(worse) if worse else 'as good or better'}"

@@ -1014,7 +1014,16 @@ class _Run:
             m = alt_ident.model
             models[Loop.ALTITUDE] = dataclasses.replace(
                 m, tau=max(m.tau - self.delays.get(Loop.ALTITUDE, 0.0), 1e-4))
-        ranged = params_in_range(self.prof, gains, self.hover, models)  # clamped as dry-run does
+        try:
+            ranged = params_in_range(self.prof, gains, self.hover, models)  # as dry-run does
+        except UsageError as err:
+            if not models:
+                raise
+            # the other loops' gains still go in; the vehicle keeps its own altitude gains
+            self.notes.append(f"altitude gains not written: {err}")
+            gains.pop(Loop.ALTITUDE)
+            self.written.pop(Loop.ALTITUDE, None)
+            ranged = params_in_range(self.prof, gains, self.hover)
         self.notes.extend(ranged.notes)
         values = ranged.values
         if not values:
