@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mrft_gcs.flight.controllers import FlightState, PDLoop, YawHold, catch_pd, wrap_pi
 from mrft_gcs.features import crosses_setpoint, rising_switches
+from mrft_gcs.flight.controllers import FlightState, PDLoop, YawHold, catch_pd, wrap_pi
 from mrft_gcs.flight.noise import ComplementaryFilter, NoiseEstimator
 from mrft_gcs.flight.takeoff import TABLE_V, TakeoffController, TakeoffSettings
 from mrft_gcs.identify import CycleDetector, CycleStatus, Identification, RelaySettings
@@ -142,6 +142,26 @@ class LoopTest:
     #: damping PD (Kc, Kd) that holds the axis while a run-away is caught (None: relay)
     cycle: tuple[float, float] = (_NAN, _NAN)
     catch: tuple[float, float] | None = None
+    #: roll/pitch: the amplitude the relay takes once its first period is measured and
+    #: whether that is done; (t, u, y, rate) since the relay's first switch (its periods run
+    #: from one turn of the axis to the next the same way); the turns seen in it; the
+    #: measured swing per unit of h (rad); times resized; the catch hands back inside this
+    #: share of the cycle's envelope (a resized relay restarts nearly at rest)
+    h_goal: float = _NAN
+    sized: bool = True
+    probe: list = field(default_factory=list)
+    turns: list = field(default_factory=list)
+    turn_sign: float = 0.0
+    probe_switches: int = 0
+    pushed_away: int = 0  # roll/pitch: times the relay was turned round early (see _attitude)
+    from_rest: bool = False  # roll/pitch: the relay restarted at rest after it was resized
+    amp_per_h: float = _NAN
+    resizes: int = 0
+    catch_release: float = 1.0
+    t_catch_s: float = _NAN
+    bias_votes: list = field(default_factory=list)  # mean torque of the last periods
+    #: roll/pitch before the first period: (t, relay state, de/dt)
+    probe_rate: deque = field(default_factory=lambda: deque(maxlen=400))
 
     def restart_detection(self) -> None:
         """Forget the cycles seen so far: the relay starts over."""
@@ -171,6 +191,15 @@ class SequenceConfig:
     brake_after_attitude: bool = True
     max_tilt_cmd_rad: float = 0.35
     airborne_m: float = 0.03
+    #: lift-off as the attitude sees it: after the take-off command, a roll/pitch rate beyond
+    #: ``liftoff_rate_sigmas`` x its ground noise (at least ``liftoff_rate_floor_rad_s``) or
+    #: an angle off its ground value by more than the relay's noise band starts the attitude
+    #: relays. A centre-of-mass offset is a torque the ground carries until lift-off; waiting
+    #: for ``airborne_m`` on the (delayed) altitude left it 0.15-0.25 s to tilt the vehicle
+    liftoff_rate_sigmas: float = 5.0
+    liftoff_rate_floor_rad_s: float = 0.05
+    #: ... once the thrust command is this share of the hover guess (0.1 without one)
+    liftoff_thrust_share: float = 0.7
     #: cycles handed to identification (the classifier input averages up to four)
     identify_cycles: int = 4
     #: ... except altitude and x/y, which the tune waits for (x and y start once altitude is
@@ -247,6 +276,29 @@ class SequenceConfig:
     #: classifiers' default (Table V: 0.05) gives cycles of 0.01-0.016 rad at beta -0.7 on
     #: the bundled airframes, too small to clear a 4-sigma band of 0.8 mrad noise
     h_att_min: float = 0.12
+    #: the roll/pitch relays start at this amplitude (Table V's h_att), and their first
+    #: cycle measures how far the axis swings per unit of h and the torque that holds it
+    #: on average (a centre-of-mass offset: the mean relay output over one period, as the
+    #: plant integrates). The relay then takes ``h_att_min`` (or a raised amplitude), but no
+    #: more than swings the axis ``att_amp_max_rad``, and that mean torque as its bias when
+    #: it exceeds ``att_bias_min`` of h. At a fixed 0.12 the cycles of light, agile vehicles
+    #: in the population reached 15-34 deg per axis (harmonic balance, GCS delay included)
+    h_att_start: float = 0.05
+    h_att_floor: float = 0.02
+    #: a relay pushing back for this long while the axis still speeds away is beaten by a
+    #: torque bias (longer than the push-back takes to act: delays and motor lag, up to 0.15 s here)
+    att_bias_window_s: float = 0.25
+    att_amp_max_rad: float = 0.12
+    att_bias_min: float = 0.2
+    #: a larger mean torque is no centre-of-mass offset (3 % of the arm is 0.01-0.05) but a
+    #: disturbed period, and is not taken as the bias
+    att_bias_max: float = 0.1
+    att_max_resizes: int = 3
+    #: a resized relay restarts once its axis is within this share of the expected cycle's
+    #: amplitude and peak rate (for three periods at most; then the run-away catch's full
+    #: envelope): a sign relay restarted 1.6 deg off its set point swung out to 16 deg,
+    #: twice its cycle, and locked into a lopsided cycle
+    att_restart_envelope: float = 0.1
     #: the same for the x/y relays (tilt, rad): the side classifiers' own 0.08. On x and
     #: y smoothed by the complementary filter (0.16 x the raw noise) it gives cycles of
     #: 1-10 cm, the noise 0.3-1.5 % of them; a noisier estimate raises it (``h_raise``).
@@ -326,7 +378,9 @@ class TuningSequence:
         self.state: FlightState | None = None
         self.tilt_cmd = (0.0, 0.0)  # (roll_ref, pitch_ref), rad
         self._t_att_prev = self._t_pos_prev = -math.inf
-        self.att_noise = NoiseEstimator(2)  # roll, pitch (rad)
+        self.att_noise = NoiseEstimator(4)  # roll, pitch (rad), their rates (rad/s)
+        self.lifted = False  # the attitude relays run (lift-off seen)
+        self._liftoff: tuple[float, ...] | None = None  # ground roll, pitch; thresholds
         self.pos_noise = NoiseEstimator(3)  # x, y (filtered), z up (m)
         self.xy_filter = (ComplementaryFilter(cfg.side_filter_k),
                           ComplementaryFilter(cfg.side_filter_k))
@@ -340,7 +394,9 @@ class TuningSequence:
         alt.beta, alt.h = self.altitude_relay.beta, self.altitude_relay.h
         for lp in (Loop.ROLL, Loop.PITCH):
             t = self.loops[lp]
-            t.beta, t.h = self.attitude_relay.beta, max(self.attitude_relay.h, cfg.h_att_min)
+            t.beta = self.attitude_relay.beta
+            t.h_goal = max(self.attitude_relay.h, cfg.h_att_min)
+            t.h, t.sized = min(t.h_goal, cfg.h_att_start), False
             if cfg.actuation is Actuation.ATTITUDE:
                 t.state = LoopState.LEFT_ALONE
                 t.note = AUTOPILOT_ATTITUDE
@@ -361,7 +417,8 @@ class TuningSequence:
                 self.yaw_ref = s.yaw_rad  # the heading the side axes will follow
                 s = self._heading_frame(s)
                 self._filter_xy(s)
-                self.att_noise.update(s.t_att_s, (s.roll_rad, s.pitch_rad))
+                self.att_noise.update(s.t_att_s, (s.roll_rad, s.pitch_rad, s.p_rad_s,
+                                                  s.q_rad_s))
                 self.pos_noise.update(s.t_pos_s, (*self.xy_f, self.z_f))
 
     def _filter_xy(self, s: FlightState) -> None:
@@ -392,6 +449,32 @@ class TuningSequence:
             alt = self.loops[Loop.ALTITUDE]
             alt.state, alt.t_relay_start_s = LoopState.RELAY, self.t_start_s
             alt.band = self.takeoff.band_m = self.noise_band(Loop.ALTITUDE)
+            self._liftoff = self._liftoff_thresholds(s)
+
+    def _liftoff_thresholds(self, s: FlightState) -> tuple[float, ...]:
+        """(ground roll, ground pitch, angle threshold roll, pitch, rate threshold p, q)."""
+        cfg = self.config
+        sig = self.att_noise.sigma()
+        if self.att_noise.samples >= 8:
+            r0, p0 = np.mean(np.asarray(self.att_noise.v)[:, :2], axis=0)
+        else:
+            r0, p0 = s.roll_rad, s.pitch_rad
+        rates = [max(cfg.liftoff_rate_floor_rad_s, cfg.liftoff_rate_sigmas * x)
+                 if np.isfinite(x) else cfg.liftoff_rate_floor_rad_s for x in sig[2:]]
+        return (float(r0), float(p0), self.noise_band(Loop.ROLL), self.noise_band(Loop.PITCH),
+                *rates)
+
+    def _lifted_off(self, s: FlightState, z: float) -> bool:
+        """The vehicle has left the ground: altitude, or roll/pitch off their ground values."""
+        if self.lifted or z > self.config.airborne_m or self.takeoff.switched:
+            return True
+        guess = self.config.hover_thrust_guess
+        if self._liftoff is None or self.loops[Loop.ALTITUDE].u < (
+                self.config.liftoff_thrust_share * guess if guess else 0.1):
+            return False  # no thrust to leave the ground with: vibration, not lift-off
+        r0, p0, br, bp, wp, wq = self._liftoff
+        return (abs(s.roll_rad - r0) > br or abs(s.pitch_rad - p0) > bp
+                or abs(s.p_rad_s) > wp or abs(s.q_rad_s) > wq)
 
     def leave_alone(self, loop: Loop, why: str) -> None:
         """Give up on a loop (it keeps what it had) and say why in the report."""
@@ -514,6 +597,10 @@ class TuningSequence:
         """
         relay = self.takeoff.relay if t.loop is Loop.ALTITUDE else t.relay
         h = min(self._h_max(t.loop), t.h * max(factor, self.config.h_raise))
+        if math.isfinite(t.amp_per_h) and t.amp_per_h > 0:
+            # roll/pitch: not past what swings the axis 1.5 x att_amp_max_rad (its measured
+            # swing per unit h), as when it was sized
+            h = min(h, 1.5 * self.config.att_amp_max_rad / t.amp_per_h)
         if relay is None or h <= t.h * 1.01:
             return False
         self.events.append(f"{t.loop.value}: relay amplitude raised from {t.h:.3g} to {h:.3g} "
@@ -524,6 +611,7 @@ class TuningSequence:
             self.takeoff.h = h
         t.raises += 1
         t.unarmed = t.switches = 0
+        t.probe, t.turns, t.turn_sign = [], [], 0.0  # roll/pitch sizing: periods at this h
         t.restart_detection()
         return True
 
@@ -564,7 +652,9 @@ class TuningSequence:
         # 48.4 -> 30.5 deg). Only once the detector has measured cycles since the relay
         # (re)started: its own start-up swing also carries past 3 amplitudes while it
         # pushes back (live racer250 roll: caught 10 times in a row at -0.18 rad)
-        outward = e * e_rate > 0 and math.isfinite(t.status.amplitude)
+        # (or once a resized roll/pitch relay restarted at rest: its cycle is measured, and
+        # its start-up swing is no larger; a 70 ms stall then swung racer250 to 29 deg)
+        outward = e * e_rate > 0 and (math.isfinite(t.status.amplitude) or t.from_rest)
         reach = abs(e)
         if outward and t.loop in (Loop.ROLL, Loop.PITCH):
             per, a = t.cycle if math.isfinite(t.cycle[0]) else (t.status.period_s,
@@ -574,6 +664,7 @@ class TuningSequence:
                 reach += e_rate ** 2 / (2 * math.pi * a * w0 ** 2 / 4)
         if reach > limit and (st * e < 0 or outward):
             relay.reset()
+            t.from_rest = False
             if (t.loop in (Loop.ROLL, Loop.PITCH) and not math.isfinite(t.cycle[0])
                     and math.isfinite(t.status.period_s) and t.status.amplitude > 0):
                 # no settled cycle yet: the last complete one still sizes a damping PD (a
@@ -730,7 +821,7 @@ class TuningSequence:
             if cfg.actuation is Actuation.ATTITUDE:
                 q = quat_from_euler(roll_ref, pitch_ref, self.yaw_ref)
                 return AttitudeTarget(s.t_att_s, q, thrust)
-            airborne = z > cfg.airborne_m or self.takeoff.switched
+            self.lifted = airborne = self._lifted_off(s, z)
             roll = self._attitude(Loop.ROLL, roll_ref, s.roll_rad, s.p_rad_s, s.t_att_s,
                                   new_att, airborne)
             pitch = self._attitude(Loop.PITCH, pitch_ref, s.pitch_rad, s.q_rad_s, s.t_att_s,
@@ -798,7 +889,7 @@ class TuningSequence:
         e = self.takeoff.z_relay_m - y
         if len(rises) != 3:
             return False
-        for a, b in zip(rises[:-1], rises[1:]):
+        for a, b in zip(rises[:-1], rises[1:], strict=True):
             f = falls[(falls > a) & (falls < b)]
             if f.size != 1 or crosses_setpoint(e, a, f[0], b):
                 return False
@@ -881,25 +972,219 @@ class TuningSequence:
             if t.catch is not None:
                 # back to the relay once inside its own cycle's envelope (angle and rate)
                 period, amp = t.cycle
+                if t_s - t.t_catch_s < 3 * period:  # a resized relay: at rest first
+                    amp *= t.catch_release
                 e = ref - y
                 if abs(e) < amp and abs(rate) < 2 * math.pi * amp / period:
-                    t.catch = None
+                    t.from_rest = t.catch_release < 1.0
+                    t.catch, t.catch_release = None, 1.0
                 else:
                     kc, kd = t.catch
                     lim = self.config.catch_torque_factor * t.h
-                    u = min(lim, max(-lim, kc * e - kd * rate))
+                    # about the relay's bias: the torque that holds the axis (a CoM offset)
+                    u = t.bias + min(lim, max(-lim, kc * e - kd * rate))
                     t.u = u
                     return u
             before = float(t.relay.state[0])
             u = float(t.relay.step(ref - y)[0])
             self._watch(t, t.relay, ref - y, before, -rate)
+            if t.relay is not None and self._drives_away(t, ref - y, -rate):
+                # the MRFT's lead braked a return swing short of its set point (too little
+                # swing to arm the switch: a torque bias, an agile vehicle at its first h)
+                # and now pushes the axis away from it: random vehicle 3 went from 4 to 40
+                # deg so. The relay is turned round at once, this point its new extreme
+                e = ref - y
+                r = t.relay
+                r.state[:] = 1.0 if e >= 0 else -1.0
+                r.ext[:] = r.entry[:] = e
+                r.first[:] = False
+                r.switches += 1
+                u = float(r.bias[0] + r.h[0] * r.state[0])
+                t.pushed_away += 1
             self._feed(t, t_s, u, y, new)
+            if new and t.relay is not None:
+                self._size_attitude_relay(t, t_s, u, y, ref - y, -rate)
             st = t.status
             if (st.cycles >= 2 and st.spread < 0.15 and math.isfinite(st.period_s)
                     and st.amplitude > 0):
                 t.cycle = (st.period_s, st.amplitude)
         t.u = u
         return u
+
+    def _size_attitude_relay(self, t: LoopTest, t_s: float, u: float, y: float, e: float,
+                             e_rate: float) -> None:
+        """Roll/pitch relay sizing, on each new attitude sample while the relay runs.
+
+        The first period (``h_att_start``) sets h and the bias; later periods resize a relay
+        whose swing passes 1.25 x ``att_amp_max_rad`` (a first period from rest can fall
+        short of the steady cycle) or whose mean torque moved off its bias by
+        ``att_bias_min`` of h. A period runs from one turn of the axis (rate through zero)
+        to the next turn the same way: the rate is zero at both ends, so the mean relay
+        output over it is the torque that holds the axis (the plant integrates); from
+        switch to switch it is not while the cycle still grows. Before the first period, a
+        relay that cannot turn the axis back (a torque bias over h: pushed back, yet
+        speeding away beyond ``att_amp_max_rad``) is doubled at once.
+        """
+        cfg, relay = self.config, t.relay
+        assert relay is not None
+        st = float(relay.state[0])
+        if not t.sized:
+            t.probe_rate.append((t_s, st, e_rate))
+            # pushed back for long enough to have acted, yet still speeding outward (a normal
+            # swing slows down once the push-back acts)
+            back = [r for r in t.probe_rate if r[0] >= t_s - cfg.att_bias_window_s]
+            if (len(back) >= 3 and back[0][0] <= t_s - 0.9 * cfg.att_bias_window_s
+                    and all(r[1] == st for r in back)
+                    and abs(e) > cfg.att_amp_max_rad and st * e > 0 and e * e_rate > 0
+                    and abs(e_rate) > abs(back[0][2]) and t.h < t.h_goal):
+                h = min(t.h_goal, 2.0 * t.h)
+                self.events.append(f"{t.loop.value}: relay amplitude raised from {t.h:.3g} to "
+                                   f"{h:.3g} (it could not turn the axis back: a torque bias)")
+                t.h = h
+                relay.h[:] = h
+                t.probe, t.turns, t.turn_sign = [], [], 0.0
+                t.probe_rate.clear()
+                return
+        n = int(relay.switches[0])
+        if n < t.probe_switches:  # the relay was restarted (a run-away): periods from here
+            t.probe, t.turns, t.turn_sign = [], [], 0.0
+        t.probe_switches = n
+        if n == 0:
+            return  # from the relay's first switch on
+        rate = -e_rate
+        t.probe.append((t_s, u, y, rate))
+        thr = self._turn_rate(t.loop)
+        if t.turn_sign == 0.0:
+            t.turn_sign = math.copysign(1.0, rate) if abs(rate) > thr else 0.0
+        elif rate * t.turn_sign < -thr:  # a turn, with hysteresis against gyro noise
+            t.turn_sign = -t.turn_sign
+            t.turns.append(len(t.probe) - 1)
+            if len(t.turns) >= 3:
+                self._period_done(t)
+            elif not t.sized and len(t.turns) == 2:
+                self._first_swing(t)
+
+    def _turn_rate(self, loop: Loop) -> float:
+        """Rate (rad/s) the axis must pass the other way for a turn: the lift-off threshold."""
+        if self._liftoff is None:
+            return self.config.liftoff_rate_floor_rad_s
+        return self._liftoff[4 if loop is Loop.ROLL else 5]
+
+    def _drives_away(self, t: LoopTest, e: float, e_rate: float) -> bool:
+        """Roll/pitch in its first cycles (until sized and two detector cycles): the relay
+        pushes the axis away from its set point while it moves away, beyond twice the noise
+        band. In a proper MRFT cycle the relay pushes away only to brake a swing that still
+        moves towards the set point."""
+        if t.sized and t.status.cycles >= 2 or t.catch is not None or t.relay is None:
+            return False
+        st = float(t.relay.state[0])
+        band = t.band if math.isfinite(t.band) else 0.0
+        return (st * e < 0 and e * e_rate > 0 and abs(e) > 2 * band
+                and abs(e_rate) > self._turn_rate(t.loop))
+
+    def _first_swing(self, t: LoopTest) -> None:
+        """Size at once on the first swing from turn to turn if it passed twice
+        ``att_amp_max_rad``: the first full period of an agile vehicle at ``h_att_start``
+        tilted it 40 deg (random vehicle 3, 82 g; its bias is measured on later periods)."""
+        i, j = t.turns
+        seg = np.array(t.probe[i:j + 1])
+        amp = 0.5 * float(np.ptp(seg[:, 2]))
+        if amp > 2.0 * self.config.att_amp_max_rad:
+            t.sized = True
+            t.probe_rate.clear()
+            t0, t1 = float(seg[0, 0]), float(seg[-1, 0])
+            self._resize_attitude_relay(t, np.array([t0, t0 + 2.0 * (t1 - t0)]), amp, t.bias,
+                                        "its first swing")
+
+    def _period_done(self, t: LoopTest) -> None:
+        """A period from turn to turn is complete: size the relay on it if due."""
+        cfg = self.config
+        i, j = t.turns[-3], t.turns[-1]
+        rec = np.array(t.probe[i:j + 1])
+        # keep what the next period needs: from the turn before the last on
+        k = t.turns[-2]
+        t.probe = t.probe[k:]
+        t.turns = [0, j - k]
+        if rec.shape[0] < 4:
+            return
+        ts, us, ys = rec[:, 0], rec[:, 1], rec[:, 2]
+        dt = np.diff(ts)
+        mean_u = float(np.sum(us[:-1] * dt) / np.sum(dt))
+        amp = 0.5 * float(np.ptp(ys))
+        if not t.sized:
+            t.sized = True
+            t.probe_rate.clear()
+            self._resize_attitude_relay(t, ts, amp, mean_u, "its first period")
+            return
+        if t.resizes >= cfg.att_max_resizes or not amp > 0:
+            return
+        if abs(ys[-1] - ys[0]) > 0.25 * amp:
+            t.bias_votes.clear()
+            return  # not yet periodic (growing or shrinking): its mean torque is no bias
+        t.bias_votes.append(mean_u)
+        # a new bias only on two periods in a row that agree (a ground-station stall holds
+        # the torque the vehicle gets, not the one recorded: one period can be far off)
+        tol = cfg.att_bias_min * t.h
+        m = t.bias_votes[-2:]
+        off = (len(m) == 2 and abs(m[0] - m[1]) < tol
+               and all(abs(x - t.bias) > tol for x in m))
+        if amp > 1.25 * cfg.att_amp_max_rad or off:
+            self._resize_attitude_relay(t, ts, amp, float(np.mean(m)) if off else t.bias,
+                                        "a period")
+
+    def _resize_attitude_relay(self, t: LoopTest, ts: np.ndarray, amp: float, mean_u: float,
+                               what: str) -> None:
+        """Set roll/pitch's h and bias from one period (its times, swing ``amp`` in rad, mean
+        torque): h no larger than swings the axis ``att_amp_max_rad`` (the swing is
+        proportional to h), the bias at the mean torque; the relay restarts at rest."""
+        cfg, relay = self.config, t.relay
+        assert relay is not None
+        h0 = t.h
+        h = t.h_goal if what.startswith("its first") else h0
+        if amp > 0:
+            t.amp_per_h = amp / h0
+            if t.amp_per_h * h > 1.25 * cfg.att_amp_max_rad:
+                # (with a margin: the first period after lift-off is no steady cycle yet and
+                # swung twice as far as the steady one on racer250's pitch)
+                h = cfg.att_amp_max_rad / t.amp_per_h
+            # no smaller than the noise needs (the amplitude ``ready`` raises to), within reason
+            sigma = t.band / cfg.noise_band_sigmas if math.isfinite(t.band) else 0.0
+            h_noise = sigma / (0.7 * cfg.max_noise_ratio * t.amp_per_h)
+            h = max(h, min(h_noise, t.h_goal, 1.5 * cfg.att_amp_max_rad / t.amp_per_h))
+        h = max(h, cfg.h_att_floor)
+        bias = mean_u if (cfg.att_bias_min * min(h, h0) < abs(mean_u - t.bias)
+                          and abs(mean_u) <= cfg.att_bias_max) else t.bias
+        notes = []
+        if abs(h - h0) > 0.01 * h0:
+            notes.append(f"amplitude {h0:.3g} -> {h:.3g}")
+        if bias != t.bias:
+            notes.append(f"bias {t.bias:+.3g} -> {bias:+.3g} (the mean torque)")
+        if not notes:
+            return
+        self.events.append(f"{t.loop.value}: relay sized on {what} ({amp:.3g} rad at h "
+                           f"{h0:.3g}): " + ", ".join(notes))
+        t.resizes += 1
+        t.h, t.bias = h, bias
+        relay.h[:] = h
+        relay.bias[:] = bias
+        t.probe, t.turns, t.turn_sign = [], [], 0.0
+        t.bias_votes.clear()
+        t.unarmed = t.switches = 0
+        t.ext = 0.0
+        t.restart_detection()
+        if amp > 0:  # the cycle to expect at the new h (sizes the run-away catch)
+            t.cycle = (float(ts[-1] - ts[0]), t.amp_per_h * h)
+        if amp > 0:
+            relay.reset()
+            # the relay restarts from rest at its set point: an MRFT (beta -0.7) switched to a
+            # smaller h or a new bias mid-swing swung out further or locked into a lopsided
+            # cycle that never crossed its set point, a sign relay restarted off its set point
+            # swung out to twice the cycle, and a larger h taken mid-swing (racer250 under
+            # stalls) tilted it 26 deg where 11 with the restart. A damping PD sized on that
+            # cycle brings the axis there first
+            t.catch = catch_pd(h, *t.cycle)
+            t.catch_release = cfg.att_restart_envelope
+            t.t_catch_s = float(ts[-1])
 
     # ------------------------------------------------------------------ display
     def snapshot(self) -> dict[str, object]:
