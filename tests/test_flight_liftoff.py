@@ -123,14 +123,14 @@ def test_unbiased_bundled_vehicle_keeps_its_relay_amplitude(vehicle):
 
 
 def test_agile_vehicle_relay_sized_to_its_swing():
-    # random vehicle 3: 82 g, thrust/weight 4, 42 ms of loop delay; at a fixed h of 0.12
-    # its roll/pitch cycles are 0.3-0.6 rad and the take-off tilted it past 35 deg
+    # random vehicle 3: 82 g, thrust/weight 4; at a fixed h of 0.12 (population benchmark,
+    # 42 ms of loop delay) its cycles were 0.3-0.6 rad and the take-off passed 35 deg
     af = random_airframe(3)
     seq, _, rec = fly_first(af, 5.0)
     cfg = seq.config
     for lp in (Loop.ROLL, Loop.PITCH):
         t = seq.loops[lp]
-        assert t.sized and t.h < 0.5 * t.h_goal, seq.events
+        assert t.sized and t.h < 0.7 * t.h_goal, seq.events
         # the swing per unit h measured on the first period, and h chosen so that the
         # cycle stays within att_amp_max_rad (or the floor set by the noise / h_att_floor)
         assert t.amp_per_h * t.h <= 1.5 * cfg.att_amp_max_rad or t.h == cfg.h_att_floor

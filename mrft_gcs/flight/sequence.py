@@ -276,23 +276,31 @@ class SequenceConfig:
     #: classifiers' default (Table V: 0.05) gives cycles of 0.01-0.016 rad at beta -0.7 on
     #: the bundled airframes, too small to clear a 4-sigma band of 0.8 mrad noise
     h_att_min: float = 0.12
-    #: the roll/pitch relays start at this amplitude (Table V's h_att), and their first
-    #: cycle measures how far the axis swings per unit of h and the torque that holds it
-    #: on average (a centre-of-mass offset: the mean relay output over one period, as the
-    #: plant integrates). The relay then takes ``h_att_min`` (or a raised amplitude), but no
-    #: more than swings the axis ``att_amp_max_rad``, and that mean torque as its bias when
-    #: it exceeds ``att_bias_min`` of h. At a fixed 0.12 the cycles of light, agile vehicles
-    #: in the population reached 15-34 deg per axis (harmonic balance, GCS delay included)
-    h_att_start: float = 0.05
+    #: the roll/pitch relays start at this amplitude (a little over Table V's h_att, 0.05),
+    #: and their first period measures how far the axis swings per unit of h and the torque
+    #: that holds it on average (a centre-of-mass offset: the mean relay output over one
+    #: period, as the plant integrates). The relay then takes ``h_att_min`` (or a raised
+    #: amplitude), but no more than swings the axis ``att_amp_max_rad``, and that mean
+    #: torque as its bias when it exceeds ``att_bias_min`` of h. At a fixed 0.12 the cycles
+    #: of light, agile vehicles in the population reached 15-34 deg per axis (harmonic
+    #: balance, GCS delay included). A 3 % centre-of-mass offset is up to 0.045 of torque:
+    #: 0.05 turned a 2.5 kg vehicle against 0.037 so slowly that it drifted 5 m away
+    #: (population benchmark, lockstep, 40 seeds: in-domain tuned 13 of 14 with 0.05, 14 with
+    #: 0.06 or 0.07; bundled airframes under stalls, 54 tunes: alike)
+    h_att_start: float = 0.06
+    #: ... and never below this (a torque a motor dead band or the noise would swamp)
     h_att_floor: float = 0.02
     #: a relay pushing back for this long while the axis still speeds away is beaten by a
     #: torque bias (longer than the push-back takes to act: delays and motor lag, up to 0.15 s here)
     att_bias_window_s: float = 0.25
+    #: per axis; both at once tilt about 10 deg. The noise needs up to 57 sigma (the raise
+    #: rule's target): 0.02-0.11 rad at the population's 0.4-2 mrad of attitude noise
     att_amp_max_rad: float = 0.12
     att_bias_min: float = 0.2
     #: a larger mean torque is no centre-of-mass offset (3 % of the arm is 0.01-0.05) but a
     #: disturbed period, and is not taken as the bias
     att_bias_max: float = 0.1
+    #: later periods may resize a relay this many times (each restarts its detection)
     att_max_resizes: int = 3
     #: a resized relay restarts once its axis is within this share of the expected cycle's
     #: amplitude and peak rate (for three periods at most; then the run-away catch's full
