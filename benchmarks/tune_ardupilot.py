@@ -1,7 +1,7 @@
 """Tune a real ArduCopter (its own SITL build) and compare LOITER hold before and after.
 
     python benchmarks/tune_ardupilot.py [--hold-s 10] [--instance N] [--runs 1]
-                                        [--baro-noise 0.2] [--gust 4]
+                                        [--baro-noise 0.2] [--gust 4] [--autotune]
 
 Starts ArduCopter SITL with ``../shared/external/ardupilot-sitl/start.sh`` (parameters wiped,
 an instance of its own; ``$ARDUPILOT_SITL_DIR`` the build), then per run:
@@ -19,7 +19,10 @@ where the hold began, largest tilt, throttle saturation (share of VFR_HUD sample
 noise for the whole run (tune included); ``--gust 4`` flies both holds in turbulent wind
 with an upward component, so that the altitude loop has something to reject. The hold
 after is called worse where altitude spread, its deviation, drift or saturation grew by
-more than 20 % (and 5 mm). ArduPilot's own AUTOTUNE is not run here yet (minutes per axis).
+more than 20 % (and 5 mm). ``--autotune`` first flies ArduPilot's own AUTOTUNE of roll and
+pitch (AUTOTUNE_AXES 3, from a 3 m LOITER, saved by landing and disarming in AUTOTUNE with the
+simulated RC throttle low), holds on its gains the same way, and puts them back before the
+tool's runs.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ import argparse
 import math
 import os
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
@@ -144,6 +148,67 @@ def line(name: str, f: dict[str, float]) -> str:
             f"{100 * f['throttle_saturated']:.0f} % (std {f['throttle_std_pct']:.1f} %)")
 
 
+#: ArduPilot's attitude gains AUTOTUNE changes (roll and pitch: AUTOTUNE_AXES 3)
+AUTOTUNE_PARAMS = tuple(f"ATC_{k}" for k in (
+    "ANG_RLL_P", "ANG_PIT_P", "RAT_RLL_P", "RAT_RLL_I", "RAT_RLL_D", "RAT_PIT_P", "RAT_PIT_I",
+    "RAT_PIT_D", "ACCEL_R_MAX", "ACCEL_P_MAX"))
+AUTOTUNE = 15
+
+
+def run_autotune(obs: Observer, serial0: str, rc_port: int, tmp: str,
+                 timeout_s: float = 900.0) -> tuple[float, dict[str, tuple[float, float]]]:
+    """ArduPilot's own AUTOTUNE of roll and pitch from a 3 m LOITER, saved the way a pilot
+    saves it (landed and disarmed in AUTOTUNE, here with the simulated RC throttle low).
+
+    Returns the seconds from entering AUTOTUNE to its success and ``name -> (old, new)``."""
+    with VehicleLink.connect(serial0, timeout_s=10) as link:
+        client = ParamClient(link)
+        old = {n: p.value for n, p in client.read_many(AUTOTUNE_PARAMS).items()}
+        client.write({"AUTOTUNE_AXES": 3.0}, tmp, label="autotune")
+    obs.mode(GUIDED)
+    obs.command(400, 1)
+    obs.command(22, 0, 0, 0, 0, 0, 0, 3.0)
+    end = time.monotonic() + 20
+    while time.monotonic() < end and obs.height() < 2.7:
+        pass
+    obs.mode(LOITER)
+    time.sleep(2.0)
+    obs.mode(AUTOTUNE)
+    t0 = time.monotonic()
+    done = math.nan
+    while time.monotonic() < t0 + timeout_s:
+        msg = obs.m.recv_match(type="STATUSTEXT", blocking=True, timeout=1.0)
+        text = msg.text if msg is not None else ""
+        if "AutoTune" in text:
+            print(f"  {time.monotonic() - t0:5.0f} s {text}", flush=True)
+        if "Success" in text:
+            done = time.monotonic() - t0
+            break
+        if "Failed" in text:
+            break
+    rc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+
+    def sticks(throttle: int) -> None:
+        rc.sendto(struct.pack("<8H", 1500, 1500, throttle, 1500, 1800, 1000, 1000, 1800),
+                  ("127.0.0.1", rc_port))
+
+    end = time.monotonic() + 30
+    while time.monotonic() < end and obs.height() > 0.05:
+        sticks(1000)  # descend in AUTOTUNE mode (its altitude hold follows the stick)
+        time.sleep(0.1)
+    for _ in range(30):
+        sticks(1000)
+        time.sleep(0.1)
+    obs.command(400, 0)  # disarm landed in AUTOTUNE: the firmware saves the tuned gains
+    for _ in range(10):
+        sticks(1500)
+        time.sleep(0.05)
+    rc.close()
+    with VehicleLink.connect(serial0, timeout_s=10) as link:
+        new = {n: p.value for n, p in ParamClient(link).read_many(AUTOTUNE_PARAMS).items()}
+    return done, {n: (old[n], new[n]) for n in old if new[n] != old[n]}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hold-s", type=float, default=10.0)
@@ -155,6 +220,9 @@ def main() -> int:
     ap.add_argument("--gust", type=float, default=0.0, metavar="M_S",
                     help="turbulent wind in the LOITER holds only (SIM_WIND_SPD, half of it "
                     "SIM_WIND_TURB, 30 deg up from level: a vertical disturbance)")
+    ap.add_argument("--autotune", action="store_true",
+                    help="first fly ArduPilot's own AUTOTUNE (roll, pitch), hold on its gains, "
+                    "restore them, then the tool's runs")
     args = ap.parse_args()
     instance = args.instance if args.instance is not None else next(
         i for i in range(61, 99) if not _listening(5760 + 10 * i))
@@ -188,6 +256,19 @@ def main() -> int:
             if wind:
                 print(f"holds in wind {args.gust} m/s, turbulence {args.gust / 2} m/s, 30 deg "
                       f"up", flush=True)
+            if args.autotune:
+                before = hold()
+                print(line("before", before), flush=True)
+                secs, changed = run_autotune(obs, f"tcp:127.0.0.1:{base}", 5501 + 10 * instance,
+                                             tmp)
+                print(f"AUTOTUNE (roll, pitch) {secs:.0f} s to success (load "
+                      f"{os.getloadavg()[0]:.1f}); saved "
+                      f"{ {n: f'{a:.4g}->{b:.4g}' for n, (a, b) in changed.items()} }", flush=True)
+                print(line("autotune", hold()), flush=True)
+                if changed:
+                    with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
+                        ParamClient(link).write({n: a for n, (a, _) in changed.items()}, tmp,
+                                                label="autotune-undo")
             for run in range(args.runs):
                 before = hold()
                 print(line("before", before), flush=True)
