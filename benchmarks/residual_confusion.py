@@ -8,13 +8,16 @@ a clean noise-free run (the SITL's discrete physics lags its nominal linear mode
 1 ms; see README), i.e. the model of the clean vehicle. Prints the confusion table,
 attribution accuracy over effect runs, false alarms on clean runs and the median residual
 reduction when the effect is named. Then, apart from those figures: the dead zone (which an
-unbiased relay cannot tell from a saturation) and clean runs under a relay with a bias.
+unbiased relay cannot tell from a saturation), clean runs under a relay with a bias, and
+roll runs analysed on the model the bundled classifier identifies from each run (as a live
+tune does: that model holds the lag of a sensor filter already).
 
 Speed part: writes a 10-minute .tlog at 250 Hz holding a roll relay test and times
 ``dry_run`` (read + find relay segments + residual analysis; identification when the
 bundled classifiers exist).
 
     .venv/bin/python benchmarks/residual_confusion.py [--seeds 2] [--clean 10] [--speed-only]
+        [--identified-only]
 """
 
 from __future__ import annotations
@@ -145,6 +148,49 @@ def confusion(seeds: int, clean: int) -> None:
     print(f"benchmark time {time.perf_counter() - t0:.0f} s")
 
 
+#: Roll runs whose model is the one the bundled classifier identifies from the run itself,
+#: as a live tune hands it over (the relay at the classifier's beta; the identification
+#: takes in the lag of whatever the run holds): (SITL effect, strengths); None = clean.
+IDENTIFIED = [("sensor_lpf", (10.0, 12.0, 15.0, 30.0)), ("extra_delay", (0.01, 0.02)),
+              ("torque_rate_limit", (4.0, 2.0)), ("input_bias", (0.02,)), (None, (0.0,) * 4)]
+
+
+def identified(seeds: int) -> None:
+    """Confusion on identified models (the live condition), roll only."""
+    from mrft_gcs.errors import MrftError
+    from mrft_gcs.identify import identify, relay_settings
+
+    try:
+        beta = relay_settings(LoopKind.ATTITUDE).beta
+    except MrftError as err:
+        print(f"identified models: skipped ({err})")
+        return
+    print(f"\nroll, model identified from the run (beta {beta}, h 0.08, 8 s; last 3 cycles)")
+    table: dict[str, Counter] = defaultdict(Counter)
+    for effect, values in IDENTIFIED:
+        for k, v in enumerate(values):
+            for s in range(seeds):
+                seed = 700 + 10 * k + s
+                rec = sitl_relay_record("roll", effects={effect: v} if effect else None,
+                                        seed=seed, beta=beta, h=0.08, duration_s=8.0)
+                cut = rec.t >= rec.t[-1] - 3.2
+                try:
+                    ident = identify(LoopKind.ATTITUDE, rec.t[cut], rec.u[cut], rec.y[cut],
+                                     beta=beta, h=rec.h)
+                except MrftError as err:
+                    print(f"  {effect or 'clean':18s} {v:<7g} seed {seed}: not identified ({err})")
+                    table[effect or "clean"]["not identified"] += 1
+                    continue
+                rep = analyse_residual(ident.model, RelayTest(beta, rec.h), rec.t, rec.u, rec.y,
+                                       band=rec.band, redesign=False)
+                table[effect or "clean"][rep.effect or "none"] += 1
+                print(f"  {effect or 'clean':18s} {v:<7g} seed {seed}: {_line(rep)}", flush=True)
+    cols = sorted({c for row in table.values() for c in row})
+    print(f"{'':22s}" + "".join(f"{c[:12]:>13s}" for c in cols))
+    for row, cnt in table.items():
+        print(f"{row:22s}" + "".join(f"{cnt.get(c, 0):13d}" for c in cols))
+
+
 def speed(repeat: int = 3) -> None:
     """Time ``dry_run`` on a 10-minute 250 Hz .tlog holding a roll relay test at the bundled
     classifier's beta (read, pairing, cycle detector, identification, residual analysis on
@@ -186,9 +232,15 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--clean", type=int, default=10)
     ap.add_argument("--speed-only", action="store_true")
+    ap.add_argument("--identified-only", action="store_true",
+                    help="only the runs on identified models (the live condition)")
     a = ap.parse_args()
+    if a.identified_only:
+        identified(a.seeds)
+        return
     if not a.speed_only:
         confusion(a.seeds, a.clean)
+        identified(a.seeds)
     speed()
 
 

@@ -50,6 +50,7 @@ from mrft_gcs.residual.effects import (
     RelayContext,
     candidate_effects,
 )
+from mrft_gcs.residual.noise import NoiseColour, noise_colour
 from mrft_gcs.residual.openloop import InputWindow, input_rms, input_window
 from mrft_gcs.residual.simulate import simulate_effects
 
@@ -277,6 +278,11 @@ def analyse_residual(model: InnerModel | SideModel, relay: Any, t, u, y, *,
                      ) -> ResidualReport:
     """Compare the model's simulated relay cycle with the measured one; name a missing effect.
 
+    On attitude loops a measurement whose noise is coloured as by a low-pass filter
+    (:func:`~mrft_gcs.residual.noise.noise_colour`) names ``sensor_lpf`` whatever the
+    cycle comparison named: an identified model holds the filter's lag already, so the
+    cycle alone does not show it (the cycle's choice is then an alternative).
+
     Parameters
     ----------
     model : InnerModel
@@ -312,6 +318,68 @@ def analyse_residual(model: InnerModel | SideModel, relay: Any, t, u, y, *,
     IdentificationError
         No complete relay cycle in the data, or the model does not oscillate under the relay.
     """
+    rep = _analyse_waveform(model, relay, t, u, y, kind=kind, effects=effects, hover=hover,
+                            band=band, grid=grid, rounds=rounds, sim_cycles=sim_cycles,
+                            floor=floor, min_reduction=min_reduction, redesign=redesign)
+    cands = candidate_effects(kind) if effects is None else tuple(effects)
+    lpf = next((e for e in cands if e.name == "sensor_lpf"), None)
+    if kind is not LoopKind.ATTITUDE or lpf is None or rep.effect == "sensor_lpf":
+        return rep
+    assert isinstance(model, InnerModel)
+    relay = RelayTest(float(relay.beta), float(relay.h), float(getattr(relay, "bias", 0.0)))
+    y = np.asarray(y, dtype=float)
+    dt = rep.measured.dt
+    ref = simulate_effects(model, relay.beta, relay.h, Knobs.neutral(1, hover), bias=relay.bias,
+                           dt=dt, duration_s=(y.size + 3 * rep.measured.period_s / dt) * dt,
+                           keep_s=y.size * dt, band=band).y[0]
+    colour = noise_colour(y, dt, ref[-y.size:])
+    if colour is None or not colour.coloured:
+        return rep
+    return _lpf_from_colour(model, relay, rep, lpf, colour, hover, band, sim_cycles,
+                            min_reduction, redesign)
+
+
+def _lpf_from_colour(model: InnerModel, relay: RelayTest, rep: ResidualReport, lpf: Effect,
+                     colour: NoiseColour, hover: float, band: float, sim_cycles: float,
+                     min_reduction: float, redesign: bool) -> ResidualReport:
+    """``sensor_lpf`` named from the noise's colour: at the cycle fit's cutoff when adding
+    the filter to the model explains the residual, else (the model holds its lag already)
+    at the colour's rough cutoff, with the cycle and the gains as they were."""
+    meas = rep.measured
+    ctx = RelayContext(relay.h, relay.bias, meas.period_s, meas.amplitude, meas.dt, hover)
+    alts = (rep.effect,) if rep.effect else ()
+    seen = (f"its noise is coloured as by a low-pass filter (lag-1 autocorrelation "
+            f"{colour.rho1:.2f} after a high-pass, white noise {colour.rho1_white:.2f})")
+    fit = next((f for f in rep.fits if f.name == lpf.name), None)
+    if fit is not None and rep.significant and fit.rms <= (1 - min_reduction) * rep.rms_before:
+        batch = _Batch()
+        batch.add(lpf, [fit.value])
+        after = _run(model, relay, batch, meas, hover, band, sim_cycles)[0]
+        gm = ge = None
+        if redesign:
+            gm, ge = _redesign(model, lpf, fit.value, ctx)
+        return ResidualReport(rep.rms_before, after.rms, lpf.name, {lpf.param: fit.value},
+                              rep.before, after, rep.significant, rep.threshold, rep.noise,
+                              meas, rep.fits, alts, gm, ge,
+                              f"{lpf.design_note(fit.value, ctx)}; {seen}", rep.open_loop)
+    lo, hi = lpf.bounds(ctx)
+    rough = 0.1 / meas.dt  # below it the noise tells little of where the corner lies
+    value = float(np.clip(colour.cutoff_hz, max(lo, 0.2 * rough), hi))
+    where = (f"cutoff about {value:.3g} Hz" if value >= rough else
+             f"cutoff below about {rough:.0f} Hz, which the noise cannot place closer")
+    gm = _redesign(model, lpf, value, ctx)[0] if redesign else None
+    note = (f"gains unchanged: the measurement is low-pass filtered ({seen}; {where}) and "
+            f"the model, which fits the cycle, holds its lag already")
+    return ResidualReport(rep.rms_before, rep.rms_before, lpf.name, {lpf.param: value},
+                          rep.before, rep.before, rep.significant, rep.threshold, rep.noise,
+                          meas, rep.fits, alts, gm, gm, note, rep.open_loop)
+
+
+def _analyse_waveform(model: InnerModel | SideModel, relay: Any, t, u, y, *, kind: LoopKind,
+                      effects: tuple[Effect, ...] | None, hover: float, band: float, grid: int,
+                      rounds: int, sim_cycles: float, floor: float, min_reduction: float,
+                      redesign: bool) -> ResidualReport:
+    """:func:`analyse_residual` on the cycle alone (no noise colour)."""
     if isinstance(model, SideModel) or kind is LoopKind.SIDE:
         raise IdentificationError("residual analysis covers the inner loops (roll, pitch, "
                                   "altitude); side loops (x, y) are not analysed")
