@@ -27,6 +27,7 @@ from mrft_gcs.link.firmware import detect_firmware
 from mrft_gcs.link.quality import RTT_TIMESYNC, _param_read_rtts
 from mrft_gcs.loops import Loop
 from mrft_gcs.params import ParamClient
+from mrft_gcs.profiles import SafetyLimits
 from mrft_gcs.telemetry import AutopilotFamily
 
 RECIPE = Path(os.environ.get("ARDUPILOT_SITL_RECIPE", Path(__file__).resolve().parents[2]
@@ -142,6 +143,26 @@ def test_parameters_backed_up_written_read_back_and_restored(copter, tmp_path):
         assert {n: p.value for n, p in client.read_many(names).items()} == pytest.approx(wanted)
         client.restore(result.backup_path, tmp_path)
         assert {n: p.value for n, p in client.read_many(names).items()} == pytest.approx(before)
+
+
+def test_test_parameters_restored_when_a_tune_aborts(copter, tmp_path):
+    """A tune stopped by a safety limit 3 s after take-off lands and puts PILOT_THR_FILT (set
+    for the altitude relay) back, with nothing else written."""
+    serial0, _, _ = copter
+    with VehicleLink.connect(serial0, timeout_s=10) as link:
+        thr_filt = ParamClient(link).read("PILOT_THR_FILT").value
+    limits = SafetyLimits(max_tilt_deg=30.0, max_altitude_m=4.0, max_distance_m=5.0,
+                          max_test_duration_s=3.0)
+    with pytest.raises(SafetyAbort, match="3 s limit") as info:
+        tune(serial0, "ardupilot", limits=limits, backup_dir=tmp_path, heartbeat_timeout_s=10)
+    result = info.value.partial_result  # type: ignore[attr-defined]
+    assert result.parameters == () and any("PILOT_THR_FILT" in n for n in result.notes)
+    with VehicleLink.connect(serial0, timeout_s=10) as link:
+        assert ParamClient(link).read("PILOT_THR_FILT").value == thr_filt
+        end = time.monotonic() + 30
+        while time.monotonic() < end and link.heartbeat.armed:  # LAND disarms on touch-down
+            time.sleep(0.2)
+        assert not link.heartbeat.armed
 
 
 def test_tune_on_arducopter_writes_altitude_x_y_and_gates_ok_on_the_hover(copter, tmp_path):
