@@ -147,7 +147,7 @@ class ParamValue:
 
 
 Sample = (Attitude | LocalPosition | ActuatorTarget | AttitudeTarget | StatusText | Heartbeat
-          | ParamValue)
+          | ParamValue | AttitudeSetpoint)
 
 
 class EndOfStream(Exception):

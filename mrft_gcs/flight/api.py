@@ -1114,7 +1114,8 @@ class _Run:
                                         "telemetry: check the link")
                     time.sleep(0.02)
                     while (sp := tracked.get(0.0)) is not None:
-                        probe.track(sp.t_s, sp.roll_rad, sp.pitch_rad)
+                        if isinstance(sp, AttitudeSetpoint):
+                            probe.track(sp.t_s, sp.roll_rad, sp.pitch_rad)
                     self._check_stream()
             finally:
                 self.probe = None
