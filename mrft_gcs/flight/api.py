@@ -1056,6 +1056,7 @@ class _Run:
             except ValueError as err:
                 self.verification[lp] = Verification(_CHECK_METHOD, False, note=str(err))
         history: dict[Loop, list[tuple[CheckPlan, InAirCheck]]] = {lp: [] for lp in plans}
+        started = time.monotonic()
         for n in range(CHECK_ROUNDS):
             if not plans:
                 break
@@ -1078,6 +1079,10 @@ class _Run:
             if nxt:
                 self._rewrite(client, {lp: self.written[lp] for lp in nxt})
             plans = nxt
+        rounds = max((len(t) for t in history.values()), default=0)
+        self.notes.append(f"in-air check of the written roll and pitch gains: {rounds} "
+                          f"check{'s' if rounds > 1 else ''}, {time.monotonic() - started:.1f} s "
+                          f"after the write (not in the time to tune)")
         back: dict[Loop, PD] = {}
         for lp, tried in history.items():
             passed = [(p, c) for p, c in tried if c.passed]
