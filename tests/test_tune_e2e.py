@@ -267,14 +267,14 @@ def test_a_pilot_taking_over_stops_the_tool_without_a_landing(tmp_path):
 
 
 def test_tilt_limit_aborts_and_lands(tmp_path):
-    from mrft_gcs.identify import RelaySettings
+    """A tilt limit below what the attitude relays swing (they are sized to about 7 deg from
+    their first period, so a larger relay asked for no longer reaches a wide limit)."""
     from mrft_gcs.profiles import load_profile
 
-    huge = {**RELAY, LoopKind.ATTITUDE: RelaySettings(beta=-0.2, h=0.6)}
-    limits = load_profile("sitl").safety.with_overrides(max_tilt_deg=15.0)
+    limits = load_profile("sitl").safety.with_overrides(max_tilt_deg=3.0)
     with SitlProcess(vehicle="qdrone", port=None, seed=5) as sitl:
         with pytest.raises(LimitExceeded, match="tilt") as err:
-            tune(sitl.connection_string, "sitl", backup_dir=tmp_path, relay=huge,
+            tune(sitl.connection_string, "sitl", backup_dir=tmp_path, relay=RELAY,
                  identifier=_truth("qdrone"), limits=limits)
         assert err.value.exit_code == 5
         with VehicleLink.connect(sitl.connection_string) as link:  # the vehicle was told to land
