@@ -104,6 +104,7 @@ from mrft_gcs.link.firmware import Firmware, detect_firmware, torque_path_refusa
 from mrft_gcs.link.latency import CpuWakeLatency
 from mrft_gcs.link.modes import CustomMode, mode_matches
 from mrft_gcs.link.quality import LinkQuality
+from mrft_gcs.link.vehicle import MAV_CMD_SET_MESSAGE_INTERVAL
 from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.params import ParamChange, ParamClient
 from mrft_gcs.plant import PD, InnerModel
@@ -348,14 +349,14 @@ def _pm_text(check: InAirCheck) -> str:
     return f"PM {check.measured_pm_deg:.0f} deg"
 
 
-#: MAVLink ATTITUDE_TARGET's message id, and the command that sets a stream's rate
+#: MAVLink ATTITUDE_TARGET's message id
 ATTITUDE_TARGET_ID = 83
-MAV_CMD_SET_MESSAGE_INTERVAL = 511
 
 
 def _round_trip_s(q: LinkQuality | None) -> float:
-    """The link's median round trip where TIMESYNC timed it (s), else 0: the set points go up
-    and the angles come down over it, outside the loop the check measures."""
+    """The link's median round trip where TIMESYNC timed it (s), else 0 (a parameter read's
+    round trip holds the autopilot's own handling): the in-air check's set points go up and
+    the angles come down over it; half of it is the one-way latency of a GCS delay."""
     if q is None or getattr(q, "rtt_method", None) != "TIMESYNC" or not q.rtt_p50_ms > 0:
         return 0.0
     return 1e-3 * q.rtt_p50_ms
@@ -365,14 +366,6 @@ def _check_note(plan: CheckPlan, check: InAirCheck) -> str:
     return (f"crossover predicted at {plan.wc_rad_s:.3g} rad/s; measured onboard plant "
             f"{check.k:.2f} x the model's gain, {check.extra_delay_s * 1e3:+.1f} ms of delay"
             + (f"; input: {check.source}" if check.source else ""))
-
-
-def _one_way_latency_s(q: LinkQuality | None) -> float:
-    """Half the link's median round trip where TIMESYNC timed it (s), else 0 (a parameter
-    read's round trip holds the autopilot's own handling)."""
-    if q is None or getattr(q, "rtt_method", None) != "TIMESYNC" or not q.rtt_p50_ms > 0:
-        return 0.0
-    return 0.5e-3 * q.rtt_p50_ms
 
 
 def _idle(actuation: Actuation) -> ActuatorTarget | AttitudeTarget:
@@ -1173,7 +1166,7 @@ class _Run:
             t, ages = self.ages.ages_s(lp is Loop.ALTITUDE, float(snap.t_s[0]),
                                        float(snap.t_s[-1]), clock)
         gcs = measure_gcs_delay(ages, period, sample_t_s=t, clock=clock,
-                                latency_s=_one_way_latency_s(self.quality))
+                                latency_s=0.5 * _round_trip_s(self.quality))
         return robust_onboard_gains(ident, gcs)
 
     def _hand_over(self) -> None:
