@@ -50,20 +50,6 @@ def test_help_shows_value_types_and_no_type_for_flags(capsys):
     assert re.search(r"--dry-link\s+connect and check", _option_line(out, "--dry-link"))
 
 
-@pytest.fixture(scope="module")
-def roll_relay_tlog(tmp_path_factory):
-    """A .tlog of a roll relay test on the simulated vehicle (the bundled classifier's beta)."""
-    from mrft_gcs.identify import relay_settings
-    from mrft_gcs.loops import LoopKind
-    from mrft_gcs.residual.synth import sitl_relay_record, write_relay_tlog
-
-    rec = sitl_relay_record("roll", seed=4, beta=relay_settings(LoopKind.ATTITUDE).beta, h=0.08,
-                            duration_s=6.0)
-    path = tmp_path_factory.mktemp("cli") / "relay.tlog"
-    write_relay_tlog(path, "roll", rec.t, rec.u, rec.y)
-    return path
-
-
 def _run_piped(*args: str, cwd) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
     return subprocess.run([sys.executable, "-m", "mrft_gcs.cli", *args], cwd=cwd, env=env,

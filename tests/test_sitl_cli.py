@@ -9,6 +9,7 @@ import sys
 import time
 
 import pytest
+from sitl_cli import start_sitl_cli
 
 from mrft_gcs.cli import main
 from mrft_gcs.sitl.process import free_udp_port
@@ -33,20 +34,10 @@ def test_bad_effect_is_usage_error(capsys):
 
 def test_runs_prints_connection_string_and_stops_on_sigterm():
     port = free_udp_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mrft_gcs.cli", "sitl", "--port", str(port), "--effect",
-         "sensor_lpf=30"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        env={**os.environ, "COLUMNS": "200"})
+    proc, text = start_sitl_cli("--port", str(port), "--effect", "sensor_lpf=30")
     try:
-        lines = []
-        end = time.monotonic() + 20
-        while time.monotonic() < end:
-            line = proc.stdout.readline()
-            lines.append(line)
-            if "connect with" in line:
-                break
-        assert f"udp:127.0.0.1:{port}" in "".join(lines), lines
-        assert "sensor_lpf=30" in "".join(lines)
+        assert f"udp:127.0.0.1:{port}" in text, text
+        assert "sensor_lpf=30" in text
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(10) == 0
     finally:

@@ -7,8 +7,6 @@ import math
 import os
 import signal
 import statistics
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -16,6 +14,7 @@ import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
+from sitl_cli import start_sitl_cli
 
 from mrft_gcs.cli import main  # noqa: E402
 from mrft_gcs.errors import UsageError  # noqa: E402
@@ -193,20 +192,9 @@ def test_random_vehicle_over_udp_has_its_link_delay_and_telemetry_rate():
 
 def test_cli_random_serves_mavlink_and_stops_on_sigterm():
     port = free_udp_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mrft_gcs.cli", "sitl", "--random", "5", "--port", str(port)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        env={**os.environ, "COLUMNS": "200"})
+    proc, text = start_sitl_cli("--random", "5", "--port", str(port))
     gcs = None
     try:
-        lines = []
-        end = time.monotonic() + 20
-        while time.monotonic() < end:
-            line = proc.stdout.readline()
-            lines.append(line)
-            if "connect with" in line:
-                break
-        text = "".join(lines)
         assert "random-5" in text and "Table I domain:" in text, text
         assert domain_check(random_airframe(5)).category in text
         gcs = mavutil.mavlink_connection(f"udp:127.0.0.1:{port}", source_system=255)
