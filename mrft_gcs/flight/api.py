@@ -762,7 +762,7 @@ class _Run:
         assert seq is not None
         for lp, t in seq.loops.items():
             snap, ident = t.snapshot, t.identification
-            if ident is None or snap is None or "residual" in ident.extras:
+            if ident is None or snap is None or ident.residual is not None:
                 continue
             u, bias = snap.u, snap.bias
             if lp is Loop.ALTITUDE:  # the model's input is the thrust's deviation from hover
@@ -932,9 +932,7 @@ class _Run:
         if inner is not None and inner.diagnostics.method is Method.CLOSED_LOOP:
             att = seq.loops[_SIDE_INNER[snap.loop]]
             att.note = f"{_AUTOPILOT_ATTITUDE}; {closed_loop_summary(inner, snap.loop)}"
-            ident = dataclasses.replace(ident, extras={**ident.extras, "inner": "measured "
-                                                       "closed attitude loop",
-                                                       "inner_identification": inner})
+            ident = dataclasses.replace(ident, inner=inner)
         seq.apply(snap.loop, ident)
 
     def _start_side(self) -> None:
