@@ -278,7 +278,7 @@ def main() -> int:
                                   heartbeat_timeout_s=10)
                     status, error = result.status, ""
                 except MrftError as err:
-                    result = err.partial_result  # type: ignore[attr-defined]
+                    result = err.partial_result
                     status, error = result.status, str(err)
                 written = {c.name: f"{c.old:.4g}->{c.new:.4g}" for c in result.parameters}
                 tuned = [lp.value for lp, r in result.loops.items() if r.state == "tuned"]

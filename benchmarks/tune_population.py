@@ -275,9 +275,9 @@ def run_live(seed: int) -> dict:
             r = tune(sitl.connection_string, "sitl", backup_dir=d)
             outcome, reason = ("completed", None) if r.status == "ok" else ("aborted", r.status)
         except SafetyAbort as err:
-            r, outcome, reason = getattr(err, "partial_result", None), "aborted", str(err)
+            r, outcome, reason = err.partial_result, "aborted", str(err)
         except MrftError as err:
-            r, outcome, reason = getattr(err, "partial_result", None), "refused", str(err)
+            r, outcome, reason = err.partial_result, "refused", str(err)
     if r is None:
         return _end(rec, outcome, reason)
     rec["time_to_tune_s"] = _num(r.duration_s)

@@ -155,7 +155,7 @@ def test_test_parameters_restored_when_a_tune_aborts(copter, tmp_path):
                           max_test_duration_s=3.0)
     with pytest.raises(SafetyAbort, match="3 s limit") as info:
         tune(serial0, "ardupilot", limits=limits, backup_dir=tmp_path, heartbeat_timeout_s=10)
-    result = info.value.partial_result  # type: ignore[attr-defined]
+    result = info.value.partial_result
     assert result.parameters == () and any("PILOT_THR_FILT" in n for n in result.notes)
     with VehicleLink.connect(serial0, timeout_s=10) as link:
         assert ParamClient(link).read("PILOT_THR_FILT").value == thr_filt
@@ -183,7 +183,7 @@ def test_tune_on_arducopter_writes_altitude_x_y_and_gates_ok_on_the_hover(copter
             raise
         pytest.skip(f"the SITL fell behind real time on this host: {err}")
     except SafetyAbort as err:
-        result = err.partial_result  # type: ignore[attr-defined]
+        result = err.partial_result
         assert "hover check on the written gains in LOITER failed" in str(err), err
     alt = result.loops[Loop.ALTITUDE]
     print(f"tune {result.status} after {time.monotonic() - t:.1f} s, {result.duration_s:.1f} s "

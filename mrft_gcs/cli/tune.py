@@ -142,9 +142,8 @@ def tune_command(
                           backup_dir=backup_dir, heartbeat_timeout_s=timeout, loops=wanted,
                           on_progress=lambda snap: live.update(progress_table(snap)))
     except MrftError as err:
-        partial = getattr(err, "partial_result", None)
-        if partial is not None:
-            _write_outputs(partial, report, plot)
+        if err.partial_result is not None:
+            _write_outputs(err.partial_result, report, plot)
         raise
     if result.status == "dry-link":
         console.print(f"link ok: {result.link.line() if result.link else ''}")

@@ -477,7 +477,7 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
     try:
         return run.execute(dry_link, own_worker=identifier is None)
     except MrftError as err:
-        err.partial_result = run.result(_status(err), str(err))  # type: ignore[attr-defined]
+        err.partial_result = run.result(_status(err), str(err))
         raise
     finally:
         run.close_worker()
