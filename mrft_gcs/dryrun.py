@@ -2,10 +2,10 @@
 
 :func:`dry_run` reads a log (:func:`mrft_gcs.logs.decode_log`), finds the relay
 tests in it (:func:`find_relay_segments`), and for each loop runs the pipeline of a
-live tune (:func:`analyse_segment`): the cycle detector's verdicts as the live
-sequence feeds it, the classifier with exact gain scaling
-(:func:`mrft_gcs.identify.identify`) on the cycles a tune identifies, then residual
-analysis (:func:`mrft_gcs.residual.analyse_residual`). It returns a
+live tune (:func:`analyse_segment`): the live tune's own cycle watcher
+(:class:`mrft_gcs.flight.cycles.CycleWatcher`) fed sample by sample, the classifier with
+exact gain scaling (:func:`mrft_gcs.identify.identify`) on the cycles a tune identifies,
+then residual analysis (:func:`mrft_gcs.residual.analyse_residual`). It returns a
 :class:`DryRunResult` holding the identified models, residuals, the gains a tune
 would write (inner loops re-targeted to the onboard loop as a tune writes them,
 :func:`mrft_gcs.flight.onboard.onboard_gains`) and their parameter values; it never
@@ -596,7 +596,7 @@ def _smoothed(t: np.ndarray, x: np.ndarray, v: np.ndarray) -> np.ndarray:
     """
     from scipy.signal import lfilter
 
-    from mrft_gcs.flight.sequence import SequenceConfig
+    from mrft_gcs.flight.config import SequenceConfig
 
     if x.size == 0:
         return x

@@ -76,6 +76,16 @@ class CycleWatcher:
     ----------
     rules : CycleRules
 
+    Attributes
+    ----------
+    status : CycleStatus
+        What the detector has seen since the last restart.
+    rose : bool
+        The last sample was a rising relay switch: a cycle boundary, the only place
+        where the verdict changes.
+    dt_s : float
+        Mean telemetry interval (s; NaN until a period is known).
+
     Examples
     --------
     >>> w = CycleWatcher(CycleRules(n_periods=2, identify_cycles=2))
@@ -98,7 +108,7 @@ class CycleWatcher:
 
     def reset(self) -> None:
         """Forget everything, the telemetry interval included."""
-        self.dt_s = math.nan  # mean telemetry interval (s)
+        self.dt_s = math.nan
         self.restart()
 
     def restart(self) -> None:
@@ -118,7 +128,6 @@ class CycleWatcher:
             det.period_tol = max(self.rules.period_tol,
                                  self.rules.sample_intervals * self.dt_s / per)
         self.status = det.update(t_s, u, y)
-        #: this sample was a rising relay switch: a cycle boundary, where the verdict changes
         self.rose = bool(det.rises) and det.rises[-1] != last
         return self.status
 
