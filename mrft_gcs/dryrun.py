@@ -490,8 +490,9 @@ def _answer_order(log: TelemetryLog, order: dict[str, np.ndarray]) -> dict[str, 
 
     # the heading: the median of the commands' answers from the latest logged sample, or
     # from the one before. Which of the two most commands answered depends on the phase
-    # between the telemetry and the stream, fixed per session by chance (seen: 63 / 37 %
-    # and 47 / 52 %); a median is exact where the share is near half or more.
+    # between the telemetry and the stream, fixed per session by chance (either can take
+    # most, or they split about evenly); a median is exact where the share is near half
+    # or more.
     share, centre = max((told(c), c) for c in (float(np.median(ref(b)[free]))
                                                for b in range(3)))
     if share < 0.5:

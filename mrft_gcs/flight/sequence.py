@@ -18,8 +18,8 @@ frame as they come in. x is driven by ``-pitch``, y by ``+roll``; the x and y re
 and PDs output that tilt command in rad, exactly the ``u`` that the side-motion
 identification expects, and it is rotated onto roll and pitch by the *measured*
 heading's departure from the take-off heading, so a yaw drift during the tests
-(measured: 5 deg on racer250 under the attitude relays) does not couple the two
-side tests.
+(the attitude relays turn the heading by a few degrees) does not couple the two side
+tests.
 """
 
 from __future__ import annotations
@@ -354,15 +354,14 @@ class TuningSequence:
         Altitude must be done too: its relay swings the thrust by +-h (about a quarter of
         hover), which modulates the horizontal force of a tilt and breaks the side cycles.
         Scaling the tilt commands by hover / thrust does not undo it (it lags by the
-        attitude loop's response): tried, README "Tuning a vehicle" step 7.
+        attitude loop's response).
         """
         done = (LoopState.TUNED, LoopState.LEFT_ALONE)
         if self.loops[Loop.ALTITUDE].state not in done:
             return []
         if not self.inner_done:
-            # both attitude loops first: a side relay tilts its axis +-0.2 rad, which broke
-            # the other attitude loop's relay when it was still running (live qdrone: pitch's
-            # 0.29 s cycle fell into a 0.57 s one under y's test and drifted to 35 deg)
+            # both attitude loops first: a side relay tilts its axis, which can throw the
+            # other attitude loop's relay, still running, into a slow drifting cycle
             return []
         return [lp for lp in SIDE_INNER if self.loops[lp].state is LoopState.WAITING]
 
@@ -479,8 +478,8 @@ class TuningSequence:
         amp = t.status.amplitude
         if not math.isfinite(amp) and t.loop in (Loop.ROLL, Loop.PITCH):
             # just restarted (detector reset): the cycle seen before the run-away still
-            # sizes the limit; the bare floor made a relay's own start-up swing on racer250
-            # pitch (0.10-0.20 rad) a run-away again, 70 catches in a row
+            # sizes the limit; with the bare floor the relay's own start-up swing would be
+            # caught as a run-away again and again
             amp = t.cycle[1]
         floor = self.config.runaway_floor[0 if t.loop in (Loop.ROLL, Loop.PITCH) else
                                           1 if t.loop is Loop.ALTITUDE else 2]
@@ -494,14 +493,11 @@ class TuningSequence:
         # u pushes y away, or y still moves away (``e_rate``: de/dt, roll and pitch) although
         # u pushes back: GCS stalls can lock a relay into a slow, large mode that swings out
         # on its momentum while u pushes back all along, then drives the return at full h
-        # into as large a swing the other way (racer250 in-process, stalls x 6: pitch to
-        # -48 deg in 0.6 s cycles where the steady one is 0.25 s). The damping PD brings
-        # the return swing to rest instead (tune_stalls --stalls 6, 30 seeds: largest tilt
-        # 48.4 -> 30.5 deg). Only once the detector has measured cycles since the relay
-        # (re)started: its own start-up swing also carries past 3 amplitudes while it
-        # pushes back (live racer250 roll: caught 10 times in a row at -0.18 rad)
-        # (or once a resized roll/pitch relay restarted at rest: its cycle is measured, and
-        # its start-up swing is no larger; a 70 ms stall then swung racer250 to 29 deg)
+        # into as large a swing the other way; the damping PD brings the return swing to
+        # rest instead. Only once the detector has measured cycles since the relay
+        # (re)started, as its own start-up swing also carries past 3 amplitudes while it
+        # pushes back (or once a resized roll/pitch relay restarted at rest: its cycle is
+        # known, and its start-up swing is no larger)
         outward = e * e_rate > 0 and (math.isfinite(t.status.amplitude) or t.from_rest)
         reach = abs(e)
         if outward and t.loop in (Loop.ROLL, Loop.PITCH):
@@ -516,13 +512,11 @@ class TuningSequence:
             if (t.loop in (Loop.ROLL, Loop.PITCH) and not math.isfinite(t.cycle[0])
                     and math.isfinite(t.status.period_s) and t.status.amplitude > 0):
                 # no settled cycle yet: the last complete one still sizes a damping PD (a
-                # sign relay restarted at the run-away's error swings further out: racer250
-                # with stalls in-process, 235 restarts from 0.22 to 0.33 rad, tilt 90 deg)
+                # sign relay restarted at the run-away's error swings further out)
                 t.cycle = (t.status.period_s, t.status.amplitude)
             if t.loop in (Loop.ROLL, Loop.PITCH) and math.isfinite(t.cycle[0]):
                 # A relay is no stabilising controller: restarted after a disturbance (a
-                # GCS stall holding one relay level for 50-100 ms) it had fed each swing
-                # into a larger one (racer250, in-process with stalls: 8 restarts, 36 deg).
+                # GCS stall holding one relay level) it feeds each swing into a larger one.
                 # A damping PD from the relay's own cycle brings the axis back first.
                 t.catch = catch_pd(t.h, *t.cycle)
                 self.events.append(f"{t.loop.value}: relay paused, a damping PD caught the "
@@ -833,8 +827,8 @@ class TuningSequence:
             if t.relay is not None and self._drives_away(t, ref - y, -rate):
                 # the MRFT's lead braked a return swing short of its set point (too little
                 # swing to arm the switch: a torque bias, an agile vehicle at its first h)
-                # and now pushes the axis away from it: random vehicle 3 went from 4 to 40
-                # deg so. The relay is turned round at once, this point its new extreme
+                # and now pushes the axis away from it, which tilts a light vehicle far
+                # over. The relay is turned round at once, this point its new extreme
                 e = ref - y
                 r = t.relay
                 r.state[:] = 1.0 if e >= 0 else -1.0
@@ -926,8 +920,8 @@ class TuningSequence:
 
     def _first_swing(self, t: LoopTest) -> None:
         """Size at once on the first swing from turn to turn if it passed twice
-        ``att_amp_max_rad``: the first full period of an agile vehicle at ``h_att_start``
-        tilted it 40 deg (random vehicle 3, 82 g; its bias is measured on later periods)."""
+        ``att_amp_max_rad``: a full first period of a light, agile vehicle at
+        ``h_att_start`` would tilt it far over (its bias is measured on later periods)."""
         i, j = t.turns
         seg = np.array(t.probe[i:j + 1])
         amp = 0.5 * float(np.ptp(seg[:, 2]))
@@ -987,7 +981,7 @@ class TuningSequence:
             t.amp_per_h = amp / h0
             if t.amp_per_h * h > 1.25 * cfg.att_amp_max_rad:
                 # (with a margin: the first period after lift-off is no steady cycle yet and
-                # swung twice as far as the steady one on racer250's pitch)
+                # can swing twice as far as the steady one)
                 h = cfg.att_amp_max_rad / t.amp_per_h
             # no smaller than the noise needs (the amplitude ``ready`` raises to), within reason
             sigma = t.band / cfg.noise_band_sigmas if math.isfinite(t.band) else 0.0
@@ -1021,8 +1015,8 @@ class TuningSequence:
             # the relay restarts from rest at its set point: an MRFT (beta -0.7) switched to a
             # smaller h or a new bias mid-swing swung out further or locked into a lopsided
             # cycle that never crossed its set point, a sign relay restarted off its set point
-            # swung out to twice the cycle, and a larger h taken mid-swing (racer250 under
-            # stalls) tilted it 26 deg where 11 with the restart. A damping PD sized on that
+            # swung out to twice the cycle, and a larger h taken mid-swing under stalls
+            # tilted the vehicle twice as far as with the restart. A damping PD sized on that
             # cycle brings the axis there first
             t.catch = catch_pd(h, *t.cycle)
             t.catch_release = cfg.att_restart_envelope
