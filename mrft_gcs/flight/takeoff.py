@@ -168,8 +168,7 @@ class TakeoffController:
         period of the one started at rest, again and again. The hover thrust is ``hover``
         when given (the mean thrust of the relay's own cycles: over a periodic cycle the
         mean vertical acceleration is zero, so a wrong first guess is corrected), else the
-        relay's bias
-        ``u_z0``. False, and nothing changed, before the first switch.
+        relay's bias ``u_z0``. False, and nothing changed, before the first switch.
         """
         if not self.switched or not math.isfinite(self.u_z0):
             return False
