@@ -65,6 +65,7 @@ from mrft_gcs.flight.onboard import (
     onboard_gains,
     robust_onboard_gains,
 )
+from mrft_gcs.flight.ratepath import RatePath, rate_path_refusal
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
 from mrft_gcs.flight.sequence import AUTOPILOT_ATTITUDE as _AUTOPILOT_ATTITUDE
 from mrft_gcs.flight.sequence import (
@@ -147,8 +148,8 @@ WORKER_CALL_S = 20.0
 def requested_loops(loops: Collection[str | Loop] | None, actuation: Actuation) -> frozenset[Loop]:
     """The loops a tune writes: ``loops`` checked against the actuation path.
 
-    ``None`` is every loop the path can tune (torque: all five; attitude: altitude, x
-    and y, the autopilot keeping its own roll and pitch loops).
+    ``None`` is every loop the path can tune (torque and rate: all five; attitude:
+    altitude, x and y, the autopilot keeping its own roll and pitch loops).
 
     >>> sorted(lp.value for lp in requested_loops(["x", "altitude"], Actuation.TORQUE))
     ['altitude', 'x']
@@ -175,7 +176,7 @@ def requested_loops(loops: Collection[str | Loop] | None, actuation: Actuation) 
     if att and actuation is Actuation.ATTITUDE:
         raise UsageError(f"{' and '.join(att)} cannot be tuned on the attitude path (the "
                          f"autopilot keeps its own attitude loop): drop them from the loops or "
-                         f"use the torque path (--actuation torque)")
+                         f"use the torque or rate path (--actuation torque or rate)")
     return frozenset(chosen)
 
 def tilt_note(by_phase: dict[str, float]) -> str:
@@ -485,11 +486,12 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
 
 
 def parse_actuation(value: Actuation | str) -> Actuation:
-    """``torque`` or ``attitude`` as an :class:`Actuation`; anything else is a UsageError."""
+    """``torque``, ``attitude`` or ``rate`` as an :class:`Actuation`; anything else is a
+    UsageError."""
     try:
         return Actuation(value)
     except ValueError:
-        raise UsageError(f"unknown actuation {value!r}: use torque or attitude") from None
+        raise UsageError(f"unknown actuation {value!r}: use torque, attitude or rate") from None
 
 
 def _status(err: MrftError) -> str:
@@ -546,6 +548,8 @@ class _Run:
         self.requested: frozenset[Loop] = frozenset(Loop)
         self.firmware: Firmware | None = None
         self.hover_check: HoverCheck | None = None
+        #: the body-rate path's state (None: another path), :mod:`mrft_gcs.flight.ratepath`
+        self.rate: RatePath | None = None
 
     # ------------------------------------------------------------------ result
     def result(self, status: str, error: str | None = None) -> TuneResult:
@@ -578,7 +582,8 @@ class _Run:
             max_tilt_deg=self.monitor.max_tilt_seen_deg if self.monitor else math.nan,
             max_tilt_by_phase=dict(seq.max_tilt_by_phase) if seq is not None else {},
             limits=self.lim, hover_error_m=self.hover_error_m,
-            notes=tuple([YAW_NOTE] + self.notes + self._log_notes()
+            notes=tuple([YAW_NOTE] + self.notes + (self.rate.notes if self.rate else [])
+                        + self._log_notes()
                         + (list(seq.events) if seq else [])
                         + ([tilt_note(seq.max_tilt_by_phase)]
                            if seq and seq.max_tilt_by_phase else [])),
@@ -645,7 +650,9 @@ class _Run:
         # (measured after the warm-up), time in which no setpoint would go out.
         gc.freeze()
         cfg = dataclasses.replace(
-            self.config, actuation=self.act, z_ref_m=self.z_ref_m,
+            # the rate path flies the torque sequence, its torques sent as rates
+            self.config, actuation=Actuation.TORQUE if self.act is Actuation.RATE else self.act,
+            z_ref_m=self.z_ref_m,
             hover_thrust_guess=self.hover if 0 < self.hover < 1 else None,
             max_tilt_cmd_rad=0.6 * math.radians(self.lim.max_tilt_deg))
         self.seq = TuningSequence(cfg, att, alt)
@@ -663,6 +670,9 @@ class _Run:
             self._emergency_land()
             raise
         finally:
+            if self.rate is not None:
+                self.rate.restore_rest(client)
+                self.rate.close()
             self._restore_test_params(client, test_backup)
         if self.residuals:
             self._residuals()
@@ -711,9 +721,13 @@ class _Run:
         if prof is not self.prof:
             self.prof = prof
             self.link.modes = dict(prof.modes)
+        if self.act is Actuation.RATE and (why := rate_path_refusal(self.prof, fw)):
+            raise UsageError(f"--actuation rate cannot fly this vehicle: {why}; use "
+                             f"--actuation attitude (tunes altitude, x and y)")
         if self.act is Actuation.TORQUE and (why := torque_path_refusal(fw)) is not None:
             raise UsageError(f"--actuation torque cannot fly this vehicle: {why}; use "
-                             f"--actuation attitude (tunes altitude, x and y)")
+                             f"--actuation attitude (tunes altitude, x and y) or, on "
+                             f"ArduCopter, --actuation rate (all five loops)")
 
     # ------------------------------------------------------------------ identification
     def _start_worker(self) -> None:
@@ -772,6 +786,8 @@ class _Run:
                                                band=band, hover=self.hover)
 
     def _emergency_land(self) -> None:
+        if self.rate is not None:  # the vehicle's own gains back before any landing
+            self.rate.abort(ParamClient(self.link))
         if self.streamer is not None:
             self.streamer.stop()
         if self.seq is not None and self.seq.phase not in (Phase.DONE, Phase.PREFLIGHT):
@@ -819,7 +835,12 @@ class _Run:
         assert seq is not None
         telemetry = _Telemetry(link)
         link.drain()
-        self.streamer = SetpointStreamer(link, self._setpoint(telemetry), rate_hz=self.rate_hz)
+        make = self._setpoint(telemetry)
+        if self.act is Actuation.RATE:
+            assert self.prof.rate_path is not None
+            self.rate = RatePath(link, self.prof.rate_path, self.backup_dir)
+            make = self.rate.wrap(make, telemetry.latest)  # type: ignore[assignment]
+        self.streamer = SetpointStreamer(link, make, rate_hz=self.rate_hz)
         self.streamer.start()
         qos = self.streamer.cpu_latency
         if qos is not None and qos.denied:
@@ -829,6 +850,8 @@ class _Run:
         link.set_mode(self.prof.modes["offboard"])
         self.mode_watch = self.prof.modes["offboard"]
         link.arm()
+        if self.rate is not None:
+            self.rate.engage(client)  # armed with the stock gains: no arming check is off
         deadline = time.monotonic() + 1.0
         while (s := telemetry.latest()) is None and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -851,6 +874,8 @@ class _Run:
         if self.streamer.abort_reason is not None:
             raise SafetyAbort(self.streamer.abort_reason)
         self._watch_mode()
+        if self.rate is not None:
+            self.rate.check()
 
     def _watch_mode(self) -> None:
         """Stop at once when the vehicle leaves the offboard mode or disarms in flight: the
@@ -1019,6 +1044,8 @@ class _Run:
             ranged = params_in_range(self.prof, gains, self.hover)
         self.notes.extend(ranged.notes)
         values = ranged.values
+        if self.rate is not None:  # the attitude gains go in with the rate path's hand-over
+            values = self.rate.split(values)
         if not values:
             return
         result = client.write(values, self.backup_dir, label="backup")
@@ -1173,6 +1200,11 @@ class _Run:
         """Switch to the autopilot's position mode, stop streaming, check it hovers."""
         seq, link = self.seq, self.link
         assert seq is not None and self.streamer is not None and self.monitor is not None
+        if self.rate is not None:
+            staged = self.rate.hand_over(ParamClient(link), self._hold)
+            if staged:
+                self.changes = self.changes + staged
+                self.backup = self.rate.merged_backup(self.backup)
         self.mode_watch = None  # the tool leaves offboard itself from here
         link.set_mode(self.prof.modes["position"])
         self.streamer.stop()
