@@ -65,6 +65,7 @@ from mrft_gcs.flight.onboard import (
     onboard_gains,
     robust_onboard_gains,
 )
+from mrft_gcs.flight.ratepath import GCS_PD_SCALE as RATE_GCS_PD_SCALE
 from mrft_gcs.flight.ratepath import RatePath, rate_path_refusal
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
 from mrft_gcs.flight.sequence import AUTOPILOT_ATTITUDE as _AUTOPILOT_ATTITUDE
@@ -655,6 +656,8 @@ class _Run:
             z_ref_m=self.z_ref_m,
             hover_thrust_guess=self.hover if 0 < self.hover < 1 else None,
             max_tilt_cmd_rad=0.6 * math.radians(self.lim.max_tilt_deg))
+        if self.act is Actuation.RATE and cfg.gcs_attitude_pd_scale == 1.0:
+            cfg = dataclasses.replace(cfg, gcs_attitude_pd_scale=RATE_GCS_PD_SCALE)
         self.seq = TuningSequence(cfg, att, alt)
         for lp in _SIDE_INNER:
             if lp not in self.requested:
@@ -852,6 +855,8 @@ class _Run:
         link.arm()
         if self.rate is not None:
             self.rate.engage(client)  # armed with the stock gains: no arming check is off
+            if (hold := self.rate.yaw_hold()) is not None:
+                seq.yaw = hold
         deadline = time.monotonic() + 1.0
         while (s := telemetry.latest()) is None and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -930,6 +935,10 @@ class _Run:
         try:
             if snap.loop in _SIDE_INNER:
                 inner = seq.loops[_SIDE_INNER[snap.loop]].identification
+                scale = seq.config.gcs_attitude_pd_scale
+                if inner is not None and scale != 1.0:  # the inner PD the side relay flew
+                    g = inner.gains
+                    inner = dataclasses.replace(inner, gains=PD(scale * g.Kc, scale * g.Kd))
                 if inner is None and self.act is Actuation.ATTITUDE:
                     inner = self._offload("attitude_loop", measured_attitude_loop, snap)
             ident = self._offload("identify", self.ident_fn, snap.loop, snap, inner)

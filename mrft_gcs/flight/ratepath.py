@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from mrft_gcs.errors import LinkError, MrftError, SafetyAbort, UsageError
-from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.controllers import FlightState, YawHold
 from mrft_gcs.link.firmware import Firmware
 from mrft_gcs.link.vehicle import MAV_CMD_SET_MESSAGE_INTERVAL, VehicleLink
 from mrft_gcs.params import ParamChange, ParamClient, read_params_file, write_params_file
@@ -55,7 +55,7 @@ from mrft_gcs.telemetry import (
 
 __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignment",
            "check_feed_forward", "rate_path_refusal", "body_rates", "LINK_LOSS_GUARD",
-           "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG"]
+           "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE"]
 
 #: relative error of the measured ``k`` above which the rates are scaled to it
 K_CORRECT = 0.02
@@ -65,15 +65,24 @@ K_REFUSE = 0.25
 PID_ACTIVE = 1e-3
 #: target-to-body thrust angle that stops the tune (ArduPilot scales the feed-forward
 #: down from 30 deg and drops it at 60)
-MAX_THRUST_ERROR_DEG = 20.0
-#: PID_TUNING samples with a desired rate above this (rad/s) measure ``k``
-MIN_DESIRED_RAD_S = 0.01
+MAX_THRUST_ERROR_DEG = 28.0
+#: PID_TUNING samples with a feed-forward output above this (normalised) measure ``k``
+MIN_FF = 0.01
 #: samples per axis before ``k`` is judged
 MIN_SAMPLES = 25
 #: ATTITUDE_TARGET and PID_TUNING rates asked for (Hz)
 STREAM_HZ = 50.0
 #: hold between the hand-over's stages (s): each stage's transient settles
 STAGE_HOLD_S = 0.3
+#: factor on the identified roll/pitch PDs while the ground station flies them on this
+#: path (``SequenceConfig.gcs_attitude_pd_scale``; the written gains are not scaled). The
+#: designed PD keeps ~17 deg of phase margin at a ~70 rad/s crossover on ArduCopter SITL's
+#: quad; the GCS loop's stream jitter and telemetry lag took it unstable at full gain
+#: (roll diverged within 0.2 s). At 0.5 the crossover halves and 4 ms more delay still
+#: leaves a gain margin of 2 (identified roll model).
+GCS_PD_SCALE = 0.5
+#: the yaw hold's output limit on this path (normalised yaw command)
+YAW_LIMIT = 0.5
 _ATTITUDE_TARGET_ID = 83
 _PID_TUNING_ID = 194
 _AXES = ("roll", "pitch", "yaw")
@@ -188,8 +197,8 @@ def body_rates(torque: np.ndarray, gyro: np.ndarray, ff: np.ndarray, rate_p: np.
 class FeedForwardCheck:
     """The rate loop as PID_TUNING showed it, one axis.
 
-    ``k_measured`` is the median of ``FF / desired`` over samples with a desired rate above
-    :data:`MIN_DESIRED_RAD_S`; ``pid_max`` the largest |P|, |I| or |D| output seen.
+    ``k_measured`` is the median of ``FF / desired`` over samples with a feed-forward output
+    above :data:`MIN_FF`; ``pid_max`` the largest |P|, |I| or |D| output seen.
     ``verdict`` is ``ok``, ``corrected`` or ``refused``.
     """
 
@@ -218,7 +227,7 @@ def check_feed_forward(axis: str, k_set: float, desired: np.ndarray, ff: np.ndar
     >>> check_feed_forward("roll", 1.0, d, 1.0 * d, np.full(30, 0.01)).verdict
     'refused'
     """
-    use = np.abs(desired) > MIN_DESIRED_RAD_S
+    use = (np.abs(ff) > MIN_FF) & (np.abs(desired) > 0)
     k = float(np.median(ff[use] / desired[use])) if use.any() else math.nan
     pid = float(np.max(pid_abs)) if len(pid_abs) else 0.0
     err = abs(k / k_set - 1.0) if math.isfinite(k) else math.inf
@@ -352,6 +361,19 @@ class RatePath:
                               "onboard (no link-loss guard installed): GUID_TIMEOUT only "
                               "levels the attitude target, the gains stay zero")
 
+    def yaw_hold(self) -> YawHold | None:
+        """The ground station's yaw hold on this path: the vehicle's own yaw gains (angle P
+        times rate P, and rate P; the rate I left out), read before the test parameters
+        zeroed them. The default hold (Kc 0.2) let ArduCopter SITL's yaw drift 20 deg
+        during the side tests. None where the values are not known."""
+        names = (self.params.angle_p[2], self.params.rate_p[2])
+        if not all(n in self.originals for n in names):
+            return None
+        ang, rate = (self.originals[n] for n in names)
+        if not (ang > 0 and rate > 0):
+            return None
+        return YawHold(ang * rate, rate, limit=YAW_LIMIT)
+
     # -------------------------------------------------------------- checks
     def check(self) -> None:
         """Measure ``k`` from PID_TUNING and the target's alignment; correct or refuse."""
@@ -375,7 +397,7 @@ class RatePath:
     def _judge(self, axis: int) -> None:
         name = _AXES[axis - 1]
         a = np.array(self._pid_rows[axis]).reshape(-1, 3)
-        big = np.abs(a[:, 0]) > MIN_DESIRED_RAD_S
+        big = np.abs(a[:, 1]) > MIN_FF
         if name in self.checks and self.checks[name].verdict != "refused":
             # judged: P, I and D must stay off while the ground station flies
             if len(a) and float(np.max(a[:, 2])) > PID_ACTIVE:
