@@ -371,7 +371,7 @@ def _check_note(plan: CheckPlan, check: InAirCheck) -> str:
 
 
 def _idle(actuation: Actuation) -> ActuatorTarget | AttitudeTarget:
-    if actuation is Actuation.TORQUE:
+    if actuation in (Actuation.TORQUE, Actuation.RATE):  # the rate path sends it as rates
         return ActuatorTarget(0.0, 0.0, 0.0, 0.0, 0.0)
     return AttitudeTarget(0.0, (1.0, 0.0, 0.0, 0.0), 0.0)
 
@@ -857,6 +857,7 @@ class _Run:
             self.rate.engage(client)  # armed with the stock gains: no arming check is off
             if (hold := self.rate.yaw_hold()) is not None:
                 seq.yaw = hold
+            self.rate.require_aligned()
         deadline = time.monotonic() + 1.0
         while (s := telemetry.latest()) is None and time.monotonic() < deadline:
             time.sleep(0.01)

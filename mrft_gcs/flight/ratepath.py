@@ -72,6 +72,10 @@ MIN_FF = 0.01
 MIN_SAMPLES = 25
 #: ATTITUDE_TARGET and PID_TUNING rates asked for (Hz)
 STREAM_HZ = 50.0
+#: largest target-to-body thrust angle and heading difference accepted on the ground before
+#: the take-off (ArduCopter resets the target to the body while landed; a target left from
+#: an earlier flight, 84 deg off after a crash, spun the SITL at the take-off)
+GROUND_ALIGNMENT_DEG = (5.0, 10.0)
 #: hold between the hand-over's stages (s): each stage's transient settles
 STAGE_HOLD_S = 0.3
 #: factor on the identified roll/pitch PDs while the ground station flies them on this
@@ -373,6 +377,28 @@ class RatePath:
         if not (ang > 0 and rate > 0):
             return None
         return YawHold(ang * rate, rate, limit=YAW_LIMIT)
+
+    def require_aligned(self, timeout_s: float = 1.5) -> Alignment:
+        """Before the take-off: the onboard target must sit on the body (ATTITUDE_TARGET
+        against ATTITUDE, as the stream sees them); otherwise the tune stops on the ground."""
+        end = time.monotonic() + timeout_s
+        a = None
+        while time.monotonic() < end:
+            a = self.channel.last
+            if a is not None and (math.degrees(a.thrust_error_rad) <= GROUND_ALIGNMENT_DEG[0]
+                                  and abs(math.degrees(a.heading_error_rad))
+                                  <= GROUND_ALIGNMENT_DEG[1]):
+                self.notes.append(
+                    f"rate path: onboard target on the body before the take-off "
+                    f"({math.degrees(a.thrust_error_rad):.1f} deg thrust, "
+                    f"{math.degrees(a.heading_error_rad):+.1f} deg heading)")
+                return a
+            time.sleep(0.05)
+        seen = ("no ATTITUDE_TARGET seen" if a is None else
+                f"{math.degrees(a.thrust_error_rad):.0f} deg thrust, "
+                f"{math.degrees(a.heading_error_rad):+.0f} deg heading")
+        raise SafetyAbort(f"rate path: the onboard attitude target is not on the body before "
+                          f"the take-off ({seen}): not taking off; disarm, re-arm and retry")
 
     # -------------------------------------------------------------- checks
     def check(self) -> None:
