@@ -916,7 +916,10 @@ class _Run:
             self._check_stream()
             for snap in seq.ready():
                 self._identify(snap)
-            if seq.side_waiting:
+            if self.rate is not None and self.rate.inner_due(all(
+                    seq.loops[lp].state is LoopState.TUNED for lp in _ATTITUDE_LOOPS)):
+                self._rate_inner_hand_over()
+            if seq.side_waiting and (self.rate is None or self.rate.handed_over):
                 self._start_side()
             for lp in Loop:
                 age = seq.relay_age_s(lp)
@@ -940,7 +943,9 @@ class _Run:
                 if inner is not None and scale != 1.0:  # the inner PD the side relay flew
                     g = inner.gains
                     inner = dataclasses.replace(inner, gains=PD(scale * g.Kc, scale * g.Kd))
-                if inner is None and self.act is Actuation.ATTITUDE:
+                if self._autopilot_attitude():
+                    inner = None  # the written gains fly it onboard: measured, as below
+                if inner is None and self._autopilot_attitude():
                     inner = self._offload("attitude_loop", measured_attitude_loop, snap)
             ident = self._offload("identify", self.ident_fn, snap.loop, snap, inner)
         except IdentificationError as err:
@@ -972,6 +977,38 @@ class _Run:
                                                        "inner_identification": inner})
         seq.apply(snap.loop, ident)
 
+    def _autopilot_attitude(self) -> bool:
+        """The autopilot's own attitude loop flies the tilt commands (attitude path, or the
+        rate path after its hand-over)."""
+        return self.act is Actuation.ATTITUDE or (self.rate is not None
+                                                  and self.rate.handed_over)
+
+    def _rate_inner_hand_over(self) -> None:
+        """Rate path: the identified roll and pitch gains into the onboard cascade now (the
+        rest of the test parameters restored with them), then the sequence flies attitude
+        set points for the side tests, as on the attitude path."""
+        seq, rate = self.seq, self.rate
+        assert seq is not None and rate is not None
+        gains: dict[Loop, PDGains] = {}
+        for lp in _ATTITUDE_LOOPS:
+            t = seq.loops[lp]
+            if lp not in self.requested or t.identification is None:
+                continue  # its own gains go back (the hand-over restores them)
+            rt = self._retarget(lp, t.identification, t.snapshot)
+            self.written[lp], self.delays[lp] = rt.gains, rt.delay_s
+            gains[lp] = PDGains(rt.gains.Kc, rt.gains.Kd)
+        ranged = params_in_range(self.prof, gains, self.hover) if gains else None
+        if ranged is not None:
+            self.notes.extend(ranged.notes)
+        rate.split(ranged.values if ranged is not None else {})
+        rate.hand_over(ParamClient(self.link), self._hold)
+        seq.config = dataclasses.replace(seq.config, actuation=Actuation.ATTITUDE)
+        self.notes.append(
+            "rate path: roll and pitch gains written as soon as both were identified (GCS "
+            "delay re-targeted out: " + ", ".join(
+                f"{lp.value} {self.delays[lp] * 1e3:.1f} ms" for lp in gains)
+            + "); the side tests flew attitude set points on them")
+
     def _start_side(self) -> None:
         seq = self.seq
         assert seq is not None
@@ -979,7 +1016,7 @@ class _Run:
         for lp in seq.side_ready():
             inner_lp = _SIDE_INNER[lp]
             inner = seq.loops[inner_lp].identification
-            if inner is None and self.act is Actuation.ATTITUDE:
+            if self._autopilot_attitude():
                 # the autopilot's attitude loop is measured from this very relay's cycles
                 settings[lp] = self.relay.get(LoopKind.SIDE) or side_relay_settings()
                 continue
@@ -1004,6 +1041,8 @@ class _Run:
         for lp, t in seq.loops.items():
             if t.state is not LoopState.TUNED or t.identification is None:
                 continue
+            if self.rate is not None and self.rate.handed_over and lp in _ATTITUDE_LOOPS:
+                continue  # written at the rate path's hand-over (self.written holds them)
             if lp not in self.requested:
                 t.note = (f"{NOT_REQUESTED}: identified (the ground station flew the tests on "
                           f"it) but not written; the report's gains are the identified ones")

@@ -305,6 +305,8 @@ class RatePath:
         self.t_engaged: float | None = None
         self.zero_gain_s = math.nan
         self.staged: dict[str, float] = {}  # the tune's written values among test params
+        self.handed_over = False
+        self.changes: tuple[ParamChange, ...] = ()
         self._stack = contextlib.ExitStack()
         self._targets = self._stack.enter_context(link.subscribe(AttitudeSetpoint))
         self._pid = self._stack.enter_context(link.subscribe(PidTuning))
@@ -353,6 +355,7 @@ class RatePath:
         self.originals = {c.name: c.old for c in result.changes}
         self.t_engaged = time.monotonic()
         self._checking = True
+        self.channel.worst_thrust_rad = self.channel.worst_heading_rad = 0.0
         changed = sum(1 for c in result.changes if c.old != c.new)
         self.notes.append(
             f"rate path: {changed} test parameters set after arming (rate loop reduced to "
@@ -413,7 +416,8 @@ class RatePath:
         if self._checking:
             for axis in (1, 2, 3):
                 self._judge(axis)
-        if self.channel.worst_thrust_rad > math.radians(MAX_THRUST_ERROR_DEG):
+        if self.t_engaged is not None and (self.channel.worst_thrust_rad
+                                           > math.radians(MAX_THRUST_ERROR_DEG)):
             raise SafetyAbort(
                 f"rate path: the onboard attitude target drifted "
                 f"{math.degrees(self.channel.worst_thrust_rad):.0f} deg from the body (more "
@@ -448,9 +452,10 @@ class RatePath:
     # -------------------------------------------------------------- write-back
     def split(self, values: Mapping[str, float]) -> dict[str, float]:
         """The write-back's values less those that are test parameters (kept for
-        :meth:`hand_over`, which writes them staged)."""
+        :meth:`hand_over`, which writes them staged; after it, already written)."""
         test = self.params.test_params
-        self.staged = {n: v for n, v in values.items() if n in test}
+        if not self.handed_over:
+            self.staged = {n: v for n, v in values.items() if n in test}
         return {n: v for n, v in values.items() if n not in test}
 
     def _final(self, keep_written: bool = True) -> dict[str, float]:
@@ -474,8 +479,11 @@ class RatePath:
         3. rates to zero, then the written angle P and every other test parameter.
 
         ``hold(s)`` keeps the stream checked in between. Returns the written gains among
-        the test parameters as changes from their values before the tune.
+        the test parameters as changes from their values before the tune. Done once: a
+        second call (the write-back after an early hand-over) returns the same changes.
         """
+        if self.handed_over:
+            return self.changes
         self._checking = False  # the rate loop is no longer pure feed-forward from here
         final, p = self._final(), self.params
         t0 = time.monotonic()
@@ -500,8 +508,16 @@ class RatePath:
             f"target-to-body misalignment {math.degrees(self.channel.worst_thrust_rad):.1f} "
             f"deg thrust, {math.degrees(self.channel.worst_heading_rad):.1f} deg heading "
             f"(compensated)")
-        return tuple(ParamChange(n, self.originals.get(n, math.nan), v)
-                     for n, v in self.staged.items())
+        self.handed_over = True
+        self.changes = tuple(ParamChange(n, self.originals.get(n, math.nan), v)
+                             for n, v in self.staged.items())
+        return self.changes
+
+    def inner_due(self, roll_pitch_tuned: bool) -> bool:
+        """True once roll and pitch are identified and the hand-over has not run: the side
+        tests then fly on the written gains onboard (as on the attitude path), and the
+        zero-gain window closes there."""
+        return roll_pitch_tuned and not self.handed_over and self.backup is not None
 
     def merged_backup(self, other: str | None) -> str:
         """A backup file with the values from before the tune of every parameter it wrote:
