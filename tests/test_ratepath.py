@@ -46,8 +46,8 @@ def test_profile_rate_path_sets_every_feed_forward_to_its_k():
 
 def test_profile_rate_path_refuses_a_k_its_test_params_do_not_set():
     data = tomllib.loads((PROFILE_DIR / "ardupilot.toml").read_text())
-    data["rate_path"]["test_params"]["ATC_RAT_RLL_FF"] = 0.5
-    with pytest.raises(UsageError, match="ATC_RAT_RLL_FF to its k 10"):
+    data["rate_path"]["test_params"]["ATC_RAT_RLL_FF"] = 0.5  # k is 1
+    with pytest.raises(UsageError, match="ATC_RAT_RLL_FF to its k 1"):
         parse_profile(data, "x.toml")
     data["rate_path"]["k"] = [1.0, -1.0, 1.0]
     with pytest.raises(UsageError, match="positive"):
@@ -84,15 +84,17 @@ def test_rates_sent_give_the_torque_asked_for_through_a_misaligned_target(target
 
 
 def test_channel_rotates_by_the_latest_target_and_zeroes_once_released():
-    ch = RateChannel(load_profile("ardupilot").rate_path)  # type: ignore[arg-type]
+    rp = load_profile("ardupilot").rate_path
+    assert rp is not None
+    ch, k = RateChannel(rp), rp.k[0]
     out = ActuatorTarget(0.0, 0.1, 0.0, 0.0, 0.4)
     aligned = ch.step(out, _state())
-    assert (aligned.roll_rate_rad_s, aligned.pitch_rate_rad_s) == pytest.approx((0.01, 0.0))
+    assert (aligned.roll_rate_rad_s, aligned.pitch_rate_rad_s) == pytest.approx((0.1 / k, 0.0))
     ch.see_target(AttitudeSetpoint(0.0, 0.0, 0.0, math.radians(90), 0.4))
     turned = ch.step(out, _state())
     # the target is turned 90 deg in yaw: its y axis points south, so a body roll (about
     # north) is sent as a negative target pitch (ArduPilot rotates it back)
-    assert (turned.roll_rate_rad_s, turned.pitch_rate_rad_s) == pytest.approx((0.0, -0.01),
+    assert (turned.roll_rate_rad_s, turned.pitch_rate_rad_s) == pytest.approx((0.0, -0.1 / k),
                                                                               abs=1e-9)
     assert ch.worst_heading_rad == pytest.approx(math.radians(90))
     ch.released = True

@@ -971,7 +971,9 @@ class _Run:
             return
         if inner is not None and inner.diagnostics.method is Method.CLOSED_LOOP:
             att = seq.loops[_SIDE_INNER[snap.loop]]
-            att.note = f"{_AUTOPILOT_ATTITUDE}; {closed_loop_summary(inner, snap.loop)}"
+            why = (_AUTOPILOT_ATTITUDE if self.rate is None else "tuned on the rate path and "
+                   "written at its hand-over; the side test flew on the written gains")
+            att.note = f"{why}; {closed_loop_summary(inner, snap.loop)}"
             ident = dataclasses.replace(ident, extras={**ident.extras, "inner": "measured "
                                                        "closed attitude loop",
                                                        "inner_identification": inner})

@@ -42,7 +42,13 @@ from mrft_gcs.errors import LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState, YawHold
 from mrft_gcs.link.firmware import Firmware
 from mrft_gcs.link.vehicle import MAV_CMD_SET_MESSAGE_INTERVAL, VehicleLink
-from mrft_gcs.params import ParamChange, ParamClient, read_params_file, write_params_file
+from mrft_gcs.params import (
+    Param,
+    ParamChange,
+    ParamClient,
+    read_params_file,
+    write_params_file,
+)
 from mrft_gcs.profiles import AutopilotProfile, RatePathParams
 from mrft_gcs.telemetry import (
     ActuatorTarget,
@@ -300,6 +306,7 @@ class RatePath:
         self.notes: list[str] = []
         self.backup: Path | None = None  # originals of every test parameter
         self.originals: dict[str, float] = {}
+        self.known: dict[str, Param] = {}  # name -> value before the tune, with its type
         self.restored: set[str] = set()  # test parameters back at their final value
         self.checks: dict[str, FeedForwardCheck] = {}
         self.t_engaged: float | None = None
@@ -353,6 +360,7 @@ class RatePath:
         result = client.write(dict(self.params.test_params), self.backup_dir, label="rate-test")
         self.backup = result.backup_path
         self.originals = {c.name: c.old for c in result.changes}
+        self.known = {e.param.name: e.param for e in read_params_file(self.backup)}
         self.t_engaged = time.monotonic()
         self._checking = True
         self.channel.worst_thrust_rad = self.channel.worst_heading_rad = 0.0
@@ -464,10 +472,11 @@ class RatePath:
         return {n: staged.get(n, self.originals.get(n, v))
                 for n, v in self.params.test_params.items()}
 
-    def _write(self, client: ParamClient, values: Mapping[str, float], label: str) -> None:
+    def _write(self, client: ParamClient, values: Mapping[str, float]) -> None:
+        """Every value read back; all were backed up at :meth:`engage` (no read first)."""
         values = {n: v for n, v in values.items() if n not in self.restored}
         if values:
-            client.write(values, self.backup_dir / "rate-path", label=label)
+            client.write_known(values, self.known)
             self.restored.update(values)
 
     def hand_over(self, client: ParamClient, hold: Callable[[float], None]
@@ -487,17 +496,17 @@ class RatePath:
         self._checking = False  # the rate loop is no longer pure feed-forward from here
         final, p = self._final(), self.params
         t0 = time.monotonic()
-        self._write(client, {n: final[n] for n in p.rate_p}, "rate-handover-1")
+        self._write(client, {n: final[n] for n in p.rate_p})
         self.channel.rate_p = np.array([final[n] for n in p.rate_p])
         hold(STAGE_HOLD_S)
-        self._write(client, {n: final[n] for n in p.ff}, "rate-handover-2")
+        self._write(client, {n: final[n] for n in p.ff})
         self.channel.ff = np.array([final[n] for n in p.ff])
         hold(STAGE_HOLD_S)
         self.channel.released = True
         hold(0.02)  # a zero-rate set point out before the angle loop comes back
         rest = {n: final[n] for n in p.angle_p}
         rest.update({n: v for n, v in final.items() if n not in rest})
-        self._write(client, rest, "rate-handover-3")
+        self._write(client, rest)
         t_done = time.monotonic()
         if self.t_engaged is not None:
             self.zero_gain_s = t_done - self.t_engaged
@@ -554,7 +563,7 @@ class RatePath:
         if not left:
             return
         try:
-            self._write(client, left, "rate-restore")
+            self._write(client, left)
         except MrftError as err:
             self.notes.append(f"rate path: the test parameters were not all restored ({err}): "
                               f"restore {self.backup} by hand")
