@@ -583,7 +583,8 @@ class _Run:
             max_tilt_deg=self.monitor.max_tilt_seen_deg if self.monitor else math.nan,
             max_tilt_by_phase=dict(seq.max_tilt_by_phase) if seq is not None else {},
             limits=self.lim, hover_error_m=self.hover_error_m,
-            notes=tuple([YAW_NOTE] + self.notes + (self.rate.notes if self.rate else [])
+            notes=tuple([(self.rate.yaw_note if self.rate else None) or YAW_NOTE] + self.notes
+                        + (self.rate.notes if self.rate else [])
                         + self._log_notes()
                         + (list(seq.events) if seq else [])
                         + ([tilt_note(seq.max_tilt_by_phase)]

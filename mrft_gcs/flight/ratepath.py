@@ -314,6 +314,7 @@ class RatePath:
         self.staged: dict[str, float] = {}  # the tune's written values among test params
         self.handed_over = False
         self.changes: tuple[ParamChange, ...] = ()
+        self.yaw_note: str | None = None  # how yaw was held, where not the default hold
         self._stack = contextlib.ExitStack()
         self._targets = self._stack.enter_context(link.subscribe(AttitudeSetpoint))
         self._pid = self._stack.enter_context(link.subscribe(PidTuning))
@@ -387,6 +388,10 @@ class RatePath:
         ang, rate = (self.originals[n] for n in names)
         if not (ang > 0 and rate > 0):
             return None
+        self.yaw_note = (f"yaw is not tuned: the ground station held it during the tests on "
+                         f"the vehicle's own yaw gains (Kc {ang * rate:.3g} /rad, Kd "
+                         f"{rate:.3g} s/rad on the normalised yaw command, rate I left out), "
+                         f"which are restored afterwards")
         return YawHold(ang * rate, rate, limit=YAW_LIMIT)
 
     def require_aligned(self, timeout_s: float = 1.5) -> Alignment:
