@@ -172,6 +172,15 @@ def test_errors_are_one_line_usage_errors():
     assert main(["sitl", "--physics", "bullet"]) == 2
 
 
+def test_without_rotorpy_the_error_names_the_extra(monkeypatch):
+    from mrft_gcs.errors import MissingDependency
+    from mrft_gcs.sitl.rotorpy_physics import rotorpy_params
+
+    monkeypatch.setitem(sys.modules, "rotorpy.vehicles.crazyflie_params", None)
+    with pytest.raises(MissingDependency, match=r"pip install 'mrft-gcs\[test\]'"):
+        rotorpy_params("crazyflie")
+
+
 # --------------------------------------------------------------------------- live over UDP
 def test_cli_serves_rotorpy_physics_over_mavlink_and_stops_on_sigterm():
     import signal as sig
