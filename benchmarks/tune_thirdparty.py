@@ -8,6 +8,11 @@ MAVLink. The real ``tune()`` flies it over loopback UDP in real time with
 shipped (``--sets``), then ``--seeds`` drawn ones (:func:`rotorpy_airframe` of the seed:
 the sets scaled a little, the project's delays, link and onboard loops drawn).
 
+``--mode lockstep`` runs the same vehicles through ``tune_population.py``'s lockstep driver
+instead (the tool's sequence, bundled classifiers and write-back in simulated time; no host
+timing, no in-air check), with the RotorPy vehicle swapped in for its random airframe: the
+figures then do not depend on how busy the host is.
+
 Outcomes as in ``tune_population.py``: ``completed`` (status ok: loops written, hover on
 them held), ``refused`` (the tool stopped with an explanation), ``aborted`` (a safety limit or
 the hover failed). Scores: every written loop's J (%) and phase margin on the onboard truth
@@ -16,17 +21,20 @@ MAVLink after the tune), where the truth is RotorPy's dynamics linearised at hov
 GCS-side figures of the identified PD beside them; the in-air check's measured margin.
 
     .venv/bin/python benchmarks/tune_thirdparty.py [--sets crazyfliebrushless,...] \
-        [--seeds 4] [--first-seed 0] [--json benchmarks/results/thirdparty.json]
+        [--seeds 4] [--first-seed 0] [--mode live|lockstep] \
+        [--json benchmarks/results/thirdparty.json]
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import json
 import math
 import os
 import platform
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -110,6 +118,36 @@ def run(name: str | None, seed: int | None) -> dict:
     return rec
 
 
+@contextlib.contextmanager
+def _lockstep_driver(spec):
+    """``tune_population``'s lockstep driver with ``spec``'s RotorPy vehicle in place of the
+    random airframe of a seed (its vehicle factory and airframe draw swapped, then put back)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import tune_population as tp
+
+    from mrft_gcs.sitl.rotorpy_physics import rotorpy_vehicle
+
+    saved = tp.random_airframe, tp.SimVehicle
+    tp.random_airframe = lambda seed: spec.airframe
+    tp.SimVehicle = lambda af, seed=0: rotorpy_vehicle(spec, seed=seed)
+    try:
+        yield tp
+    finally:
+        tp.random_airframe, tp.SimVehicle = saved
+
+
+def run_lockstep(name: str | None, seed: int | None) -> dict:
+    """One tune of a RotorPy vehicle in simulated time; a JSON-able record."""
+    from mrft_gcs.sitl.rotorpy_physics import rotorpy_airframe
+
+    spec = rotorpy_airframe(name, seed)
+    with _lockstep_driver(spec) as tp:
+        r = tp.run_lockstep(0 if seed is None else seed)
+    r.update(vehicle=spec.airframe.name, set=spec.name, seed=seed,
+             description=spec.airframe.description, verification={})
+    return r
+
+
 def line(r: dict) -> str:
     head = f"{r['vehicle']:26s} {r['category']:13s} {r['outcome']:9s}"
     if "loops" not in r:
@@ -120,7 +158,8 @@ def line(r: dict) -> str:
     ver = " ".join(f"{k} {v['measured_pm_deg']:.1f}" for k, v in r["verification"].items()
                    if v["measured_pm_deg"] is not None)
     return (f"{head}: {_f(r.get('time_to_tune_s'), '5.2f')} s, tilt "
-            f"{_f(r.get('max_tilt_deg'), '4.1f')} deg; onboard J/PM {loops}; in-air PM {ver}"
+            f"{_f(r.get('max_tilt_deg'), '4.1f')} deg; onboard J/PM {loops}"
+            + (f"; in-air PM {ver}" if ver else "")
             + (f"  [{r['reason']}]" if r.get("reason") else ""))
 
 
@@ -161,6 +200,7 @@ def main() -> None:
                     help="RotorPy parameter sets flown as shipped (comma-separated, or '')")
     ap.add_argument("--seeds", type=int, default=4, help="drawn vehicles after the sets")
     ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--mode", choices=("live", "lockstep"), default="live")
     ap.add_argument("--json", type=Path, default=DEFAULT_JSON)
     args = ap.parse_args()
     sets = [s for s in args.sets.split(",") if s]
@@ -172,14 +212,16 @@ def main() -> None:
     import scipy
 
     print(f"{len(runs)} RotorPy vehicles (rotorpy {ROTORPY_PIN}, numpy {numpy.__version__}, "
-          f"scipy {scipy.__version__}), live over loopback UDP in real time, --actuation "
-          f"torque; {platform.machine()}, {os.cpu_count()} CPUs, load "
+          f"scipy {scipy.__version__}), "
+          + ("live over loopback UDP in real time" if args.mode == "live" else
+             "lockstep (tune_population's driver, simulated time)")
+          + f", --actuation torque; {platform.machine()}, {os.cpu_count()} CPUs, load "
           f"{os.getloadavg()[0]:.2f}", flush=True)
     recs = []
     wall0 = time.monotonic()
     for name, seed in runs:
         t0 = time.monotonic()
-        r = run(name, seed)
+        r = (run if args.mode == "live" else run_lockstep)(name, seed)
         r["wall_s"] = time.monotonic() - t0
         recs.append(r)
         print(line(r), flush=True)
@@ -187,7 +229,7 @@ def main() -> None:
         print(s)
     print(f"wall time {time.monotonic() - wall0:.0f} s")
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps({"runs": recs}, indent=1))
+    args.json.write_text(json.dumps({"mode": args.mode, "runs": recs}, indent=1))
     print(f"records: {args.json}")
 
 

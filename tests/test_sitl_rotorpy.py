@@ -258,3 +258,19 @@ def test_tune_of_rotorpy_vehicle_writes_gains_that_hold_on_its_truth(tuned_rotor
     for lp in (Loop.ROLL, Loop.PITCH):  # the in-air check measured the written loop
         ver = result.loops[lp].verification
         assert ver is not None and math.isfinite(ver.measured_pm_deg), lp
+
+
+def test_lockstep_benchmark_tunes_the_in_domain_rotorpy_set():
+    """benchmarks/tune_thirdparty.py --mode lockstep on the shipped brushless Crazyflie:
+    simulated time, so the figures do not depend on the host."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import tune_thirdparty as tt
+
+    r = tt.run_lockstep("crazyfliebrushless", None)
+    assert r["vehicle"] == "rotorpy-crazyfliebrushless" and r["category"] == "in-domain"
+    assert r["outcome"] == "completed", r["reason"]
+    assert set(r["loops"]) == {"roll", "pitch", "altitude", "x", "y"}
+    for name, fig in r["loops"].items():
+        assert fig["onboard_stable"] and fig["onboard_pm_deg"] >= 10.0, (name, fig)
+    assert r["time_to_tune_s"] < 20 and r["max_tilt_deg"] < 35
+    assert "completed" in tt.line(r)
