@@ -9,8 +9,10 @@ import pytest
 
 from mrft_gcs.flight.onboard import (
     AGE_CLIP_PERIODS,
+    CAP_SHARE,
     PM_ROBUST_DEG,
     POSITION_LOOP_MIN_HZ,
+    RATE_TARGET_MIN_HZ,
     ROUND_TRIP_SLACK_S,
     GcsDelay,
     command_delay_s,
@@ -302,3 +304,36 @@ def test_side_gains_are_redesigned_behind_the_written_attitude_gains():
     assert old.J_pct > 10.0  # the identified gains: too cautious behind faster pitch gains
     sc = _onboard_scores(af, {Loop.PITCH: rt.gains, Loop.X: new.gains}, [Loop.X])[Loop.X]
     assert sc.J_pct <= 10.0 and sc.pm_deg >= PM_ROBUST_DEG
+
+
+def test_a_slow_link_on_a_short_onboard_delay_is_taken_out_up_to_the_cap():
+    # racer250's roll has 8 ms onboard; 2 x 10 ms of link (+ 2 ms) more were identified: half
+    # the identified delay (the former cap) left most of the link in the written gains
+    from mrft_gcs.loops import Loop
+
+    af = _vehicle("racer250", 0.010, 1000.0)
+    ident = _identified(af, Loop.ROLL, 0.022)
+    gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.020)
+    out = {share: _onboard_scores(af, {Loop.ROLL: robust_onboard_gains(
+        ident, gcs, cap_share=share).gains}, [Loop.ROLL])[Loop.ROLL] for share in (0.5, CAP_SHARE)}
+    assert out[0.5].J_pct > 10.0
+    assert out[CAP_SHARE].J_pct <= 10.0 and out[CAP_SHARE].pm_deg >= PM_ROBUST_DEG
+
+
+def test_side_gains_keep_their_margin_behind_an_unseen_rate_target_filter():
+    # an ArduPilot-like cascade low-passes the angle P's rate target (FLTT): its closed
+    # attitude loop is slower than the written PD predicts, and x is flown behind it
+    import dataclasses
+
+    from mrft_gcs.loops import Loop
+
+    af = _vehicle("racer250", 0.004, 1000.0)
+    af = dataclasses.replace(af, onboard=dataclasses.replace(
+        af.onboard, style="ardupilot", target_cutoff_hz=RATE_TARGET_MIN_HZ))
+    gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.008)
+    pitch = _identified(af, Loop.PITCH, 0.010)
+    rt = robust_onboard_gains(pitch, gcs)
+    side = _identified_side(af, Loop.X, pitch)
+    new = onboard_side_gains(side, pitch, rt, onboard_extra_s=0.0)
+    sc = _onboard_scores(af, {Loop.PITCH: rt.gains, Loop.X: new.gains}, [Loop.X])[Loop.X]
+    assert sc.pm_deg >= PM_ROBUST_DEG and sc.J_pct <= 10.0

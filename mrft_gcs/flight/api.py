@@ -982,11 +982,10 @@ class _Run:
         side_notes = []
         for lp, inner_lp in _SIDE_INNER.items():
             # flown behind the written attitude gains, not the GCS's PD it was identified behind
-            inner = seq.loops[inner_lp].identification
+            inner, ident = seq.loops[inner_lp].identification, seq.loops[lp].identification
             if (lp in self.written and inner_lp in retargets and inner is not None
-                    and self.gcs_delay_s is None):
-                side = onboard_side_gains(seq.loops[lp].identification, inner,
-                                          retargets[inner_lp])
+                    and ident is not None and self.gcs_delay_s is None):
+                side = onboard_side_gains(ident, inner, retargets[inner_lp])
                 self.written[lp] = side.gains
                 side_notes.append(f"{lp.value} {side.note()}")
         moved = [lp for lp, g in identified.items() if self.written[lp] != g

@@ -80,7 +80,7 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "first_answers", "GcsDelay", "measure_gcs_delay", "Retarget",
            "robust_onboard_gains", "PM_ROBUST_DEG", "ROUND_TRIP_SLACK_S", "SideRetarget",
            "onboard_side_gains", "onboard_extra_delay_s", "CAP_SHARE",
-           "POSITION_LOOP_MIN_HZ"]
+           "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -108,10 +108,14 @@ SKEW_MAX_PPM = 1000.0
 PM_ROBUST_DEG = 15.0
 #: the most of the identified delay a re-target may take out: an identification may put
 #: some of the delay into the lags, which no margin check on the model can see
-CAP_SHARE = 0.5
+CAP_SHARE = 0.75
 #: the slowest onboard position loop allowed for (Hz): its sample-and-hold is delay the
 #: altitude and side loops have onboard and did not have during the GCS-side tests
 POSITION_LOOP_MIN_HZ = 50.0
+#: the lowest rate-target low-pass (Hz) an autopilot's attitude loop is allowed to have
+#: unseen (ArduPilot's ATC_RAT_*_FLTT): it slows the closed attitude loop the side loops
+#: are flown behind
+RATE_TARGET_MIN_HZ = 10.0
 #: what a timed round trip may hold beyond the link's own delay both ways (s): the vehicle
 #: answering at its next loop (4 ms at 250 Hz, 1 ms at 1 kHz) and the readers; taken off
 #: the round trip for the least GCS delay that is plausible
@@ -326,7 +330,7 @@ class Retarget:
     @property
     def aimed_s(self) -> float:
         """The re-target aimed at before the margin check (s)."""
-        return min(self.gcs.estimate_s, self.cap_s) - 0.5 * self.extra_s
+        return min(self.gcs.estimate_s, self.cap_s)
 
     @property
     def held_back(self) -> bool:
@@ -344,11 +348,12 @@ class Retarget:
         out = (f"re-targeted by {self.delay_s * 1e3:.1f} ms ({got}; plausible "
                f"{g.lo_s * 1e3:.1f}..{g.hi_s * 1e3:.1f} ms)")
         if self.extra_s > 0:
-            out += (f"; up to {self.extra_s * 1e3:.1f} ms more onboard (its position loop's "
-                    f"rate), half designed for")
+            out += (f"; up to {self.extra_s * 1e3:.1f} ms more onboard allowed for (its "
+                    f"position loop's rate)")
         if self.held_back:
             out += (f", held back from {self.aimed_s * 1e3:.1f} ms to keep PM "
-                    f"{self.pm_deg:.0f} deg at {g.lo_s * 1e3:.1f} ms")
+                    f"{self.pm_deg:.0f} deg at {g.lo_s * 1e3:.1f} ms"
+                    + (" and that" if self.extra_s > 0 else ""))
         return out
 
 
@@ -369,8 +374,9 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
 
     ``onboard_extra_s`` is delay the onboard loop may add that the GCS-side loop did not
     have and the ground station cannot see (s; the position loop's sample-and-hold, see
-    :func:`onboard_extra_delay_s`): the design takes half of it, the margin check all of
-    it. The re-target is never more than ``cap_share`` of the identified delay.
+    :func:`onboard_extra_delay_s`): the margin check takes all of it (more delay onboard,
+    held back further; below 0, the gains of a loop with more delay than identified). The
+    re-target is never more than ``cap_share`` of the identified delay.
 
     Examples
     --------
@@ -387,7 +393,7 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     (True, True, 15)
     >>> r = robust_onboard_gains(i, GcsDelay(0.003, 0.0025, 0.008, 0.003, True),
     ...                          onboard_extra_s=0.004)
-    >>> r.delay_s < 0.003 - 0.0019, r.pm_deg >= 15.0
+    >>> r.held_back, r.pm_deg >= 15.0
     (True, True)
     """
     m = ident.model
@@ -397,7 +403,7 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     cap = cap_share * m.tau
     lo_d = min(gcs.lo_s, cap) - extra  # the most onboard delay: tau - lo_d
     tau_on = max(m.tau - lo_d, 1e-6)
-    d = min(gcs.estimate_s, cap) - 0.5 * extra
+    d = min(gcs.estimate_s, cap)
 
     def best(tau: float) -> PD:
         w = frequency_grid(m.T_prop, m.T1, tau)
@@ -460,10 +466,16 @@ class SideRetarget:
 
 
 def _side_process(inner: InnerModel, inner_pd: PD, tau: float, side: SideModel,
-                  w: np.ndarray) -> np.ndarray:
-    g = inner_response(inner.K, inner.T_prop, inner.T1, max(tau, 1e-6), w)
-    return (closed_inner_response(inner_pd.Kc, inner_pd.Kd, g, w)
-            * side_response(side.K, side.T2, side.tau, w))[0]
+                  w: np.ndarray, target_hz: float = 0.0) -> np.ndarray:
+    """The side cascade behind ``inner_pd``; ``target_hz`` > 0: with the angle P's rate
+    target low-passed there (ArduPilot's FLTT), ``u = Kd (F Kc/Kd e - w)``."""
+    g = inner_response(inner.K, inner.T_prop, inner.T1, max(tau, 1e-6), w)[0]
+    if target_hz > 0:
+        f = 1.0 / (1.0 + 1j * w / (2 * np.pi * target_hz))
+        t_att = f * inner_pd.Kc * g / (1.0 + (f * inner_pd.Kc + inner_pd.Kd * 1j * w) * g)
+    else:
+        t_att = closed_inner_response(inner_pd.Kc, inner_pd.Kd, g[None, :], w)[0]
+    return t_att * side_response(side.K, side.T2, side.tau, w)[0]
 
 
 def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Retarget,
@@ -478,7 +490,9 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
     angle's) is the same on both sides. As :func:`onboard_gains`, each gain moves by the
     ratio of the ISE-optimal PDs of the two cascades; the move is shrunk (in log) until
     the gains keep ``pm_min_deg`` with the attitude loop at the least plausible GCS delay
-    (``inner_rt.gcs.lo_s``) and at the delay re-targeted. ``onboard_extra_s``: delay the
+    (``inner_rt.gcs.lo_s``) and at the delay re-targeted, also with the attitude loop's
+    rate target low-passed at :data:`RATE_TARGET_MIN_HZ` (a filter the ground station
+    cannot read: ArduPilot-like cascades have one). ``onboard_extra_s``: delay the
     onboard position loop may add (s, :func:`onboard_extra_delay_s`), half of it designed
     for, all of it checked.
 
@@ -504,7 +518,8 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
     g_on = _side_process(mi, inner_rt.gains, mi.tau - inner_rt.delay_s, ms, w)
     lo = min(inner_rt.gcs.lo_s, inner_rt.delay_s)
     worst = [g_on if lo >= inner_rt.delay_s else
-             _side_process(mi, inner_rt.gains, mi.tau - lo, ms, w), g_on]
+             _side_process(mi, inner_rt.gains, mi.tau - lo, ms, w), g_on,
+             _side_process(mi, inner_rt.gains, mi.tau - lo, ms, w, RATE_TARGET_MIN_HZ)]
     worst = [G * np.exp(-extra * s) for G in worst]
     p0, p1 = optimal_pd(g_gcs, w).pd, optimal_pd(g_on * np.exp(-0.5 * extra * s), w).pd
 
