@@ -337,3 +337,19 @@ def test_side_gains_keep_their_margin_behind_an_unseen_rate_target_filter():
     new = onboard_side_gains(side, pitch, rt, onboard_extra_s=0.0)
     sc = _onboard_scores(af, {Loop.PITCH: rt.gains, Loop.X: new.gains}, [Loop.X])[Loop.X]
     assert sc.pm_deg >= PM_ROBUST_DEG and sc.J_pct <= 10.0
+
+
+def test_a_round_trip_inflated_by_a_busy_host_is_not_taken_out_in_full():
+    # no link delay at all, but the readers on a loaded host make the timed round trip 8 ms
+    # (median) with a spread of 6 ms above it: only what is sure to be link may go
+    from mrft_gcs.loops import Loop
+
+    af = _vehicle("racer250", 0.0, 1000.0)
+    ident = _identified(af, Loop.ROLL, 0.002)
+    out = {}
+    for spread in (0.0, 0.006):
+        gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.008, round_trip_spread_s=spread)
+        rt = robust_onboard_gains(ident, gcs)
+        out[spread] = _onboard_scores(af, {Loop.ROLL: rt.gains}, [Loop.ROLL])[Loop.ROLL]
+    assert out[0.0].pm_deg < PM_ROBUST_DEG  # the inflated median taken as the link's
+    assert out[0.006].pm_deg >= PM_ROBUST_DEG

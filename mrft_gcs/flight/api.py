@@ -1179,9 +1179,10 @@ class _Run:
         if snap is not None and len(snap.t_s):
             t, ages = self.ages.ages_s(lp is Loop.ALTITUDE, float(snap.t_s[0]),
                                        float(snap.t_s[-1]), clock)
-        rtt = _round_trip_s(self.quality)
+        rtt, q = _round_trip_s(self.quality), self.quality
+        spread = 1e-3 * (q.rtt_p90_ms - q.rtt_p50_ms) if rtt > 0 and q is not None else 0.0
         gcs = measure_gcs_delay(ages, period, sample_t_s=t, clock=clock, latency_s=0.5 * rtt,
-                                round_trip_s=rtt)
+                                round_trip_s=rtt, round_trip_spread_s=spread)
         return robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp))
 
     def _hand_over(self) -> None:

@@ -224,7 +224,7 @@ class GcsDelay:
 
 def measure_gcs_delay(ages_s, setpoint_period_s: float, *, sample_t_s=None,
                       clock: ClockFit | None = None, latency_s: float = 0.0,
-                      round_trip_s: float = 0.0) -> GcsDelay:
+                      round_trip_s: float = 0.0, round_trip_spread_s: float = 0.0) -> GcsDelay:
     """The GCS delay of a relay loop from its samples' ages, checked for plausibility.
 
     Parameters
@@ -248,6 +248,10 @@ def measure_gcs_delay(ages_s, setpoint_period_s: float, *, sample_t_s=None,
         command goes up over it, so it is part of the GCS delay: added to the estimate
         and, less :data:`ROUND_TRIP_SLACK_S` (the vehicle's and the readers' handling
         that a timed round trip holds and the loop need not), to the plausible range.
+    round_trip_spread_s : float
+        How far the round trips spread above their median (s; e.g. p90 - p50): a busy
+        host delays the readers and inflates the median, so the plausible range starts
+        that much lower too.
 
     Examples
     --------
@@ -260,9 +264,13 @@ def measure_gcs_delay(ages_s, setpoint_period_s: float, *, sample_t_s=None,
     >>> g = measure_gcs_delay([0.002] * 30, 0.004, round_trip_s=0.010)  # 5 ms each way
     >>> round(g.estimate_s, 6), round(g.lo_s, 6), round(g.hi_s, 6)
     (0.012, 0.01, 0.016)
+    >>> g = measure_gcs_delay([0.002] * 30, 0.004, round_trip_s=0.010, round_trip_spread_s=0.005)
+    >>> round(g.lo_s, 6)  # a jittery round trip: less of it is sure to be the link's
+    0.005
     """
     rtt = round_trip_s if math.isfinite(round_trip_s) and round_trip_s > 0 else 0.0
-    link_lo = max(0.0, rtt - ROUND_TRIP_SLACK_S)
+    spread_rtt = round_trip_spread_s if math.isfinite(round_trip_spread_s) else 0.0
+    link_lo = max(0.0, rtt - max(spread_rtt, 0.0) - ROUND_TRIP_SLACK_S)
     p = setpoint_period_s
     a = np.asarray(ages_s, dtype=float)
     if sample_t_s is not None:
