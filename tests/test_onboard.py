@@ -353,3 +353,20 @@ def test_a_round_trip_inflated_by_a_busy_host_is_not_taken_out_in_full():
         out[spread] = _onboard_scores(af, {Loop.ROLL: rt.gains}, [Loop.ROLL])[Loop.ROLL]
     assert out[0.0].pm_deg < PM_ROBUST_DEG  # the inflated median taken as the link's
     assert out[0.006].pm_deg >= PM_ROBUST_DEG
+
+
+def test_side_gains_take_the_optimum_under_the_robust_margin_not_only_a_shrunk_move():
+    # the margin over the unseen filter and position-loop hold holds 70 % of the move back;
+    # the ISE-optimal PD of the nominal cascade under that margin is closer to the truth's
+    # optimum (the shrunk move alone stays above 6.5 % J here)
+    from mrft_gcs.loops import Loop
+
+    af = _vehicle("racer250", 0.004, 1000.0)
+    gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.008)
+    pitch = _identified(af, Loop.PITCH, 0.010)
+    rt = robust_onboard_gains(pitch, gcs)
+    side = _identified_side(af, Loop.X, pitch)
+    new = onboard_side_gains(side, pitch, rt)
+    assert new.share < 1.0 and new.pm_deg >= PM_ROBUST_DEG
+    sc = _onboard_scores(af, {Loop.PITCH: rt.gains, Loop.X: new.gains}, [Loop.X])[Loop.X]
+    assert sc.J_pct < 6.5 and sc.pm_deg >= PM_ROBUST_DEG

@@ -61,11 +61,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import minimize
 
 from mrft_gcs.identify import Identification
 from mrft_gcs.link.clock import ClockFit
 from mrft_gcs.loops import Loop
-from mrft_gcs.pd_design import frequency_grid, margins, optimal_pd
+from mrft_gcs.pd_design import frequency_grid, ise, margins, optimal_pd
 from mrft_gcs.plant import (
     PD,
     InnerModel,
@@ -455,7 +456,9 @@ class SideRetarget:
     gains : PD
     share : float
         How much of the move from the identified gains to those of the onboard cascade
-        was kept (1: all; less where the margin over the plausible range asked for it).
+        the margin over the plausible range allowed (1: all). Below 1, ``gains`` are the
+        better (on the nominal cascade) of that shrunk move and the ISE-optimal PD under
+        the same margin.
     pm_deg : float
         Phase margin of ``gains`` on the onboard cascade with the attitude loop at the
         least plausible GCS delay (deg).
@@ -468,8 +471,8 @@ class SideRetarget:
     def note(self) -> str:
         out = "re-designed behind the written attitude gains"
         if self.share < 1.0:
-            out += (f" ({self.share:.0%} of the change kept for PM {self.pm_deg:.0f} deg over "
-                    f"the plausible GCS delay)").replace("%", " %")
+            out += (f" (held back for PM {self.pm_deg:.0f} deg over the plausible GCS delay, "
+                    f"an unseen rate-target filter and position-loop rate)")
         return out
 
 
@@ -502,7 +505,8 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
     rate target low-passed at :data:`RATE_TARGET_MIN_HZ` (a filter the ground station
     cannot read: ArduPilot-like cascades have one). ``onboard_extra_s``: delay the
     onboard position loop may add (s, :func:`onboard_extra_delay_s`), half of it designed
-    for, all of it checked.
+    for, all of it checked. Where the margin holds the move back, the ISE-optimal PD of the
+    nominal cascade under that margin is taken instead when it is better.
 
     Examples
     --------
@@ -556,6 +560,25 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
             else:
                 b = mid
         share = a
+        # the shrunk move keeps the identified tuning rule; the ISE-optimal PD of the
+        # nominal cascade under the margin over the plausible range may do better
+        g_nom = g_on * np.exp(-0.5 * extra * s)
+        scale = PD(side.gains.Kc / p0.Kc, side.gains.Kd / p0.Kd)
+
+        def cost(x: np.ndarray) -> float:
+            g = PD(float(np.exp(x[0])), float(np.exp(x[1])))
+            short = max(0.0, pm_min_deg - pm(PD(g.Kc * scale.Kc, g.Kd * scale.Kd)))
+            q = ise(g.Kc, g.Kd, g_nom, w)
+            return q * (1.0 + 0.05 * short + 0.02 * short ** 2) if np.isfinite(q) else 1e12
+
+        x0 = np.log([best.Kc / scale.Kc, best.Kd / scale.Kd])
+        res = minimize(cost, x0, method="Nelder-Mead",
+                       options={"xatol": 1e-4, "fatol": 1e-9, "maxiter": 400})
+        cand = PD(float(np.exp(res.x[0])) * scale.Kc, float(np.exp(res.x[1])) * scale.Kd)
+        pm_cand = pm(cand)
+        if pm_cand >= pm_min_deg and (ise(cand.Kc / scale.Kc, cand.Kd / scale.Kd, g_nom, w)
+                                      < ise(best.Kc / scale.Kc, best.Kd / scale.Kd, g_nom, w)):
+            best, pm_best = cand, pm_cand
     return SideRetarget(best, share, float(pm_best))
 
 
