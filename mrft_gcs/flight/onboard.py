@@ -576,8 +576,10 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
                        options={"xatol": 1e-4, "fatol": 1e-9, "maxiter": 400})
         cand = PD(float(np.exp(res.x[0])) * scale.Kc, float(np.exp(res.x[1])) * scale.Kd)
         pm_cand = pm(cand)
-        if pm_cand >= pm_min_deg and (ise(cand.Kc / scale.Kc, cand.Kd / scale.Kd, g_nom, w)
-                                      < ise(best.Kc / scale.Kc, best.Kd / scale.Kd, g_nom, w)):
+        if pm_cand >= pm_min_deg and (
+                pm_best < pm_min_deg  # even the identified gains fall short
+                or ise(cand.Kc / scale.Kc, cand.Kd / scale.Kd, g_nom, w)
+                < ise(best.Kc / scale.Kc, best.Kd / scale.Kd, g_nom, w)):
             best, pm_best = cand, pm_cand
     return SideRetarget(best, share, float(pm_best))
 
