@@ -1185,9 +1185,10 @@ def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
     if ident is not None:
         gains = ident.gains
         if seg.gcs_period_s > 0 and isinstance(ident.model, InnerModel):
-            from mrft_gcs.flight.onboard import robust_onboard_gains
+            from mrft_gcs.flight.onboard import onboard_extra_delay_s, robust_onboard_gains
 
-            rt = robust_onboard_gains(ident, _gcs_delay(seg, cyc[0]))
+            rt = robust_onboard_gains(ident, _gcs_delay(seg, cyc[0]),
+                                      onboard_extra_s=onboard_extra_delay_s(seg.loop))
             delay, gains = rt.delay_s, rt.gains
             notes.append(f"gains re-targeted to the onboard loop, less delay than the "
                          f"ground-station relay by how old telemetry was when the command "

@@ -62,7 +62,9 @@ from mrft_gcs.flight.inair import (
 from mrft_gcs.flight.onboard import (
     Retarget,
     measure_gcs_delay,
+    onboard_extra_delay_s,
     onboard_gains,
+    onboard_side_gains,
     robust_onboard_gains,
 )
 from mrft_gcs.flight.ratepath import GCS_PD_SCALE as RATE_GCS_PD_SCALE
@@ -1052,7 +1054,17 @@ class _Run:
             rt = self._retarget(lp, t.identification, t.snapshot)
             delay[lp], retargets[lp] = rt.delay_s, rt
             self.written[lp] = rt.gains
-        moved = [lp for lp, g in identified.items() if self.written[lp] != g]
+        side_notes = []
+        for lp, inner_lp in _SIDE_INNER.items():
+            # flown behind the written attitude gains, not the GCS's PD it was identified behind
+            inner, ident = seq.loops[inner_lp].identification, seq.loops[lp].identification
+            if (lp in self.written and inner_lp in retargets and inner is not None
+                    and ident is not None and self.gcs_delay_s is None):
+                side = onboard_side_gains(ident, inner, retargets[inner_lp])
+                self.written[lp] = side.gains
+                side_notes.append(f"{lp.value} {side.note()}")
+        moved = [lp for lp, g in identified.items() if self.written[lp] != g
+                 and lp not in _SIDE_INNER]
         self.delays = {lp: delay[lp] for lp in moved}
         if moved:
             if self.gcs_delay_s is not None:
@@ -1066,6 +1078,8 @@ class _Run:
                 f"written {', '.join(lp.value for lp in moved)} gains are re-targeted from the "
                 f"GCS-side loop to the onboard loop ({how}); the report's gains are the "
                 f"written ones")
+        if side_notes:
+            self.notes.append("written side gains: " + "; ".join(side_notes))
         for lp, inner_lp in _SIDE_INNER.items():
             if (lp in self.written and inner_lp not in self.requested
                     and seq.loops[inner_lp].state is LoopState.TUNED):
@@ -1242,9 +1256,11 @@ class _Run:
         if snap is not None and len(snap.t_s):
             t, ages = self.ages.ages_s(lp is Loop.ALTITUDE, float(snap.t_s[0]),
                                        float(snap.t_s[-1]), clock)
-        gcs = measure_gcs_delay(ages, period, sample_t_s=t, clock=clock,
-                                latency_s=0.5 * _round_trip_s(self.quality))
-        return robust_onboard_gains(ident, gcs)
+        rtt, q = _round_trip_s(self.quality), self.quality
+        spread = 1e-3 * (q.rtt_p90_ms - q.rtt_p50_ms) if rtt > 0 and q is not None else 0.0
+        gcs = measure_gcs_delay(ages, period, sample_t_s=t, clock=clock, latency_s=0.5 * rtt,
+                                round_trip_s=rtt, round_trip_spread_s=spread)
+        return robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp))
 
     def _hand_over(self) -> None:
         """Switch to the autopilot's position mode, stop streaming, check it hovers."""
