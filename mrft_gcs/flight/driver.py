@@ -1,0 +1,236 @@
+"""One driver of the tuning sequence, over any :class:`~mrft_gcs.flight.source.VehicleSource`.
+
+:class:`SequenceDriver` holds what every run of :class:`~mrft_gcs.flight.sequence.TuningSequence`
+does around it, in two parts:
+
+- :meth:`~SequenceDriver.tick`, once per ground-station tick: on the ground the sample
+  feeds the noise estimate (the relays' bands) and the idle set point goes out; in flight
+  the safety limits are checked and the sequence steps. A live tune runs it on the set-point
+  stream's thread, so it never waits for identification.
+- :meth:`~SequenceDriver.supervise`, as often as the caller likes: steady cycles are
+  identified (the identification callable), a refused identification waits for the next
+  cycles (cycles that miss the set point start the relay over), a numerical failure is
+  retried up to :data:`NUMERIC_RETRIES` times, side tests start with relay settings from
+  their attitude identification, and a relay that never settles stops the test.
+
+:meth:`~SequenceDriver.run` calls both inline, tick by tick (the simulated vehicle, a log
+replay). The live tune (:func:`mrft_gcs.flight.tune`) calls ``tick`` from the stream and
+``supervise`` from its main thread.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+from mrft_gcs.errors import IdentificationError, SetpointNotCrossed
+from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.safety import SafetyMonitor
+from mrft_gcs.flight.sequence import (
+    AUTOPILOT_ATTITUDE,
+    SIDE_INNER,
+    CycleSnapshot,
+    Phase,
+    TuningSequence,
+)
+from mrft_gcs.flight.source import Setpoint, VehicleSource, idle_setpoint, state_time_s
+from mrft_gcs.identify import Identification, Method, RelaySettings, relay_settings
+from mrft_gcs.identify.closed_loop import side_relay_settings
+from mrft_gcs.identify.live import Identifier, closed_loop_summary, measured_attitude_loop
+from mrft_gcs.loops import Loop, LoopKind
+from mrft_gcs.profiles import Actuation, SafetyLimits
+from mrft_gcs.telemetry import EndOfStream
+
+__all__ = ["SequenceDriver", "NUMERIC_RETRIES"]
+
+#: identifications of one loop that may fail on a numerical error (ValueError,
+#: ArithmeticError) and be retried on the next cycles before the tune stops
+NUMERIC_RETRIES = 2
+
+
+class SequenceDriver:
+    """Runs one :class:`TuningSequence`: per-tick stepping and the identification around it.
+
+    Parameters
+    ----------
+    seq : TuningSequence
+    identify : callable
+        ``f(loop, snapshot, inner) -> Identification`` (the bundled classifiers, a test
+        double, or a wrapper that runs them in a worker process).
+    attitude_loop : callable
+        ``f(snapshot) -> Identification``: the autopilot's closed attitude loop measured
+        from a side relay's cycles (attitude path only).
+    relay : dict, optional
+        Relay settings per loop kind that replace the classifiers' (side: else asked with
+        the attitude identification).
+    limits : SafetyLimits, optional
+        Checked on every tick in flight (:class:`SafetyMonitor`, made at :meth:`start`).
+    max_relay_s : float, optional
+        A relay running longer without steady cycles stops the test
+        (:class:`IdentificationError`); None: no limit.
+    """
+
+    def __init__(self, seq: TuningSequence, identify: Identifier, *,
+                 attitude_loop: Callable[[CycleSnapshot], Identification] = measured_attitude_loop,
+                 relay: dict[LoopKind, RelaySettings] | None = None,
+                 limits: SafetyLimits | None = None, max_relay_s: float | None = None) -> None:
+        self.seq = seq
+        self.identify = identify
+        self.attitude_loop = attitude_loop
+        self.relay = relay or {}
+        self.limits = limits
+        self.max_relay_s = max_relay_s
+        self.monitor: SafetyMonitor | None = None
+        self.idle = idle_setpoint(seq.config.actuation is Actuation.ATTITUDE)
+        #: the report's notes on retried identifications
+        self.notes: list[str] = []
+        #: (loop, error text) of every identification that was retried
+        self.retries: list[tuple[Loop, str]] = []
+        self.numeric_failures: dict[Loop, int] = {}
+
+    # ------------------------------------------------------------------ per tick
+    def start(self, s: FlightState) -> None:
+        """The take-off command: the safety origin and the sequence start at ``s``."""
+        if self.limits is not None:
+            self.monitor = SafetyMonitor(self.limits, (s.x_m, s.y_m, s.z_up_m),
+                                         state_time_s(s))
+        self.seq.start(s)
+
+    def tick(self, s: FlightState | None) -> Setpoint:
+        """The set point answering ``s`` (idle with no state yet, or on the ground).
+
+        Raises
+        ------
+        LimitExceeded
+            ``s`` is beyond a safety limit.
+        """
+        seq = self.seq
+        if s is None:
+            return self.idle
+        if seq.phase is Phase.PREFLIGHT:
+            seq.observe(s)  # on the ground: the noise that sets the relays' bands
+            return self.idle
+        if self.monitor is not None:
+            self.monitor.check(s)
+        return seq.step(s)
+
+    # ------------------------------------------------------------------ supervision
+    def supervise(self) -> None:
+        """Identify steady cycles, start side tests, stop a relay that never settles.
+
+        Raises
+        ------
+        IdentificationError
+            A relay ran ``max_relay_s`` without steady cycles, or one loop's identification
+            failed on a numerical error more than :data:`NUMERIC_RETRIES` times.
+        """
+        seq = self.seq
+        for snap in seq.ready():
+            self.identify_one(snap)
+        if seq.side_waiting:
+            self.start_side()
+        if self.max_relay_s is not None:
+            for lp in Loop:
+                age = seq.relay_age_s(lp)
+                if age > self.max_relay_s:
+                    raise IdentificationError(
+                        f"{lp.value}: no steady relay oscillation after {age:.0f} s: check for "
+                        f"vibration, wind or a loose airframe, or raise the relay amplitude")
+
+    def identify_one(self, snap: CycleSnapshot) -> None:
+        """Identify ``snap`` and switch its loop to the PD, or retry by the rules."""
+        seq = self.seq
+        inner = None
+        try:
+            if snap.loop in SIDE_INNER:
+                inner = seq.loops[SIDE_INNER[snap.loop]].identification
+                if inner is None and seq.config.actuation is Actuation.ATTITUDE:
+                    inner = self.attitude_loop(snap)
+            ident = self.identify(snap.loop, snap, inner)
+        except IdentificationError as err:
+            self.notes.append(f"{snap.loop.value}: identification retried ({err})")
+            self.retries.append((snap.loop, str(err)))
+            seq.retry(snap.loop, restart=isinstance(err, SetpointNotCrossed))
+            return
+        except (ValueError, ArithmeticError) as err:
+            # a numerical failure inside identification (numpy's LinAlgError is a
+            # ValueError): as a rule the cycles that caused it were disturbed ones, so the
+            # relay runs on and the next cycles are tried; a failure that repeats is a fault
+            n = self.numeric_failures[snap.loop] = self.numeric_failures.get(snap.loop, 0) + 1
+            what = f"{type(err).__name__}: {err}"
+            if n > NUMERIC_RETRIES:
+                raise IdentificationError(
+                    f"{snap.loop.value}: identification failed {n} times on a numerical "
+                    f"error ({what}); the test stopped and the vehicle lands: "
+                    f"please report it with the session's .tlog") from err
+            self.notes.append(f"{snap.loop.value}: identification retried after a numerical "
+                              f"error ({what})")
+            self.retries.append((snap.loop, what))
+            seq.retry(snap.loop)
+            return
+        if inner is not None and inner.diagnostics.method is Method.CLOSED_LOOP:
+            att = seq.loops[SIDE_INNER[snap.loop]]
+            att.note = f"{AUTOPILOT_ATTITUDE}; {closed_loop_summary(inner, snap.loop)}"
+            ident = dataclasses.replace(ident, extras={**ident.extras, "inner": "measured "
+                                                       "closed attitude loop",
+                                                       "inner_identification": inner})
+        seq.apply(snap.loop, ident)
+
+    def start_side(self) -> None:
+        """Start the side tests that can start, each with its relay settings."""
+        seq = self.seq
+        settings: dict[Loop, RelaySettings] = {}
+        for lp in seq.side_ready():
+            inner_lp = SIDE_INNER[lp]
+            inner = seq.loops[inner_lp].identification
+            if inner is None and seq.config.actuation is Actuation.ATTITUDE:
+                # the autopilot's attitude loop is measured from this very relay's cycles
+                settings[lp] = self.relay.get(LoopKind.SIDE) or side_relay_settings()
+                continue
+            if inner is None:
+                seq.leave_alone(lp, f"{lp.value} needs the identified {inner_lp.value} loop for "
+                                f"the side-motion identification, and it was not identified")
+                continue
+            settings[lp] = self.relay.get(LoopKind.SIDE) or relay_settings(LoopKind.SIDE, inner)
+        seq.start_side(settings)
+
+    # ------------------------------------------------------------------ inline
+    def run(self, source: VehicleSource, *, ground_until_s: float,
+            stop: Callable[[FlightState], bool] | None = None,
+            on_tick: Callable[[FlightState, Setpoint], None] | None = None) -> FlightState | None:
+        """Fly the sequence over ``source`` tick by tick, ``tick`` and ``supervise`` inline.
+
+        On the ground until the source's clock reaches ``ground_until_s`` (idle set points,
+        the noise measured), then the take-off command on the next state, then one tick
+        per state until ``stop(state)`` (default: the sequence hovers on its PDs) or the
+        source ends (:class:`EndOfStream`). ``on_tick(state, setpoint)`` runs before each
+        set point goes out. Returns the last state (None: the source ended on the ground).
+
+        Raises
+        ------
+        LimitExceeded, IdentificationError
+            As :meth:`tick` and :meth:`supervise`.
+        """
+        seq = self.seq
+        stop = stop or (lambda _s: seq.phase is Phase.HOVER)
+        try:
+            while source.time_s < ground_until_s:
+                source.send(self.tick(source.next_state()))
+            s = source.next_state()
+            while s is None:
+                source.send(self.idle)
+                s = source.next_state()
+            self.start(s)
+            while True:
+                s = source.next_state()
+                if s is None:
+                    continue
+                sp = self.tick(s)
+                if on_tick is not None:
+                    on_tick(s, sp)
+                source.send(sp)
+                self.supervise()
+                if stop(s):
+                    return s
+        except EndOfStream:
+            return seq.state
