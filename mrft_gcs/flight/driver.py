@@ -21,10 +21,11 @@ replay). The live tune (:func:`mrft_gcs.flight.tune`) calls ``tick`` from the st
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 
 from mrft_gcs.errors import IdentificationError, SetpointNotCrossed
-from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.controllers import FlightState, wrap_pi
 from mrft_gcs.flight.safety import SafetyMonitor
 from mrft_gcs.flight.sequence import (
     AUTOPILOT_ATTITUDE,
@@ -39,7 +40,7 @@ from mrft_gcs.identify.closed_loop import side_relay_settings
 from mrft_gcs.identify.live import Identifier, closed_loop_summary, measured_attitude_loop
 from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.profiles import Actuation, SafetyLimits
-from mrft_gcs.telemetry import EndOfStream
+from mrft_gcs.telemetry import AttitudeTarget, EndOfStream
 
 __all__ = ["SequenceDriver", "NUMERIC_RETRIES"]
 
@@ -68,12 +69,15 @@ class SequenceDriver:
     max_relay_s : float, optional
         A relay running longer without steady cycles stops the test
         (:class:`IdentificationError`); None: no limit.
+    notes : list of str, optional
+        Where the notes on retried identifications go (the tune's report notes).
     """
 
     def __init__(self, seq: TuningSequence, identify: Identifier, *,
                  attitude_loop: Callable[[CycleSnapshot], Identification] = measured_attitude_loop,
                  relay: dict[LoopKind, RelaySettings] | None = None,
-                 limits: SafetyLimits | None = None, max_relay_s: float | None = None) -> None:
+                 limits: SafetyLimits | None = None, max_relay_s: float | None = None,
+                 notes: list[str] | None = None) -> None:
         self.seq = seq
         self.identify = identify
         self.attitude_loop = attitude_loop
@@ -82,8 +86,8 @@ class SequenceDriver:
         self.max_relay_s = max_relay_s
         self.monitor: SafetyMonitor | None = None
         self.idle = idle_setpoint(seq.config.actuation is Actuation.ATTITUDE)
-        #: the report's notes on retried identifications
-        self.notes: list[str] = []
+        #: the report's notes on retried identifications (appended to ``notes`` if given)
+        self.notes: list[str] = notes if notes is not None else []
         #: (loop, error text) of every identification that was retried
         self.retries: list[tuple[Loop, str]] = []
         self.numeric_failures: dict[Loop, int] = {}
@@ -96,8 +100,12 @@ class SequenceDriver:
                                          state_time_s(s))
         self.seq.start(s)
 
-    def tick(self, s: FlightState | None) -> Setpoint:
+    def tick(self, s: FlightState | None, applied: Setpoint | None = None) -> Setpoint:
         """The set point answering ``s`` (idle with no state yet, or on the ground).
+
+        ``applied``: the command the vehicle actually got for ``s`` (a log replay: the
+        logged one); the sequence's cycle detectors then watch it instead of the
+        sequence's own output (:meth:`loop_inputs`).
 
         Raises
         ------
@@ -112,7 +120,37 @@ class SequenceDriver:
             return self.idle
         if self.monitor is not None:
             self.monitor.check(s)
-        return seq.step(s)
+        return seq.step(s, None if applied is None else self.loop_inputs(s, applied))
+
+    def loop_inputs(self, s: FlightState, applied: Setpoint) -> dict[Loop, float]:
+        """Each loop's input in ``applied``, in the units of its relay's output.
+
+        Roll, pitch and altitude are in the command itself (torque, thrust). x and y are
+        the tilt set points: on the attitude path in the command; on the torque path behind
+        the ground station's attitude PDs, so they are recovered by inverting the PD of
+        their attitude loop (where it is tuned and its output was not clipped) and the
+        rotation by the heading (see :meth:`TuningSequence.step`).
+        """
+        seq = self.seq
+        out: dict[Loop, float] = {Loop.ALTITUDE: applied.thrust}
+        if isinstance(applied, AttitudeTarget):
+            w, x, y, z = applied.q_wxyz
+            ref = {Loop.ROLL: math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+                   Loop.PITCH: math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))}
+        else:
+            out[Loop.ROLL], out[Loop.PITCH] = applied.roll, applied.pitch
+            ref = {}
+            for lp, u, angle, rate in ((Loop.ROLL, applied.roll, s.roll_rad, s.p_rad_s),
+                                       (Loop.PITCH, applied.pitch, s.pitch_rad, s.q_rad_s)):
+                pd = seq.loops[lp].pd
+                if pd is not None and pd.Kc > 0 and pd.lo < u < pd.hi:
+                    ref[lp] = angle + (u - pd.trim + pd.Kd * rate) / pd.Kc
+        if len(ref) == 2:
+            d = wrap_pi(s.yaw_rad - seq.yaw_ref)
+            c, n = math.cos(d), math.sin(d)
+            out[Loop.X] = -n * ref[Loop.ROLL] - c * ref[Loop.PITCH]
+            out[Loop.Y] = c * ref[Loop.ROLL] - n * ref[Loop.PITCH]
+        return out
 
     # ------------------------------------------------------------------ supervision
     def supervise(self) -> None:
@@ -195,16 +233,23 @@ class SequenceDriver:
         seq.start_side(settings)
 
     # ------------------------------------------------------------------ inline
-    def run(self, source: VehicleSource, *, ground_until_s: float,
+    def run(self, source: VehicleSource, *, ground_until_s: float = -math.inf,
+            ground_ticks: int | None = None,
             stop: Callable[[FlightState], bool] | None = None,
-            on_tick: Callable[[FlightState, Setpoint], None] | None = None) -> FlightState | None:
+            on_tick: Callable[[FlightState, Setpoint], None] | None = None,
+            follow_applied: bool = False) -> FlightState | None:
         """Fly the sequence over ``source`` tick by tick, ``tick`` and ``supervise`` inline.
 
         On the ground until the source's clock reaches ``ground_until_s`` (idle set points,
-        the noise measured), then the take-off command on the next state, then one tick
-        per state until ``stop(state)`` (default: the sequence hovers on its PDs) or the
-        source ends (:class:`EndOfStream`). ``on_tick(state, setpoint)`` runs before each
-        set point goes out. Returns the last state (None: the source ended on the ground).
+        the noise measured), then the take-off command on the next state; or, with
+        ``ground_ticks`` (a replay: :meth:`ReplayVehicle.takeoff_tick`), that many ticks on
+        the ground and the take-off command on the last of them, as the live tune gave
+        it. Then one tick per state until ``stop(state)`` (default: the sequence hovers on
+        its PDs) or the source ends (:class:`EndOfStream`). ``on_tick(state, setpoint)``
+        runs before each set point goes out. ``follow_applied`` (a replay, whose
+        ``applied`` answers the current state): the cycle detectors watch the applied
+        command (:meth:`tick`).
+        Returns the last state (None: the source ended on the ground).
 
         Raises
         ------
@@ -214,18 +259,24 @@ class SequenceDriver:
         seq = self.seq
         stop = stop or (lambda _s: seq.phase is Phase.HOVER)
         try:
-            while source.time_s < ground_until_s:
-                source.send(self.tick(source.next_state()))
-            s = source.next_state()
-            while s is None:
-                source.send(self.idle)
-                s = source.next_state()
-            self.start(s)
+            last: FlightState | None = None
+            if ground_ticks is not None:
+                for _ in range(ground_ticks):
+                    last = source.next_state() or last
+                    source.send(self.tick(last))
+            else:
+                while source.time_s < ground_until_s:
+                    source.send(self.tick(source.next_state()))
+            while last is None:
+                last = source.next_state()
+                if last is None:
+                    source.send(self.idle)
+            self.start(last)
             while True:
                 s = source.next_state()
                 if s is None:
                     continue
-                sp = self.tick(s)
+                sp = self.tick(s, source.applied() if follow_applied else None)
                 if on_tick is not None:
                     on_tick(s, sp)
                 source.send(sp)

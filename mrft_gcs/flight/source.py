@@ -24,7 +24,8 @@ sequence over. Three implementations answer it:
   :meth:`next_state` raises :class:`~mrft_gcs.telemetry.EndOfStream`. The clock is the
   vehicle clock of the newest sample (never going back).
 
-All three: ``close()`` may be called any number of times; states are finite.
+All three: states are finite; ``close()`` may be called any number of times, and after it
+``next_state`` returns None (live, simulated) or raises ``EndOfStream`` (replay).
 """
 
 from __future__ import annotations
@@ -163,13 +164,24 @@ class LiveVehicle:
         self._tick_seen = threading.Condition()
         self._closed = False
         self._t0 = time.monotonic()
+        #: held from reading telemetry to sending the answer (the link's, so that the
+        #: session log shows the samples each command answered before it, and no other)
+        self._order: threading.Lock = getattr(link, "order_lock", None) or threading.Lock()
         link.drain()
-        self.streamer = SetpointStreamer(link, self._make, rate_hz=rate_hz)
+        self.streamer = SetpointStreamer(_InOrder(link, self._order), self._make,
+                                         rate_hz=rate_hz)
         self.streamer.start()
 
     def _make(self, _t: float) -> Setpoint | None:
-        s = self.telemetry.poll()
-        out = self._on_tick(s) if self._on_tick is not None else self._sp
+        self._order.acquire()  # released once the answer is sent (_InOrder), or here
+        try:
+            s = self.telemetry.poll()
+            out = self._on_tick(s) if self._on_tick is not None else self._sp
+        except BaseException:
+            self._order.release()
+            raise
+        if out is None:
+            self._order.release()
         self._applied = out if out is not None else self._applied
         with self._tick_seen:
             self._ticks += 1
@@ -181,11 +193,12 @@ class LiveVehicle:
         return time.monotonic() - self._t0
 
     def next_state(self, timeout_s: float = 1.0) -> FlightState | None:
-        """The newest state after the next stream tick (None: no tick or no state in time)."""
+        """The newest state after the next stream tick (None: no tick or no state in time,
+        or the source is closed)."""
         with self._tick_seen:
             n = self._ticks
             if not self._tick_seen.wait_for(lambda: self._ticks > n or self._closed,
-                                            timeout=timeout_s):
+                                            timeout=timeout_s) or self._closed:
                 return None
         return self.telemetry.latest()
 
@@ -213,6 +226,26 @@ class LiveVehicle:
             self._tick_seen.notify_all()
 
 
+class _InOrder:
+    """The link as the stream's sink: sending a set point releases the order lock that
+    :meth:`LiveVehicle._make` took before reading the telemetry it answers."""
+
+    def __init__(self, link: VehicleLink, lock: threading.Lock) -> None:
+        self.link, self.lock = link, lock
+
+    def send_setpoint(self, target: Setpoint) -> None:
+        try:
+            self.link.send_setpoint(target)
+        finally:
+            self.lock.release()
+
+    def telemetry_age_s(self) -> float:
+        return self.link.telemetry_age_s()
+
+    def land(self, *, wait_ack: bool = True, timeout_s: float = 1.0) -> None:
+        self.link.land(wait_ack=wait_ack, timeout_s=timeout_s)
+
+
 def _last_before(order: np.ndarray, at: np.ndarray) -> np.ndarray:
     """For each position ``at``, the index of the last ``order`` entry before it (-1: none);
     ``order`` sorted ascending."""
@@ -224,9 +257,10 @@ class ReplayVehicle:
 
     Ticks: where the log keeps the order of both directions (a .tlog), one per logged
     command, with the newest ATTITUDE and LOCAL_POSITION_NED logged before it: the state
-    the ground station answered (a sample received while the command was being made is
-    logged before it too, so now and then a state is one sample newer than live). Else one
-    per ATTITUDE sample, with the newest position and command up to its time.
+    the ground station answered (exactly so for logs of :class:`LiveVehicle`, which logs
+    nothing received between reading telemetry and sending the answer; in older logs a
+    sample received meanwhile makes a state one sample newer now and then). Else one per
+    ATTITUDE sample, with the newest position and command up to its time.
 
     Parameters
     ----------
@@ -285,15 +319,15 @@ class ReplayVehicle:
         return AttitudeTarget(float(row[0]), tuple(float(v) for v in row[1:5]),  # type: ignore[arg-type]
                               float(row[5]))
 
-    def takeoff_s(self) -> float:
-        """Vehicle time of the state the session took off from: the tick before the first
-        command with thrust (a live tune calls the sequence's ``start`` on it); NaN when
-        the log has no such command."""
+    def takeoff_tick(self) -> int | None:
+        """Index of the first tick whose logged command has thrust: the session's first
+        take-off command (a live tune started the sequence on the tick before); None
+        where the log has none."""
         for i in range(len(self)):
             c = self._command(i)
             if c is not None and c.thrust > 0:
-                return state_time_s(self._state(max(i - 1, 0)))
-        return math.nan
+                return i
+        return None
 
     @property
     def time_s(self) -> float:

@@ -137,7 +137,10 @@ class LockstepVehicle:
         self.cmd_q.append((self.v.time_s + self.command_delay_s, fn))
 
     def next_state(self, timeout_s: float = 1.0) -> FlightState | None:
-        """Step to the next tick; the newest state delivered by then (None: none yet)."""
+        """Step to the next tick; the newest state delivered by then (None: none yet, or
+        the source is closed)."""
+        if self._closed:
+            return None
         v = self.v
         if self.stalls is not None:
             self.next_tick += self.stalls(v.time_s) * v.dt
