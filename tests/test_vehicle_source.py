@@ -191,14 +191,14 @@ def test_replay_through_the_driver_finds_the_live_relay_cycles(tmp_path):
 
     The live stream logs nothing received between reading telemetry and sending its answer,
     so the replay steps the sequence on the very states live answered, from the very tick
-    live took off on: up to the first identification its set points are the logged ones,
-    and roll, pitch and altitude reach the live windows exactly (measured: 0.000 % on two
-    tunes). The replay identifies at once, where the live tune's main thread took 10-100
-    ms: from there the replay's relays run a few ticks apart from the live ones, so its
-    detectors watch the logged command (``follow_applied``). x and y start those ticks
-    sooner and the detector may call a window up to two cycles earlier steady: periods
-    within 1.3 %, amplitudes within 2.2 % on two tunes, inside the detector's own
-    steadiness tolerance (``period_tol`` 5 %). Allowed: inner 1 %, side 6 %.
+    live took off on, and holds each identification until the logged commands show the live
+    tune applied it (its main thread took 10-100 ms): the replay's set points are the
+    logged ones up to the side tests, and roll, pitch and altitude reach the live windows
+    exactly (measured: 0.000 % on two tunes). The side relays start a tick or so apart
+    from live (the main thread started them between ticks), so their detectors watch the
+    logged command (``follow_applied``) and may call a window up to two cycles earlier
+    steady: periods within 1.3 %, amplitudes within 2.2 % on two tunes, inside the
+    detector's own steadiness tolerance (``period_tol`` 5 %). Allowed: inner 1 %, side 6 %.
     """
     relay = dict(TRUTH_RELAYS)
     ti = truth_identifier("qdrone")

@@ -14,8 +14,9 @@ does around it, in two parts:
   their attitude identification, and a relay that never settles stops the test.
 
 :meth:`~SequenceDriver.run` calls both inline, tick by tick (the simulated vehicle, a log
-replay). The live tune (:func:`mrft_gcs.flight.tune`) calls ``tick`` from the stream and
-``supervise`` from its main thread.
+replay, which can follow the logged commands: docs/pipeline.md). The live tune
+(:func:`mrft_gcs.flight.tune`) calls ``tick`` from the stream and ``supervise`` from its
+main thread.
 """
 
 from __future__ import annotations
@@ -91,6 +92,8 @@ class SequenceDriver:
         #: (loop, error text) of every identification that was retried
         self.retries: list[tuple[Loop, str]] = []
         self.numeric_failures: dict[Loop, int] = {}
+        #: a replay's identifications waiting for the tick the live tune applied them on
+        self._held: dict[Loop, tuple[Identification, FlightState | None]] = {}
 
     # ------------------------------------------------------------------ per tick
     def start(self, s: FlightState) -> None:
@@ -177,6 +180,12 @@ class SequenceDriver:
 
     def identify_one(self, snap: CycleSnapshot) -> None:
         """Identify ``snap`` and switch its loop to the PD, or retry by the rules."""
+        done = self._identified(snap)
+        if done is not None:
+            self._apply(*done)
+
+    def _identified(self, snap: CycleSnapshot) -> tuple[Loop, Identification] | None:
+        """``snap`` identified, or None where the rules retried it."""
         seq = self.seq
         inner = None
         try:
@@ -189,7 +198,7 @@ class SequenceDriver:
             self.notes.append(f"{snap.loop.value}: identification retried ({err})")
             self.retries.append((snap.loop, str(err)))
             seq.retry(snap.loop, restart=isinstance(err, SetpointNotCrossed))
-            return
+            return None
         except (ValueError, ArithmeticError) as err:
             # a numerical failure inside identification (numpy's LinAlgError is a
             # ValueError): as a rule the cycles that caused it were disturbed ones, so the
@@ -205,14 +214,19 @@ class SequenceDriver:
                               f"error ({what})")
             self.retries.append((snap.loop, what))
             seq.retry(snap.loop)
-            return
+            return None
         if inner is not None and inner.diagnostics.method is Method.CLOSED_LOOP:
             att = seq.loops[SIDE_INNER[snap.loop]]
             att.note = f"{AUTOPILOT_ATTITUDE}; {closed_loop_summary(inner, snap.loop)}"
             ident = dataclasses.replace(ident, extras={**ident.extras, "inner": "measured "
                                                        "closed attitude loop",
                                                        "inner_identification": inner})
-        seq.apply(snap.loop, ident)
+        return snap.loop, ident
+
+    def _apply(self, loop: Loop, ident: Identification) -> None:
+        self.seq.apply(loop, ident)
+        if self.seq.side_waiting:  # as supervise() does right after
+            self.start_side()
 
     def start_side(self) -> None:
         """Start the side tests that can start, each with its relay settings."""
@@ -232,6 +246,38 @@ class SequenceDriver:
             settings[lp] = self.relay.get(LoopKind.SIDE) or relay_settings(LoopKind.SIDE, inner)
         seq.start_side(settings)
 
+    # ------------------------------------------------------------------ replay timing
+    def _supervise_held(self) -> None:
+        """:meth:`supervise` for a replay: identifications are made at once but held until
+        the logged commands show the live tune switched that loop to its PD (its main
+        thread took 10-100 ms), so the replay's relays stay those that flew."""
+        seq = self.seq
+        for snap in seq.ready():
+            done = self._identified(snap)
+            if done is not None:
+                self._held[done[0]] = (done[1], seq.state)
+        if not self._held and seq.side_waiting:
+            self.start_side()
+
+    def _release_held(self, s: FlightState, applied: Setpoint) -> None:
+        """Apply each held identification whose loop the logged command no longer drives
+        with its relay (its input is off both relay levels), or held over a second."""
+        if not self._held:
+            return
+        seq = self.seq
+        inputs = self.loop_inputs(s, applied)
+        for lp, (ident, since) in list(self._held.items()):
+            t = seq.loops[lp]
+            relay = seq.takeoff.relay if lp is Loop.ALTITUDE else t.relay
+            u = inputs.get(lp)
+            off = relay is None or (u is not None and min(
+                abs(u - float(relay.bias[0]) - k * float(relay.h[0])) for k in (1.0, -1.0))
+                > 1e-5)
+            late = since is not None and state_time_s(s) - state_time_s(since) > 1.0
+            if off or late:
+                del self._held[lp]
+                self._apply(lp, ident)
+
     # ------------------------------------------------------------------ inline
     def run(self, source: VehicleSource, *, ground_until_s: float = -math.inf,
             ground_ticks: int | None = None,
@@ -248,7 +294,8 @@ class SequenceDriver:
         its PDs) or the source ends (:class:`EndOfStream`). ``on_tick(state, setpoint)``
         runs before each set point goes out. ``follow_applied`` (a replay, whose
         ``applied`` answers the current state): the cycle detectors watch the applied
-        command (:meth:`tick`).
+        command (:meth:`tick`), and each identification waits for the tick the logged
+        commands show it applied on (:meth:`_supervise_held`).
         Returns the last state (None: the source ended on the ground).
 
         Raises
@@ -276,11 +323,17 @@ class SequenceDriver:
                 s = source.next_state()
                 if s is None:
                     continue
-                sp = self.tick(s, source.applied() if follow_applied else None)
+                applied = source.applied() if follow_applied else None
+                if applied is not None:
+                    self._release_held(s, applied)
+                sp = self.tick(s, applied)
                 if on_tick is not None:
                     on_tick(s, sp)
                 source.send(sp)
-                self.supervise()
+                if applied is not None:
+                    self._supervise_held()
+                else:
+                    self.supervise()
                 if stop(s):
                     return s
         except EndOfStream:
