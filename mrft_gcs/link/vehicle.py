@@ -370,10 +370,11 @@ class VehicleLink:
         if msg.get_type() == "BAD_DATA":
             self.counters.bad_frames += 1
             return
+        rx = time.monotonic()  # before the lock: a wait for the stream is no link delay
         with self.order_lock:
-            self._take(msg)
+            self._take(msg, rx)
 
-    def _take(self, msg: Any) -> None:
+    def _take(self, msg: Any, rx: float) -> None:
         kind = msg.get_type()
         if self._tlog is not None:
             self._tlog.write(msg.get_msgbuf())
@@ -397,7 +398,7 @@ class VehicleLink:
             self.counters.nonfinite_dropped += 1
             return
         if isinstance(event, self.TELEMETRY_KINDS):
-            self._last_telemetry = time.monotonic()
+            self._last_telemetry = rx
             self._got_telemetry = True
             self.rx_offset_s = min(self.rx_offset_s, self._last_telemetry - event.t_s)
         if isinstance(event, Heartbeat):
