@@ -13,10 +13,12 @@ the hover on the written gains failed).
 Two ways to run it (the output says which):
 
 * ``--mode lockstep`` (default, the fastest honest one): the tool's own sequence
-  (:class:`TuningSequence`), the bundled classifiers, the retry rules, the GCS-delay
-  re-targeting and the parameter write-back (``params_in_range`` on the ``sitl`` profile)
-  drive the in-process vehicle in simulated time, 1 ms physics steps. The link is the
-  vehicle's: telemetry at its cap (at most the 250 Hz asked), each frame held
+  (:class:`TuningSequence`) run by the tool's own driver
+  (:class:`~mrft_gcs.flight.driver.SequenceDriver`: safety limits, the bundled classifiers,
+  the retry rules), the GCS-delay re-targeting and the parameter write-back
+  (``params_in_range`` on the ``sitl`` profile) drive the in-process vehicle
+  (:class:`~mrft_gcs.sitl.lockstep.LockstepVehicle`) in simulated time, 1 ms physics
+  steps. The link is the vehicle's: telemetry at its cap (at most the 250 Hz asked), each frame held
   ``link_delay_s`` each way, commands every 4 ms; the link check is the tool's own
   (``require_relay_capable``) on those figures, not a measurement. Not run: the tool's
   in-air check of written gains and anything that depends on host timing (a CPU hog then
@@ -52,23 +54,25 @@ from pathlib import Path
 import numpy as np
 
 from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort
-from mrft_gcs.flight.api import NUMERIC_RETRIES, bundled_identifier
-from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.driver import SequenceDriver
 from mrft_gcs.flight.onboard import (
     measure_gcs_delay,
     onboard_extra_delay_s,
     onboard_side_gains,
     robust_onboard_gains,
 )
-from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
+from mrft_gcs.flight.safety import LimitExceeded
 from mrft_gcs.flight.scoring import score_written
 from mrft_gcs.flight.sequence import LoopState, Phase, SequenceConfig, TuningSequence
+from mrft_gcs.flight.source import VehicleMode
 from mrft_gcs.identify import relay_settings
+from mrft_gcs.identify.live import bundled_identifier
 from mrft_gcs.link.quality import LinkQuality, require_relay_capable
 from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.profiles import PDGains, load_profile, params_in_range
 from mrft_gcs.sitl import SimVehicle, domain_check, random_airframe
-from mrft_gcs.sitl.onboard import FlightMode, ParamStore
+from mrft_gcs.sitl.lockstep import GcsLink, LockstepVehicle
+from mrft_gcs.sitl.onboard import ParamStore
 
 _SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 RATE_HZ = 250.0          # the tool's setpoint stream and the telemetry rate it asks
@@ -87,56 +91,6 @@ def gcs_delay_s(af) -> float:
     return 2 * af.link_delay_s + 0.5 / tel + 0.5 / RATE_HZ + 0.5 / af.onboard.loop_hz
 
 
-def _state(af, t: float, att, posv) -> FlightState:
-    return FlightState(t, att[0], att[1], att[2], att[3], att[4], att[5], t, posv[0], posv[1],
-                       -posv[2], posv[3], posv[4], -posv[5])
-
-
-def _true_tilt_deg(v: SimVehicle) -> float:
-    r, p, _ = v.physics.euler
-    return math.degrees(math.acos(max(-1.0, min(1.0, math.cos(r) * math.cos(p)))))
-
-
-class _Lockstep:
-    """The vehicle, its link and the ground station's 250 Hz tick, in simulated time."""
-
-    def __init__(self, af, seed: int) -> None:
-        self.af = af
-        self.v = SimVehicle(af, seed=seed)
-        self.link = af.link_delay_s
-        self.tel_period = 1.0 / min(RATE_HZ, af.telemetry_max_hz)
-        self.next_tel = 0.0
-        rng = np.random.default_rng([7, seed])
-        self.next_tick = float(rng.uniform(0.0, 1.0 / RATE_HZ))  # the session's phase
-        self.tel_q: collections.deque = collections.deque()    # (arrival, FlightState)
-        self.cmd_q: collections.deque = collections.deque()    # (arrival, callable)
-        self.latest: FlightState | None = None
-        self.latest_arrival = math.nan
-        self.max_tilt = 0.0
-
-    def send(self, fn) -> None:
-        """A command from the ground station: acts on the vehicle a link delay later."""
-        self.cmd_q.append((self.v.time_s + self.link, fn))
-
-    def advance_to_tick(self) -> FlightState | None:
-        """Step the vehicle to the ground station's next tick; the newest telemetry then."""
-        v = self.v
-        while v.time_s < self.next_tick - 1e-9:
-            while self.cmd_q and self.cmd_q[0][0] <= v.time_s + 1e-9:
-                self.cmd_q.popleft()[1]()
-            if v.time_s >= self.next_tel - 1e-9:
-                ph = v.physics
-                self.tel_q.append((v.time_s + self.link,
-                                   _state(self.af, v.time_s, ph.meas_att, ph.meas_posv)))
-                self.next_tel += self.tel_period
-            v.step()
-            self.max_tilt = max(self.max_tilt, _true_tilt_deg(v))
-        while self.tel_q and self.tel_q[0][0] <= v.time_s + 1e-9:
-            self.latest_arrival, self.latest = self.tel_q.popleft()
-        self.next_tick += 1.0 / RATE_HZ
-        return self.latest
-
-
 def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
     """One tune of the random vehicle of ``seed`` in simulated time; a JSON-able record."""
     af = random_airframe(seed)
@@ -150,75 +104,40 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
         require_relay_capable(LinkQuality(RATE_HZ, tel, tel, rtt, rtt, 0, 10, 2.0))
     except LinkError as err:
         return _end(rec, "refused", f"link: {err}")
-    ls = _Lockstep(af, seed)
-    v, ap = ls.v, ls.v.autopilot
+    rng = np.random.default_rng([7, seed])
+    phase = float(rng.uniform(0.0, 1.0 / RATE_HZ))  # the session's phase
+    v = SimVehicle(af, seed=seed)
+    src = LockstepVehicle(v, RATE_HZ, link=GcsLink(af.link_delay_s, tel, phase))
+    ap = v.autopilot
     hover = ap.params["MPC_THR_HOVER"]  # what the tool reads: the autopilot's estimate
     cfg = SequenceConfig(actuation=prof.actuation, z_ref_m=1.0, hover_thrust_guess=hover,
                          max_tilt_cmd_rad=0.6 * math.radians(lim.max_tilt_deg))
     seq = TuningSequence(cfg, relay_settings(LoopKind.ATTITUDE),
                          relay_settings(LoopKind.ALTITUDE))
-    ap.set_actuator_controls(0.0, 0.0, 0.0, 0.0)
-    ap.set_mode(FlightMode.OFFBOARD)
-    ap.arm(True)
+    drv = SequenceDriver(seq, bundled_identifier, limits=lim, max_relay_s=MAX_RELAY_S)
+    src.send(drv.idle)  # as the tool does: set points first, then offboard, then arm
+    src.set_mode(VehicleMode.OFFBOARD)
+    src.arm()
     ages: dict[bool, list[tuple[float, float]]] = {False: [], True: []}  # (t, age) att / pos
-    while v.time_s < 0.4:  # on the ground: the noise that sets the relays' bands
-        s = ls.advance_to_tick()
-        if s is not None:
-            seq.observe(s)
-        ls.send(lambda: ap.set_actuator_controls(0.0, 0.0, 0.0, 0.0))
-    s = ls.advance_to_tick()
-    monitor = SafetyMonitor(lim, (s.x_m, s.y_m, s.z_up_m), s.t_att_s)
-    seq.start(s)
-    failed: dict[Loop, int] = {}
-    notes: list[str] = []
+
+    def age(s, _sp) -> None:
+        a = v.time_s - src.latest_arrival
+        ages[False].append((s.t_att_s, a))
+        ages[True].append((s.t_pos_s, a))
+
     outcome = reason = None
-    while outcome is None:
-        s = ls.advance_to_tick()
-        try:
-            monitor.check(s)
-        except LimitExceeded as err:
-            outcome, reason = "aborted", str(err)
-            break
-        sp = seq.step(s)
-        age = v.time_s - ls.latest_arrival
-        ages[False].append((s.t_att_s, age))
-        ages[True].append((s.t_pos_s, age))
-        ls.send(lambda sp=sp: ap.set_actuator_controls(sp.roll, sp.pitch, sp.yaw, sp.thrust))
-        for snap in seq.ready():
-            inner = seq.loops[_SIDE_INNER[snap.loop]].identification \
-                if snap.loop in _SIDE_INNER else None
-            try:
-                seq.apply(snap.loop, bundled_identifier(snap.loop, snap, inner))
-            except IdentificationError as err:
-                notes.append(f"{snap.loop.value}: identification retried ({err})")
-                seq.retry(snap.loop, restart="set point" in str(err))
-            except (ValueError, ArithmeticError) as err:
-                failed[snap.loop] = failed.get(snap.loop, 0) + 1
-                notes.append(f"{snap.loop.value}: numerical error ({type(err).__name__})")
-                if failed[snap.loop] > NUMERIC_RETRIES:
-                    outcome, reason = "refused", f"{snap.loop.value}: identification failed " \
-                        f"{failed[snap.loop]} times on a numerical error"
-                    break
-                seq.retry(snap.loop)
-        if outcome is not None:
-            break
-        if seq.side_waiting:
-            settings = {}
-            for lp in seq.side_ready():
-                inner = seq.loops[_SIDE_INNER[lp]].identification
-                if inner is None:
-                    seq.leave_alone(lp, "its attitude loop was not identified")
-                    continue
-                settings[lp] = relay_settings(LoopKind.SIDE, inner)
-            seq.start_side(settings)
-        for lp in Loop:
-            if seq.relay_age_s(lp) > MAX_RELAY_S:
-                outcome, reason = "refused", f"{lp.value}: no steady relay oscillation after " \
-                    f"{MAX_RELAY_S:.0f} s"
-        if seq.phase is Phase.HOVER:
-            break
-        if v.time_s > max_s:
+    try:
+        # on the ground for 0.4 s: the noise that sets the relays' bands
+        drv.run(src, ground_until_s=0.4, on_tick=age,
+                stop=lambda _s: seq.phase is Phase.HOVER or v.time_s > max_s)
+        if seq.phase is not Phase.HOVER:
             outcome, reason = "aborted", f"not done after {max_s:.0f} s of simulated time"
+    except LimitExceeded as err:
+        outcome, reason = "aborted", str(err)
+    except IdentificationError as err:
+        outcome, reason = "refused", str(err)
+    monitor = drv.monitor
+    notes = drv.notes
     rec["time_to_tune_s"] = _num(seq.duration_s) if seq.phase is Phase.HOVER else None
     rec["notes"] = notes
     rec["max_tilt_by_phase"] = {k: _num(d) for k, d in seq.max_tilt_by_phase.items()}
@@ -228,8 +147,9 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
                                     "Kc": i.gains.Kc, "Kd": i.gains.Kd}
                          for lp, i in identified.items()}
     if outcome is not None:
-        rec["max_tilt_deg"] = ls.max_tilt
+        rec["max_tilt_deg"] = src.max_tilt
         return _end(rec, outcome, reason)
+    assert monitor is not None
     # write-back, as the tool does: re-target the GCS delay measured from the ages and the
     # link's round trip (what TIMESYNC times here), robustly; side loops behind the written
     # attitude gains; clamp
@@ -255,12 +175,12 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
         return _end(rec, "refused", f"parameters did not stick: {refused}")
     rec["written"] = dict(ranged.values)
     # hand-over: position mode on the written gains, the stream stops, a short hover check
-    ls.send(lambda: ap.set_mode(FlightMode.POSCTL))
+    src.set_mode(VehicleMode.POSITION)
     held = None
     worst = 0.0
     t_end = v.time_s + HOVER_CHECK_S
     while v.time_s < t_end:
-        s = ls.advance_to_tick()
+        s = src.next_state()
         why = monitor.violation(s, duration=False)
         if why is not None:
             outcome, reason = "aborted", f"on the written gains in POSCTL: {why}"
@@ -269,7 +189,7 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
         held = held or here
         worst = max(worst, math.dist(here, held))
     rec["hover_error_m"] = worst
-    rec["max_tilt_deg"] = ls.max_tilt
+    rec["max_tilt_deg"] = src.max_tilt
     _score(rec, af, dict(ap.params.values), {lp: i.gains for lp, i in identified.items()},
            list(identified))
     return _end(rec, outcome or "completed", reason)

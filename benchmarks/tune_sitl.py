@@ -27,24 +27,21 @@ import json
 import math
 import os
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from overrides import add_set_option, apply_overrides, checked_overrides
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from overrides import add_set_option, apply_overrides, checked_overrides  # noqa: E402
-
-from mrft_gcs.errors import MrftError  # noqa: E402
-from mrft_gcs.flight import tune  # noqa: E402
-from mrft_gcs.flight.scoring import score_gains  # noqa: E402
-from mrft_gcs.flight.sequence import SequenceConfig  # noqa: E402
-from mrft_gcs.loops import Loop, LoopKind  # noqa: E402
-from mrft_gcs.profiles import load_profile, params_to_gains  # noqa: E402
-from mrft_gcs.sitl import SitlProcess, load_airframe  # noqa: E402
+from mrft_gcs.errors import MrftError
+from mrft_gcs.flight import tune
+from mrft_gcs.flight.scoring import score_gains
+from mrft_gcs.flight.sequence import SequenceConfig
+from mrft_gcs.loops import Loop
+from mrft_gcs.profiles import load_profile, params_to_gains
+from mrft_gcs.sitl import SitlProcess, load_airframe
+from mrft_gcs.sitl.lockstep import TRUTH_RELAYS, truth_identifier
 
 
 def _num(x: float) -> float | None:
@@ -103,11 +100,8 @@ def run_one(vehicle: str, seed: int, *, truth: bool = False, figure8: bool = Fal
     if overrides:
         kw["config"] = apply_overrides(SequenceConfig(), overrides)
     if truth:
-        from flight_sim import ALT_RELAY, ATT_RELAY, SIDE_RELAY, truth_identifier
-
         ti = truth_identifier(vehicle)
-        kw["relay"] = {LoopKind.ATTITUDE: ATT_RELAY, LoopKind.ALTITUDE: ALT_RELAY,
-                       LoopKind.SIDE: SIDE_RELAY}
+        kw["relay"] = dict(TRUTH_RELAYS)
         kw["identifier"] = lambda lp, s, i: ti(lp, s, i)
     prof = load_profile("sitl")
     af = load_airframe(vehicle)

@@ -40,32 +40,27 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
+from overrides import add_set_option, apply_overrides, checked_overrides
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from flight_sim import state_of  # noqa: E402
-from overrides import add_set_option, apply_overrides, checked_overrides  # noqa: E402
-
-from mrft_gcs.errors import IdentificationError, SetpointNotCrossed  # noqa: E402
-from mrft_gcs.flight.api import NUMERIC_RETRIES  # noqa: E402
-from mrft_gcs.flight.onboard import onboard_gains  # noqa: E402
-from mrft_gcs.flight.scoring import score_gains  # noqa: E402
-from mrft_gcs.flight.sequence import Phase, SequenceConfig, TuningSequence  # noqa: E402
-from mrft_gcs.identify import relay_settings  # noqa: E402
-from mrft_gcs.identify.live import bundled_identifier  # noqa: E402
-from mrft_gcs.loops import Loop, LoopKind  # noqa: E402
-from mrft_gcs.sitl import load_airframe  # noqa: E402
-from mrft_gcs.sitl.onboard import FlightMode  # noqa: E402
-from mrft_gcs.sitl.vehicle import SimVehicle  # noqa: E402
+from mrft_gcs.errors import IdentificationError
+from mrft_gcs.flight.driver import SequenceDriver
+from mrft_gcs.flight.onboard import onboard_gains
+from mrft_gcs.flight.scoring import score_gains
+from mrft_gcs.flight.sequence import Phase, SequenceConfig, TuningSequence
+from mrft_gcs.flight.source import VehicleMode
+from mrft_gcs.identify import relay_settings
+from mrft_gcs.identify.live import bundled_identifier
+from mrft_gcs.loops import LoopKind
+from mrft_gcs.sitl import load_airframe
+from mrft_gcs.sitl.lockstep import LockstepVehicle
+from mrft_gcs.sitl.vehicle import SimVehicle
 
 #: (probability per 4 ms tick, stall ms low, high), from the live stream's period record on
 #: the README machine (racer250, 14 s: 2.5 % of periods over 6 ms, 0.6 % over 12 ms, max 73)
 HICCUPS = ((0.0002, 40, 70), (0.0015, 16, 40), (0.005, 8, 16), (0.015, 4, 4))
-_SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 
 
 def stall_ticks(rng: np.random.Generator, scale: float) -> int:
@@ -82,51 +77,30 @@ def run_one(vehicle: str, seed: int, *, stalls: float = 1.0, hover_factor: float
     """One tune from the ground; returns a JSON-able record (``overrides``: ``--set``)."""
     af = load_airframe(vehicle)
     v = SimVehicle(af, seed=seed)
-    ap = v.autopilot
-    ap.set_actuator_controls(0, 0, 0, 0)
-    ap.set_mode(FlightMode.OFFBOARD)
-    ap.arm(True)
+    rng = np.random.default_rng(1000 + seed)
+    # the command is on its way ``gcs_delay_ms`` after its sample: the last one holds
+    src = LockstepVehicle(v, command_delay_s=(gcs_delay_ms or 0) * 1e-3,
+                          stalls=lambda _t: stall_ticks(rng, stalls))
     cfg = apply_overrides(SequenceConfig(hover_thrust_guess=hover_factor * af.hover_thrust),
                           overrides)
     seq = TuningSequence(cfg, relay_settings(LoopKind.ATTITUDE), relay_settings(LoopKind.ALTITUDE))
-    for _ in range(100):  # 0.4 s on the ground: the noise that sets the relay bands
-        v.run(0.004)
-        seq.observe(state_of(v))
-    seq.start(state_of(v))
-    rng = np.random.default_rng(1000 + seed)
-    retries, max_tilt, done = [], 0.0, False
-    failed: dict[Loop, int] = {}  # identifications that raised a numerical error
-    while v.time_s < max_s:
-        s = state_of(v)
-        sp = seq.step(s)
+    drv = SequenceDriver(seq, bundled_identifier)  # the tune's identification and retry rules
+    src.send(drv.idle)
+    src.set_mode(VehicleMode.OFFBOARD)
+    src.arm()
+    max_tilt = 0.0
+
+    def tilt(s, _sp) -> None:
+        nonlocal max_tilt
         max_tilt = max(max_tilt, math.degrees(s.tilt_rad))
-        for _ in range(gcs_delay_ms or 0):  # the command is on its way: the last one holds
-            v.step()
-        ap.set_actuator_controls(sp.roll, sp.pitch, sp.yaw, sp.thrust)
-        for snap in seq.ready():
-            inner = seq.loops[_SIDE_INNER[snap.loop]].identification \
-                if snap.loop in _SIDE_INNER else None
-            try:
-                seq.apply(snap.loop, bundled_identifier(snap.loop, snap, inner))
-            except IdentificationError as err:  # as the tune does: wait for the next cycles
-                retries.append(f"{snap.loop.value}: {err}")
-                seq.retry(snap.loop, restart=isinstance(err, SetpointNotCrossed))
-            except (ValueError, ArithmeticError) as err:  # as the tune does (flight/api.py)
-                failed[snap.loop] = failed.get(snap.loop, 0) + 1
-                retries.append(f"{snap.loop.value}: numerical error ({type(err).__name__}: "
-                               f"{err})")
-                seq.retry(snap.loop)
-        if any(n > NUMERIC_RETRIES for n in failed.values()):
-            break  # the tune stops here (recorded as not done)
-        if seq.side_waiting:
-            seq.start_side({lp: relay_settings(LoopKind.SIDE,
-                                               seq.loops[_SIDE_INNER[lp]].identification)
-                            for lp in seq.side_ready()})
-        if seq.phase is Phase.HOVER:
-            done = True
-            break
-        for _ in range(4 - (gcs_delay_ms or 0) + stall_ticks(rng, stalls)):
-            v.step()
+
+    try:  # 0.4 s on the ground: the noise that sets the relay bands
+        drv.run(src, ground_until_s=0.4, on_tick=tilt,
+                stop=lambda _s: seq.phase is Phase.HOVER or v.time_s >= max_s)
+    except IdentificationError:
+        pass  # a numerical failure that repeats: the tune stops here (recorded as not done)
+    done = seq.phase is Phase.HOVER
+    retries = [f"{lp.value}: {err}" for lp, err in drv.retries]
     gains = {lp: t.identification.gains for lp, t in seq.loops.items()
              if t.identification is not None}
     scores = score_gains(af.linear_models(), gains)

@@ -41,10 +41,10 @@ from mrft_gcs.errors import (
     ParameterError,
     PilotTookOver,
     SafetyAbort,
-    SetpointNotCrossed,
     UsageError,
 )
 from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.driver import NUMERIC_RETRIES, SequenceDriver  # noqa: F401 - re-exported
 from mrft_gcs.flight.hover import HoverCheck, check_hover_states
 from mrft_gcs.flight.inair import (
     CHECK_AMPLITUDE_RAD,
@@ -70,7 +70,6 @@ from mrft_gcs.flight.onboard import (
 from mrft_gcs.flight.ratepath import GCS_PD_SCALE as RATE_GCS_PD_SCALE
 from mrft_gcs.flight.ratepath import RatePath, rate_path_refusal
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
-from mrft_gcs.flight.sequence import AUTOPILOT_ATTITUDE as _AUTOPILOT_ATTITUDE
 from mrft_gcs.flight.sequence import (
     CycleSnapshot,
     LoopState,
@@ -79,18 +78,16 @@ from mrft_gcs.flight.sequence import (
     TuningSequence,
     quat_from_euler,
 )
+from mrft_gcs.flight.source import LinkTelemetry, LiveVehicle, Setpoint, VehicleMode
 from mrft_gcs.identify import (
     Identification,
-    Method,
     RelaySettings,
     attach_residual,
     relay_settings,
 )
-from mrft_gcs.identify.closed_loop import side_relay_settings
 from mrft_gcs.identify.live import (
     Identifier,
     bundled_identifier,
-    closed_loop_summary,
     measured_attitude_loop,
     warm_up_identification,
 )
@@ -139,9 +136,6 @@ YAW_NOTE = ("yaw is not tuned: it is held by a conservative GCS-side PD during t
 _SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 NOT_REQUESTED = "not requested"
 _ATTITUDE_LOOPS = (Loop.ROLL, Loop.PITCH)
-#: identifications of one loop that may fail on a numerical error (ValueError,
-#: ArithmeticError) and be retried on the next cycles before the tune stops
-NUMERIC_RETRIES = 2
 #: seconds the identification worker may take to load (else the tune identifies in its own
 #: process), and to answer one identification (60-120 ms measured; else likewise)
 WORKER_WARM_UP_S = 60.0
@@ -246,31 +240,8 @@ class TuneResult:
     hover_check: HoverCheck | None = None
 
 
-class _Telemetry:
-    """Latest ATTITUDE and LOCAL_POSITION_NED, drained from the link on the stream's ticks."""
-
-    def __init__(self, link: VehicleLink) -> None:
-        self.link = link
-        self.att: Attitude | None = None
-        self.pos: LocalPosition | None = None
-
-    def poll(self) -> FlightState | None:
-        """Drain the link's queue (on the stream's ticks only) and return the latest state."""
-        while (smp := self.link.next_sample(0.0)) is not None:
-            if isinstance(smp, Attitude):
-                self.att = smp
-            elif isinstance(smp, LocalPosition):
-                self.pos = smp
-        return self.latest()
-
-    def latest(self) -> FlightState | None:
-        """The latest state without draining (safe from any thread)."""
-        a, p = self.att, self.pos
-        if a is None or p is None:
-            return None
-        return FlightState(a.t_s, a.roll_rad, a.pitch_rad, a.yaw_rad, a.rollspeed_rad_s,
-                           a.pitchspeed_rad_s, a.yawspeed_rad_s, p.t_s, p.x_m, p.y_m, -p.z_m,
-                           p.vx_m_s, p.vy_m_s, -p.vz_m_s)
+#: the latest state from the link (kept under its old name for the code below)
+_Telemetry = LinkTelemetry
 
 
 class _AgeLog:
@@ -370,12 +341,6 @@ def _check_note(plan: CheckPlan, check: InAirCheck) -> str:
     return (f"crossover predicted at {plan.wc_rad_s:.3g} rad/s; measured onboard plant "
             f"{check.k:.2f} x the model's gain, {check.extra_delay_s * 1e3:+.1f} ms of delay"
             + (f"; input: {check.source}" if check.source else ""))
-
-
-def _idle(actuation: Actuation) -> ActuatorTarget | AttitudeTarget:
-    if actuation in (Actuation.TORQUE, Actuation.RATE):  # the rate path sends it as rates
-        return ActuatorTarget(0.0, 0.0, 0.0, 0.0, 0.0)
-    return AttitudeTarget(0.0, (1.0, 0.0, 0.0, 0.0), 0.0)
 
 
 def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
@@ -524,15 +489,17 @@ class _Run:
         self.worker: IdentificationWorker | None = None
         self.relay: dict[LoopKind, RelaySettings] = relay
         self.seq: TuningSequence | None = None
+        #: runs the sequence: per tick on the stream's thread, identification on this one
+        self.driver: SequenceDriver | None = None
+        #: the link and its set-point stream as the driver's vehicle source
+        self.vehicle: LiveVehicle | None = None
         self.streamer: SetpointStreamer | None = None
-        self.monitor: SafetyMonitor | None = None
         self.quality: LinkQuality | None = None
         self.changes: tuple[ParamChange, ...] = ()
         self.backup: str | None = None
         self.limit_hit: LimitExceeded | None = None
         self.hover_error_m = math.nan
         self.notes: list[str] = []
-        self.numeric_failures: dict[Loop, int] = {}  # identifications that raised (_identify)
         self.gcs_delay_s: float | None = None  # None: measured per loop (self.ages)
         self.ages = _AgeLog()
         self.clock = _ReceiveClock(link)  # ages are counted on it
@@ -553,6 +520,11 @@ class _Run:
         self.hover_check: HoverCheck | None = None
         #: the body-rate path's state (None: another path), :mod:`mrft_gcs.flight.ratepath`
         self.rate: RatePath | None = None
+
+    @property
+    def monitor(self) -> SafetyMonitor | None:
+        """The safety limits' monitor, from the take-off command on (the driver's)."""
+        return self.driver.monitor if self.driver is not None else None
 
     # ------------------------------------------------------------------ result
     def result(self, status: str, error: str | None = None) -> TuneResult:
@@ -662,6 +634,12 @@ class _Run:
         if self.act is Actuation.RATE and cfg.gcs_attitude_pd_scale == 1.0:
             cfg = dataclasses.replace(cfg, gcs_attitude_pd_scale=RATE_GCS_PD_SCALE)
         self.seq = TuningSequence(cfg, att, alt)
+        self.driver = SequenceDriver(
+            self.seq, lambda lp, snap, inner: self._offload("identify", self.ident_fn, lp, snap,
+                                                            inner),
+            attitude_loop=lambda snap: self._offload("attitude_loop", measured_attitude_loop,
+                                                     snap),
+            relay=self.relay, limits=self.lim, max_relay_s=self.max_relay_s, notes=self.notes)
         for lp in _SIDE_INNER:
             if lp not in self.requested:
                 self.seq.leave_alone(lp, f"{NOT_REQUESTED}: not relay-tested; held where it "
@@ -805,25 +783,22 @@ class _Run:
         except MrftError:
             pass
 
-    def _setpoint(self, telemetry: _Telemetry
-                  ) -> Callable[[float], ActuatorTarget | AttitudeTarget | None]:
-        seq, idle, ages = self.seq, _idle(self.act), self.ages
-        assert seq is not None
+    def _setpoint(self) -> Callable[[FlightState | None], Setpoint | None]:
+        """The per-tick part, run on the stream's thread (:meth:`SequenceDriver.tick`), with
+        the in-air check's set points and the ages of the samples each command answers."""
+        seq, drv, ages = self.seq, self.driver, self.ages
+        assert seq is not None and drv is not None
 
-        def make(_t: float):
-            s = telemetry.poll()
-            if s is None:
-                return idle
-            if seq.phase is Phase.PREFLIGHT:
-                seq.observe(s)  # on the ground: the noise that sets the relays' bands
-                return idle
-            if self.monitor is not None:
-                try:
-                    self.monitor.check(s)
-                except LimitExceeded as err:
-                    self.limit_hit = err
-                    raise
-            out = seq.step(s)
+        def make(s: FlightState | None) -> Setpoint:
+            on_ground = s is None or seq.phase is Phase.PREFLIGHT
+            try:
+                out = drv.tick(s)
+            except LimitExceeded as err:
+                self.limit_hit = err
+                raise
+            if on_ground:
+                return out
+            assert s is not None and self.vehicle is not None
             probe = self.probe
             if probe is not None and not probe.done and isinstance(out, ActuatorTarget):
                 # the written attitude loop flies the check's set points; altitude stays on
@@ -831,45 +806,45 @@ class _Run:
                 r, p = probe.step(time.monotonic(), s.t_att_s, s.roll_rad, s.pitch_rad)
                 out = AttitudeTarget(out.t_s, quat_from_euler(r, p, self.probe_yaw),
                                      out.thrust)
-            ages.record(telemetry.att, telemetry.pos)  # the command leaves right after
+            tel = self.vehicle.telemetry
+            ages.record(tel.att, tel.pos)  # the command leaves right after
             return out
 
         return make
 
     def _fly(self, client: ParamClient) -> None:
-        link, seq = self.link, self.seq
-        assert seq is not None
-        telemetry = _Telemetry(link)
-        link.drain()
-        make = self._setpoint(telemetry)
+        seq, drv = self.seq, self.driver
+        assert seq is not None and drv is not None
+        tick = self._setpoint()
         if self.act is Actuation.RATE:
             assert self.prof.rate_path is not None
-            self.rate = RatePath(link, self.prof.rate_path, self.backup_dir)
-            make = self.rate.wrap(make, telemetry.latest)  # type: ignore[assignment]
-        self.streamer = SetpointStreamer(link, make, rate_hz=self.rate_hz)
-        self.streamer.start()
+            self.rate = RatePath(self.link, self.prof.rate_path, self.backup_dir)
+            tick = self.rate.wrap(tick)
+            rate = self.rate
+            drv.side_gate = lambda: rate.handed_over
+        # the stream starts at once: PX4 needs it before OFFBOARD
+        vehicle = self.vehicle = LiveVehicle(self.link, self.rate_hz, on_tick=tick)
+        self.streamer = vehicle.streamer
         qos = self.streamer.cpu_latency
         if qos is not None and qos.denied:
             self.notes.append(f"setpoint stream: {qos.outcome}")
-        time.sleep(0.3)  # PX4 needs the stream before OFFBOARD
+        time.sleep(0.3)
         self._check_stream()
-        link.set_mode(self.prof.modes["offboard"])
+        vehicle.set_mode(VehicleMode.OFFBOARD)
         self.mode_watch = self.prof.modes["offboard"]
-        link.arm()
+        vehicle.arm()
         if self.rate is not None:
             self.rate.engage(client)  # armed with the stock gains: no arming check is off
             if (hold := self.rate.yaw_hold()) is not None:
                 seq.yaw = hold
             self.rate.require_aligned()
         deadline = time.monotonic() + 1.0
-        while (s := telemetry.latest()) is None and time.monotonic() < deadline:
+        while (s := vehicle.telemetry.latest()) is None and time.monotonic() < deadline:
             time.sleep(0.01)
         if s is None:
             raise LinkError("no ATTITUDE and LOCAL_POSITION_NED after arming: check the "
                             "vehicle's position estimate")
-        self.monitor = SafetyMonitor(self.lim, (s.x_m, s.y_m, s.z_up_m),
-                                     max(s.t_att_s, s.t_pos_s))
-        seq.start(s)  # the take-off command: duration_s counts from here
+        drv.start(s)  # the take-off command (safety origin too): duration_s counts from here
         self._run_tests()
         self._hold(0.5)
         self._write_back(client)
@@ -911,80 +886,22 @@ class _Run:
             self.on_progress(snap)
 
     def _run_tests(self) -> None:
-        seq = self.seq
-        assert seq is not None
+        """Supervise the tests from this thread (:meth:`SequenceDriver.supervise`) while the
+        stream steps the sequence, until every loop hovers on its PD."""
+        seq, drv = self.seq, self.driver
+        assert seq is not None and drv is not None
         next_progress = 0.0
         while seq.phase is not Phase.HOVER:
             time.sleep(0.01)
             self._check_stream()
-            for snap in seq.ready():
-                self._identify(snap)
+            drv.supervise()
             if self.rate is not None and self.rate.inner_due(all(
                     seq.loops[lp].state is LoopState.TUNED for lp in _ATTITUDE_LOOPS)):
                 self._rate_inner_hand_over()
-            if seq.side_waiting and (self.rate is None or self.rate.handed_over):
-                self._start_side()
-            for lp in Loop:
-                age = seq.relay_age_s(lp)
-                if age > self.max_relay_s:
-                    raise IdentificationError(
-                        f"{lp.value}: no steady relay oscillation after {age:.0f} s: check for "
-                        f"vibration, wind or a loose airframe, or raise the relay amplitude")
             if time.monotonic() >= next_progress:
                 next_progress = time.monotonic() + 0.1
                 self._progress()
         self._progress()
-
-    def _identify(self, snap: CycleSnapshot) -> None:
-        seq = self.seq
-        assert seq is not None
-        inner = None
-        try:
-            if snap.loop in _SIDE_INNER:
-                inner = seq.loops[_SIDE_INNER[snap.loop]].identification
-                scale = seq.config.gcs_attitude_pd_scale
-                if inner is not None and scale != 1.0:  # the inner PD the side relay flew
-                    g = inner.gains
-                    inner = dataclasses.replace(inner, gains=PD(scale * g.Kc, scale * g.Kd))
-                if self._autopilot_attitude():
-                    inner = None  # the written gains fly it onboard: measured, as below
-                if inner is None and self._autopilot_attitude():
-                    inner = self._offload("attitude_loop", measured_attitude_loop, snap)
-            ident = self._offload("identify", self.ident_fn, snap.loop, snap, inner)
-        except IdentificationError as err:
-            self.notes.append(f"{snap.loop.value}: identification retried ({err})")
-            seq.retry(snap.loop, restart=isinstance(err, SetpointNotCrossed))
-            return
-        except (ValueError, ArithmeticError) as err:
-            # a numerical failure inside identification (numpy's LinAlgError is a
-            # ValueError): the cycles that caused it are disturbed ones as a rule (two such
-            # paths were found under ground-station stalls; both now raise
-            # IdentificationError themselves), so the relay runs on and the next cycles are
-            # tried, as for a refused identification; a failure that repeats is a fault
-            n = self.numeric_failures[snap.loop] = self.numeric_failures.get(snap.loop, 0) + 1
-            what = f"{type(err).__name__}: {err}"
-            if n > NUMERIC_RETRIES:
-                raise IdentificationError(
-                    f"{snap.loop.value}: identification failed {n} times on a numerical "
-                    f"error ({what}); the test stopped and the vehicle lands: "
-                    f"please report it with the session's .tlog") from err
-            self.notes.append(f"{snap.loop.value}: identification retried after a numerical "
-                              f"error ({what})")
-            seq.retry(snap.loop)
-            return
-        if inner is not None and inner.diagnostics.method is Method.CLOSED_LOOP:
-            att = seq.loops[_SIDE_INNER[snap.loop]]
-            why = (_AUTOPILOT_ATTITUDE if self.rate is None else "tuned on the rate path and "
-                   "written at its hand-over; the side test flew on the written gains")
-            att.note = f"{why}; {closed_loop_summary(inner, snap.loop)}"
-            ident = dataclasses.replace(ident, inner=inner)
-        seq.apply(snap.loop, ident)
-
-    def _autopilot_attitude(self) -> bool:
-        """The autopilot's own attitude loop flies the tilt commands (attitude path, or the
-        rate path after its hand-over)."""
-        return self.act is Actuation.ATTITUDE or (self.rate is not None
-                                                  and self.rate.handed_over)
 
     def _rate_inner_hand_over(self) -> None:
         """Rate path: the identified roll and pitch gains into the onboard cascade now (the
@@ -1006,29 +923,15 @@ class _Run:
         rate.split(ranged.values if ranged is not None else {})
         rate.hand_over(ParamClient(self.link), self._hold)
         seq.config = dataclasses.replace(seq.config, actuation=Actuation.ATTITUDE)
+        assert self.driver is not None
+        self.driver.autopilot_attitude_note = ("tuned on the rate path and written at its "
+                                               "hand-over; the side test flew on the written "
+                                               "gains")
         self.notes.append(
             "rate path: roll and pitch gains written as soon as both were identified (GCS "
             "delay re-targeted out: " + ", ".join(
                 f"{lp.value} {self.delays[lp] * 1e3:.1f} ms" for lp in gains)
             + "); the side tests flew attitude set points on them")
-
-    def _start_side(self) -> None:
-        seq = self.seq
-        assert seq is not None
-        settings: dict[Loop, RelaySettings] = {}
-        for lp in seq.side_ready():
-            inner_lp = _SIDE_INNER[lp]
-            inner = seq.loops[inner_lp].identification
-            if self._autopilot_attitude():
-                # the autopilot's attitude loop is measured from this very relay's cycles
-                settings[lp] = self.relay.get(LoopKind.SIDE) or side_relay_settings()
-                continue
-            if inner is None:
-                seq.leave_alone(lp, f"{lp.value} needs the identified {inner_lp.value} loop for "
-                                f"the side-motion identification, and it was not identified")
-                continue
-            settings[lp] = self.relay.get(LoopKind.SIDE) or relay_settings(LoopKind.SIDE, inner)
-        seq.start_side(settings)
 
     def _hold(self, seconds: float) -> None:
         end = time.monotonic() + seconds
@@ -1190,8 +1093,9 @@ class _Run:
         """Fly the square waves of ``plans`` and return ``{loop: (plan, InAirCheck)}``."""
         assert self.streamer is not None
         probe = SquareWaveProbe(plans)
-        s = _Telemetry(self.link).latest()
-        self.probe_yaw = s.yaw_rad if s is not None else 0.0
+        # the heading held through the check: the one flown now (a fresh reader has none)
+        s = self.vehicle.telemetry.latest() if self.vehicle is not None else None
+        self.probe_yaw = s.yaw_rad if s is not None else (self.seq.yaw_ref if self.seq else 0.0)
         with self.link.subscribe(AttitudeSetpoint) as tracked:
             asked = self._ask_setpoints(self.rate_hz)
             self.probe = probe
@@ -1272,8 +1176,9 @@ class _Run:
                 self.changes = self.changes + staged
                 self.backup = self.rate.merged_backup(self.backup)
         self.mode_watch = None  # the tool leaves offboard itself from here
-        link.set_mode(self.prof.modes["position"])
-        self.streamer.stop()
+        assert self.vehicle is not None
+        self.vehicle.set_mode(VehicleMode.POSITION)
+        self.vehicle.close()  # the stream stops: the autopilot flies on the written gains
         seq.finish(Phase.DONE)
         telemetry = _Telemetry(link)
         end = time.monotonic() + self.hover_check_s

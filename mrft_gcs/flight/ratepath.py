@@ -40,6 +40,7 @@ import numpy as np
 
 from mrft_gcs.errors import LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState, YawHold
+from mrft_gcs.flight.source import Setpoint
 from mrft_gcs.link.firmware import Firmware
 from mrft_gcs.link.vehicle import MAV_CMD_SET_MESSAGE_INTERVAL, VehicleLink
 from mrft_gcs.params import (
@@ -53,7 +54,6 @@ from mrft_gcs.profiles import AutopilotProfile, RatePathParams
 from mrft_gcs.telemetry import (
     ActuatorTarget,
     AttitudeSetpoint,
-    AttitudeTarget,
     AutopilotFamily,
     PidTuning,
     RateTarget,
@@ -325,21 +325,21 @@ class RatePath:
         self._stack.close()
 
     # -------------------------------------------------------------- stream
-    def wrap(self, make: Callable[[float], object], latest: Callable[[], FlightState | None]
-             ) -> Callable[[float], RateTarget | AttitudeTarget | None]:
-        """The stream's set-point function with torques sent as rates."""
+    def wrap(self, tick: Callable[[FlightState | None], Setpoint | None]
+             ) -> Callable[[FlightState | None], Setpoint | None]:
+        """The stream's per-tick function with torques sent as rates."""
         channel, targets = self.channel, self._targets
 
-        def rate_make(t: float):
-            out = make(t)
+        def rate_tick(s: FlightState | None) -> Setpoint | None:
+            out = tick(s)
             while (sp := targets.get(0.0)) is not None:
                 if isinstance(sp, AttitudeSetpoint):
                     channel.see_target(sp)
             if isinstance(out, ActuatorTarget):
-                return channel.step(out, latest())
-            return out  # type: ignore[return-value]
+                return channel.step(out, s)
+            return out
 
-        return rate_make
+        return rate_tick
 
     def _ask(self, message_id: int, rate_hz: float) -> bool:
         try:

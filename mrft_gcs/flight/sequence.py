@@ -232,6 +232,7 @@ class TuningSequence:
         self.t_start_s = _NAN
         self.t_last_tuned_s = _NAN
         self.state: FlightState | None = None
+        self._applied: dict[Loop, float] = {}  # see step()
         self.tilt_cmd = (0.0, 0.0)  # (roll_ref, pitch_ref), rad
         self._t_att_prev = self._t_pos_prev = -math.inf
         self.att_noise = NoiseEstimator(4)  # roll, pitch (rad), their rates (rad/s)
@@ -627,11 +628,17 @@ class TuningSequence:
             self.phase = Phase.SIDE_MRFT
 
     # ------------------------------------------------------------------ the tick
-    def step(self, s: FlightState) -> ActuatorTarget | AttitudeTarget:
-        """Setpoint for the latest state (torque path: ActuatorTarget; attitude: AttitudeTarget)."""
+    def step(self, s: FlightState, applied: dict[Loop, float] | None = None
+             ) -> ActuatorTarget | AttitudeTarget:
+        """Setpoint for the latest state (torque path: ActuatorTarget; attitude: AttitudeTarget).
+
+        ``applied``: per loop, the relay output the vehicle actually got (a log replay: the
+        logged command); the cycle detectors then take it instead of this tick's own output.
+        """
         with self._lock:
             s = self._heading_frame(s)
             self.state = s
+            self._applied = applied or {}
             cfg = self.config
             tilt = math.degrees(s.tilt_rad)
             if tilt > self.max_tilt_by_phase.get(self.phase.value, -1.0):
@@ -671,11 +678,10 @@ class TuningSequence:
             yaw = self.yaw.step(self.yaw_ref, s.yaw_rad, s.r_rad_s) if airborne else 0.0
             return ActuatorTarget(s.t_att_s, roll, pitch, yaw, thrust)
 
-    @staticmethod
-    def _feed(t: LoopTest, t_s: float, u: float, y: float, new: bool) -> None:
+    def _feed(self, t: LoopTest, t_s: float, u: float, y: float, new: bool) -> None:
         # one watcher sample per telemetry sample (ticks between samples repeat the state)
         if new and t.state in (LoopState.RELAY, LoopState.IDENTIFYING):
-            t.watch.update(t_s, u, y)
+            t.watch.update(t_s, self._applied.get(t.loop, u), y)
 
     def _altitude(self, s: FlightState, z: float, new: bool) -> float:
         t = self.loops[Loop.ALTITUDE]

@@ -209,6 +209,10 @@ class VehicleLink:
         self.signed = signed
         self._tlog = tlog
         self._send_lock = threading.Lock()
+        #: held from logging a received sample to queuing it, and by a set-point stream from
+        #: reading telemetry to sending its answer: the session log's order is then the
+        #: order the stream saw (a replay pairs each command with the samples before it)
+        self.order_lock = threading.Lock()
         self._samples: collections.deque[Sample] = collections.deque(maxlen=queue_size)
         self._samples_cv = threading.Condition()
         self._subs: list[Subscription] = []
@@ -367,10 +371,15 @@ class VehicleLink:
                 self._on_received(msg)
 
     def _on_received(self, msg: Any) -> None:
-        kind = msg.get_type()
-        if kind == "BAD_DATA":
+        if msg.get_type() == "BAD_DATA":
             self.counters.bad_frames += 1
             return
+        rx = time.monotonic()  # before the lock: a wait for the stream is no link delay
+        with self.order_lock:
+            self._take(msg, rx)
+
+    def _take(self, msg: Any, rx: float) -> None:
+        kind = msg.get_type()
         if self._tlog is not None:
             self._tlog.write(msg.get_msgbuf())
         if msg.get_srcSystem() != self.target_system:
@@ -393,7 +402,7 @@ class VehicleLink:
             self.counters.nonfinite_dropped += 1
             return
         if isinstance(event, self.TELEMETRY_KINDS):
-            self._last_telemetry = time.monotonic()
+            self._last_telemetry = rx
             self._got_telemetry = True
             self.rx_offset_s = min(self.rx_offset_s, self._last_telemetry - event.t_s)
         if isinstance(event, Heartbeat):
