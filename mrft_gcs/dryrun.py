@@ -1,5 +1,12 @@
 """Dry-run: the identification of a live tune, on logged telemetry; touches nothing.
 
+A session .tlog of this tool's own tune is first replayed through the tune's own sequence
+(:func:`_replay_session`: :class:`~mrft_gcs.flight.source.ReplayVehicle` and
+:class:`~mrft_gcs.flight.driver.SequenceDriver` with the bundled identification), so its
+loops are identified by the code that identified them live; a log is taken for such a
+session only where the replayed sequence reproduces its logged commands. Every other log,
+and every loop the replay did not identify, goes through the relay-segment search below.
+
 :func:`dry_run` reads a log (:func:`mrft_gcs.logs.decode_log`), finds the relay
 tests in it (:func:`find_relay_segments`), and for each loop runs the pipeline of a
 live tune (:func:`analyse_segment`): the live tune's own cycle watcher
@@ -108,8 +115,9 @@ class RelaySegment:
         Where ``u`` came from (``"csv"``, ``"actuator"``, ``"attitude target"``,
         ``"attitude PD"``, ``"telemetry"``).
     beta_from : str
-        ``"metadata"``, ``"switches"`` or ``"domain"`` (inferred, within 0.1 of the beta a
-        tune uses on that loop, and snapped to it).
+        ``"metadata"``, ``"switches"``, ``"domain"`` (inferred, within 0.1 of the beta a
+        tune uses on that loop, and snapped to it) or ``"session"`` (the relay of the
+        tune's own sequence, replayed over its session log: :func:`_replay_session`).
     gcs_period_s : float
         Period of the ground station's setpoint stream when the relay ran on a ground
         station (its commands are in the log), else 0.
@@ -1176,6 +1184,13 @@ def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
     analysis (e.g. a known model while the classifiers are not bundled).
     """
     ident, cyc, steady, notes = _live_cycles(seg, inner)
+    return _loop_result(seg, ident, cyc, steady, notes, model, hover)
+
+
+def _loop_result(seg: RelaySegment, ident: Identification | None, cyc: _Cycles, steady: bool,
+                 notes: list[str], model: InnerModel | None, hover: float) -> LoopResult:
+    """The gains a tune writes from ``ident`` (re-targeted where the relay ran on a ground
+    station) and the residual analysis over the identified cycles ``cyc``."""
     if seg.crossed < 0.9 and seg.beta_from == "switches":
         notes.insert(0, f"the oscillation does not cross the relay's set point every half cycle "
                         f"({100 * seg.crossed:.0f} % do): the relay lost its set point, so its "
@@ -1281,6 +1296,12 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
                                           hover=hover_f)
         for k, reason in reasons.items():
             why[k] = f"{why.get(k, '')}; {reason}".lstrip("; ")
+    if decoded.file_order:
+        session = _replay_session(decoded, profile)
+        if session is not None:
+            cmds = decoded.actuator if len(decoded.actuator) else decoded.attitude_target
+            _use_session(session, by_loop, why, want, models or {}, hover_f,
+                         _setpoint_period(cmds[:, 0]))
     results = tuple(by_loop[lp] for lp in Loop if lp in by_loop and lp in want)
     why = {k: v for k, v in why.items() if Loop(k) in want}
     params: dict[str, float] = {}
@@ -1297,6 +1318,156 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
     cut = log_truncation(path)
     return DryRunResult(str(path), summarize_log(log), results, why, params,
                         warnings=(cut,) if cut else ())
+
+
+#: a session log of mrft-tune's own tune: the replayed sequence must reproduce at least this
+#: share of the logged commands from take-off to the side tests (its own logs: all of them,
+#: docs/pipeline.md), over at least this many ticks (1 s at 250 Hz)
+_SESSION_MATCH = 0.95
+_SESSION_MIN_TICKS = 250
+
+
+class _NotSession(Exception):
+    """The replayed sequence does not answer the log's states with its commands."""
+
+
+#: beta, h and bias of the relay that flew
+_Relay = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class _SessionReplay:
+    """The tune's sequence re-run over a session log (:func:`_replay_session`)."""
+
+    loops: dict[Loop, tuple[Identification, _Cycles, np.ndarray | None, _Relay]]
+    matched: int
+    compared: int
+    notes: dict[Loop, str]
+
+
+def _first_param(decoded: DecodedLog, names: list[str]) -> float | None:
+    """The first logged value of the first of ``names`` in the log: what a tune read before
+    take-off (it may write some of them afterwards)."""
+    for n in names:
+        for e in decoded.events:
+            if isinstance(e, ParamValue) and e.name == n and 0 < e.value < 1:
+                return float(e.value)
+    return None
+
+
+def _command_values(sp: object) -> tuple[float, ...] | None:
+    """A torque or attitude command's values without its time (None: another kind)."""
+    from mrft_gcs.telemetry import ActuatorTarget, AttitudeTarget
+
+    if isinstance(sp, ActuatorTarget):
+        return (sp.roll, sp.pitch, sp.yaw, sp.thrust)
+    if isinstance(sp, AttitudeTarget):
+        return (*sp.q_wxyz, sp.thrust)
+    return None
+
+
+def _replay_session(decoded: DecodedLog, profile) -> _SessionReplay | None:
+    """Re-run the tune's own sequence over a session .tlog of mrft-tune, or None where the
+    log is not one (or cannot be replayed).
+
+    :class:`~mrft_gcs.flight.source.ReplayVehicle` plays the log tick by tick through
+    :class:`~mrft_gcs.flight.driver.SequenceDriver` with the bundled identification and
+    relay settings, the sequence configured as ``tune()`` configures it from what the log
+    holds (the command kind, the hover thrust read before take-off, the profile's tilt
+    limit). A log is taken for a session of this tool only where the replayed sequence
+    answers the logged states with the logged commands, tick for tick, from take-off up to
+    the side tests (:data:`_SESSION_MATCH`): another ground station's commands, a tune run
+    with other relay settings or another take-off height do not.
+    """
+    from mrft_gcs.flight.config import SequenceConfig
+    from mrft_gcs.flight.driver import SequenceDriver
+    from mrft_gcs.flight.sequence import TuningSequence
+    from mrft_gcs.flight.source import ReplayVehicle
+    from mrft_gcs.identify import relay_settings
+    from mrft_gcs.identify.live import bundled_identifier
+    from mrft_gcs.profiles import Actuation, SafetyLimits
+
+    fo = decoded.file_order
+    kind = "actuator" if len(decoded.actuator) >= len(decoded.attitude_target) else (
+        "attitude_target")
+    if (not len(getattr(decoded, kind)) or not all(k in fo for k in ("attitude", "position",
+                                                                      kind))):
+        return None  # the session's own order of samples and commands is needed
+    src = ReplayVehicle(decoded)
+    takeoff = src.takeoff_tick()
+    if takeoff is None:
+        return None
+    names = [profile.altitude.hover_thrust] if profile is not None else []
+    hover = _first_param(decoded, names + ["MPC_THR_HOVER", "MOT_THST_HOVER"])
+    lim = profile.safety if profile is not None else SafetyLimits()
+    act = Actuation.TORQUE if kind == "actuator" else Actuation.ATTITUDE
+    cfg = replace(SequenceConfig(), actuation=act, z_ref_m=1.0, hover_thrust_guess=hover,
+                  max_tilt_cmd_rad=0.6 * math.radians(lim.max_tilt_deg))
+    try:
+        seq = TuningSequence(cfg, relay_settings(LoopKind.ATTITUDE),
+                             relay_settings(LoopKind.ALTITUDE))
+    except MrftError:
+        return None  # no bundled classifiers: the relay tests are found in the log instead
+    drv = SequenceDriver(seq, bundled_identifier)
+    count = [0, 0]
+
+    def compare(_s, sp) -> None:
+        # the sequence alone drives the commands until the side tests start
+        if any(seq.loops[lp].relay is not None for lp in (Loop.X, Loop.Y)):
+            return
+        got = src.applied()
+        count[1] += 1
+        a, b = _command_values(sp), _command_values(got)
+        if type(sp) is type(got) and a is not None and b is not None:
+            # float32 on the wire, and states decoded from it: the replay's commands agree
+            # to ~1e-5 of full scale; another relay level or PD is off by 1e-2 or more
+            count[0] += bool(np.allclose(a, b, rtol=0.0, atol=1e-4))
+        if count[1] - count[0] > (1.0 - _SESSION_MATCH) * max(count[1], _SESSION_MIN_TICKS):
+            raise _NotSession  # no need to fly another ground station's log to its end
+
+    notes: dict[Loop, str] = {}
+    try:
+        drv.run(src, ground_ticks=takeoff, follow_applied=True, on_tick=compare)
+    except (MrftError, _NotSession):
+        return None
+    matched, compared = count
+    if compared < _SESSION_MIN_TICKS or matched < _SESSION_MATCH * compared:
+        return None
+    out = {}
+    for lp, t in seq.loops.items():
+        snap = t.snapshot
+        if t.identification is None or snap is None:
+            continue
+        out[lp] = (t.identification, (snap.t_s, snap.u, snap.y), snap.tilt,
+                   (snap.beta, snap.h, snap.bias))
+        if t.note:
+            notes[lp] = t.note
+    return _SessionReplay(out, matched, compared, notes)
+
+
+def _use_session(session: _SessionReplay, by_loop: dict[Loop, LoopResult],
+                 why: dict[str, str], want: tuple[Loop, ...], models: dict[Loop, InnerModel],
+                 hover: float, period_s: float) -> None:
+    """Each loop the replayed tune identified: its identification, on the cycles the
+    sequence handed over, replaces what the relay-segment search found (whose segment,
+    with the ages the written gains are re-targeted by, is kept where it found one)."""
+    for lp, (ident, cyc, tilt, (beta, h, bias)) in session.loops.items():
+        if lp not in want:
+            continue
+        old = by_loop.get(lp)
+        if old is not None:
+            seg = replace(old.segment, beta=beta, h=h, bias=bias, beta_from="session")
+        else:
+            seg = RelaySegment(lp, cyc[0], cyc[1], cyc[2], beta, h, bias,
+                               "actuator" if lp.kind is not LoopKind.SIDE else "attitude PD",
+                               "session", gcs_period_s=period_s, tilt=tilt)
+        notes = [f"identified by replaying the session through the tune's own sequence "
+                 f"({session.matched} of {session.compared} logged commands reproduced "
+                 f"before the side tests)"]
+        if lp in session.notes:
+            notes.append(session.notes[lp])
+        why.pop(lp.value, None)
+        by_loop[lp] = _loop_result(seg, ident, cyc, True, notes, models.get(lp), hover)
 
 
 def _before_write_back(decoded: DecodedLog) -> DecodedLog:

@@ -501,6 +501,68 @@ def test_dry_run_replays_the_live_tlog(bundled):
             assert np.isclose(seg.t[rises[steady]], lt[-1], atol=1e-6).any(), lp
 
 
+def test_dry_run_of_a_session_runs_the_tune_s_own_sequence(bundled):
+    """dry-run of this tool's own session .tlog replays it through the tune's sequence
+    driver with the bundled identification (``ReplayVehicle`` + ``SequenceDriver``), so it
+    identifies the loops the live tune did because it runs the same code.
+
+    The log is taken for a session only because the replayed sequence reproduces the logged
+    commands from take-off to the side tests (float32 on the wire: to 1e-4 of full scale).
+    Roll, pitch, altitude: the replay hands over the live cycle window (to the sample) and
+    identifies it to the live class; identified gains within 5e-2, as in the test above
+    (the replay's relay output is the logged float32 command, the live one its own float64
+    value; identify()'s discrete choices can turn that into a few %, as a rule 1e-5).
+    x, y: the side relays start a tick or so apart from live (docs/pipeline.md), so the
+    window may be up to two cycles earlier: same class, period within 5 % (the cycle
+    detector's own steadiness tolerance), identified gains within 10 %. Written gains: the
+    inner loops' re-target delay is measured on the log's stamps rather than the live
+    link's clock (within 2 ms, see above): within 10 %.
+    """
+    from mrft_gcs.dryrun import dry_run
+    from mrft_gcs.profiles import load_profile
+
+    result, folder = bundled
+    dr = dry_run(folder / "session.tlog", profile=load_profile("sitl"))
+    found = {r.loop: r for r in dr.loops}
+    assert set(found) == set(Loop), dr.explanation()
+    for lp in Loop:
+        live, rep = result.loops[lp], found[lp]
+        li, ri = live.identification, rep.identification
+        assert li is not None and ri is not None, (lp, rep.notes)
+        assert rep.segment.beta_from == "session", (lp, rep.notes)
+        assert any("replaying the session" in n for n in rep.notes), rep.notes
+        assert ri.class_index == li.class_index, lp
+        assert rep.segment.beta == live.beta and rep.segment.h == live.h, lp
+        if lp.kind is LoopKind.SIDE:
+            assert ri.period_s == pytest.approx(li.period_s, rel=0.05), lp
+            rel = 0.10
+        else:
+            assert rep.cycles[0][0] == pytest.approx(live.cycles[0][0], abs=1e-6), lp
+            assert rep.cycles[0][-1] == pytest.approx(live.cycles[0][-1], abs=1e-6), lp
+            rel = 5e-2
+            for g in ("Kc", "Kd"):
+                assert getattr(rep.gains, g) == pytest.approx(getattr(live.gains, g),
+                                                              rel=0.10), (lp, g)
+        for g in ("Kc", "Kd"):
+            assert getattr(ri.gains, g) == pytest.approx(getattr(li.gains, g), rel=rel), (lp, g)
+        print(lp.value, ri.class_index, ri.gains, li.gains, rep.gains, live.gains,
+              rep.cycles[0][[0, -1]], live.cycles[0][[0, -1]])
+
+
+def test_dry_run_of_another_log_finds_the_relay_segments(roll_relay_tlog):
+    """A .tlog whose commands the tune's sequence does not reproduce (here a synthetic
+    relay test: no take-off) goes through the relay-segment search, as before."""
+    from mrft_gcs.dryrun import dry_run
+
+    why = _bundled_ready()
+    if why:
+        pytest.skip(why)
+    dr = dry_run(roll_relay_tlog)
+    assert [r.loop for r in dr.loops] == [Loop.ROLL], dr.explanation()
+    assert dr.loops[0].segment.beta_from != "session"
+    assert not any("replaying the session" in n for n in dr.loops[0].notes)
+
+
 def test_attitude_path_tunes_altitude_x_and_y(tmp_path):
     """SET_ATTITUDE_TARGET: the SITL keeps its own attitude loop (PX4 v1.13 defaults); x and
     y are tuned behind it, measured from their own relays; only MPC_* parameters change."""
