@@ -1343,6 +1343,9 @@ class _SessionReplay:
     matched: int
     compared: int
     notes: dict[Loop, str]
+    #: where the relay outputs were logged (``RelaySegment.source``): the commands, or x and
+    #: y behind the ground station's attitude PDs (torque path)
+    source: str
 
 
 def _first_param(decoded: DecodedLog, names: list[str]) -> float | None:
@@ -1442,7 +1445,8 @@ def _replay_session(decoded: DecodedLog, profile) -> _SessionReplay | None:
                    (snap.beta, snap.h, snap.bias))
         if t.note:
             notes[lp] = t.note
-    return _SessionReplay(out, matched, compared, notes)
+    return _SessionReplay(out, matched, compared, notes,
+                          "actuator" if kind == "actuator" else "attitude target")
 
 
 def _use_session(session: _SessionReplay, by_loop: dict[Loop, LoopResult],
@@ -1458,9 +1462,10 @@ def _use_session(session: _SessionReplay, by_loop: dict[Loop, LoopResult],
         if old is not None:
             seg = replace(old.segment, beta=beta, h=h, bias=bias, beta_from="session")
         else:
-            seg = RelaySegment(lp, cyc[0], cyc[1], cyc[2], beta, h, bias,
-                               "actuator" if lp.kind is not LoopKind.SIDE else "attitude PD",
-                               "session", gcs_period_s=period_s, tilt=tilt)
+            source = ("attitude PD" if lp.kind is LoopKind.SIDE and session.source == "actuator"
+                      else session.source)
+            seg = RelaySegment(lp, cyc[0], cyc[1], cyc[2], beta, h, bias, source, "session",
+                               gcs_period_s=period_s, tilt=tilt)
         notes = [f"identified by replaying the session through the tune's own sequence "
                  f"({session.matched} of {session.compared} logged commands reproduced "
                  f"before the side tests)"]
