@@ -42,6 +42,7 @@ from string import Template
 
 from mrft_gcs.errors import LinkError, ParameterError, UsageError
 from mrft_gcs.link.ftp import list_dir, put_file, remove_file
+from mrft_gcs.link.modes import ARDUPILOT_COPTER_MODES
 from mrft_gcs.link.vehicle import VehicleLink
 from mrft_gcs.params import ParamClient
 from mrft_gcs.telemetry import AutopilotFamily, StatusText
@@ -55,11 +56,13 @@ GUARD_FILE = "mrft_linkloss_guard.lua"
 SCRIPT_DIRS = ("/APM/scripts", "scripts")
 MAV_CMD_SCRIPTING = 42701
 SCRIPTING_CMD_STOP_AND_RESTART = 3
-ARDUCOPTER_GUIDED_NOGPS = 20
-ARDUCOPTER_LAND = 9
+ARDUCOPTER_GUIDED_NOGPS = ARDUPILOT_COPTER_MODES["offboard"].main
+ARDUCOPTER_LAND = ARDUPILOT_COPTER_MODES["land"].main
 #: the guard's own check period (ms): a fraction of the shortest silence it accepts
 GUARD_PERIOD_MS = 50
 MIN_SILENCE_S, MAX_SILENCE_S = 0.5, 30.0
+#: keeps the guard's report within one 50-character STATUSTEXT
+MAX_PARAMS = 99
 _NAME = re.compile(r"^[A-Z][A-Z0-9_]{0,15}$")
 
 
@@ -123,6 +126,9 @@ def guard_script(restore: dict[str, float], silence_s: float, *,
     """
     if not restore:
         raise UsageError("the link-loss guard needs the backed-up parameters to restore")
+    if len(restore) > MAX_PARAMS:
+        raise UsageError(f"the link-loss guard restores at most {MAX_PARAMS} parameters, "
+                         f"not {len(restore)}: restore only what the test changes")
     if not MIN_SILENCE_S <= silence_s <= MAX_SILENCE_S or not math.isfinite(silence_s):
         raise UsageError(f"link-loss silence {silence_s} s: use {MIN_SILENCE_S:g} to "
                          f"{MAX_SILENCE_S:g} s")
@@ -169,7 +175,8 @@ def install_link_loss_guard(link: VehicleLink, restore: dict[str, float], silenc
     GuardFailed
         Scripting not running (set but not rebooted), upload failed, or no start report.
     """
-    script, guard_id = guard_script(restore, silence_s)
+    script, guard_id = guard_script(restore, silence_s, offboard_mode=link.modes["offboard"].main,
+                                    land_mode=link.modes["land"].main)
     _check_vehicle(link)
     folder = _scripts_dir(link)
     path = f"{folder}/{GUARD_FILE}"

@@ -20,8 +20,9 @@ local function restore_and_land(silent_ms)
     end
   end
   local landing = vehicle:set_mode(LAND_MODE)
-  gcs:send_text(2, string.format('%s silent %dms: %d/%d back, LAND%s', TAG, silent_ms,
-                                 restored, #RESTORE, landing and '' or ' REFUSED'))
+  -- at most 50 characters (one STATUSTEXT): restored/total parameters, then the mode
+  gcs:send_text(2, string.format('%s silent %dms %d/%d back %s', TAG, silent_ms, restored,
+                                 #RESTORE, landing and 'LAND' or 'NO LAND'))
 end
 
 local function update()
