@@ -40,8 +40,8 @@ def test_the_id_follows_the_content():
 @pytest.mark.parametrize("restore, silence_s, match", [
     ({}, 1.0, "backed-up parameters"),
     ({f"P{i}": 0.0 for i in range(100)}, 1.0, "at most 99"),
-    (BACKUP, 0.1, "0.5 to 30 s"),
-    (BACKUP, math.nan, "0.5 to 30 s"),
+    (BACKUP, 0.1, "0.3 to 30 s"),
+    (BACKUP, math.nan, "0.3 to 30 s"),
     ({"atc_rat_rll_p": 0.1}, 1.0, "not an ArduPilot parameter name"),
     ({"ATC_RAT_RLL_P_TOO_LONG": 0.1}, 1.0, "at most 16"),
     ({"ATC_RAT_RLL_P'); x": 0.1}, 1.0, "not an ArduPilot parameter name"),

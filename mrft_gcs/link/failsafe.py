@@ -1,22 +1,23 @@
 """Link-loss protection on the vehicle: an ArduPilot Lua guard the tool uploads for one tune.
 
 While the tool flies a stock ArduCopter through its rate feed-forward path, the onboard gains
-are zero: if the ground station falls silent nothing holds the attitude (3 s without commands
-reached 27 deg and hit the ground). ArduPilot's GUID_TIMEOUT only levels the *target*, and its
-GCS failsafe (FS_GCS_ENABLE) lands on the zeroed gains. The guard is a Lua script
-(``linkloss_guard.lua``, package data) generated with the backed-up parameter values written
-into its text: while armed in the offboard mode (GUIDED_NOGPS) it watches ``gcs:last_seen()``
-(the last heartbeat from MAV_GCS_SYSID) and, after ``silence_s`` without one, writes the
-values back (saved) and switches to LAND, with a STATUSTEXT saying so.
+are zero: if the ground station falls silent nothing holds the attitude, and the last body
+rate commanded keeps being fed forward (GUID_TIMEOUT, 3 s) as a constant torque. ArduPilot's
+own GCS failsafe (FS_GCS_ENABLE) would land on the zeroed gains, seconds later. The guard is
+a Lua script (``linkloss_guard.lua``, package data) generated with the backed-up parameter
+values written into its text: while armed in the offboard mode (GUIDED_NOGPS) it watches
+``gcs:last_seen()`` (the last heartbeat from MAV_GCS_SYSID) and, after ``silence_s`` without
+one, writes the values back (saved) and switches to LAND, with a STATUSTEXT saying so.
+docs/link-and-stream.md has what it was measured to save.
 
 Why the values live in the script text: SCR_USER1..6 hold six floats and no names; the text
-holds any number of name/value pairs, is read back by the vehicle's own loader, and the
-script refuses to start (and the install fails) if a name is unknown to the firmware.
+holds any number of name/value pairs, needs no parameter writes to arm, and the script refuses
+to start (so the install fails) if a name is unknown to the firmware.
 
 Call order in a tune (the lead wires it into :mod:`mrft_gcs.flight.api`)::
 
     backup = ...read the parameters the test will change...        # before any write
-    guard = install_link_loss_guard(link, backup, silence_s=1.0)   # disarmed, before arming
+    guard = install_link_loss_guard(link, backup, silence_s=0.5)   # disarmed, before arming
     try:
         ...write test params, arm, take off, relay tests, write gains...
     finally:
@@ -24,10 +25,11 @@ Call order in a tune (the lead wires it into :mod:`mrft_gcs.flight.api`)::
         remove_link_loss_guard(link, guard)                          # after landing / hand-over
 
 Install only on ArduPilot with SCR_ENABLE 1 (a reboot is needed after setting it: the tool
-never reboots a vehicle). Detection is heartbeat-based: the link's heartbeat is raised to
-``4 / silence_s`` Hz while the guard is installed, so a silence is seen within about
-``1.25 x silence_s``. Another ground station using the same MAVLink system id keeps the
-guard from seeing the tool fall silent.
+never reboots a vehicle). Detection is heartbeat-based: the link's heartbeat goes to
+``4 / silence_s`` Hz while the guard is installed. The guard watches the link, not the
+setpoint stream: a tool whose streamer stopped but whose link lives is not caught. Another
+ground station with the same MAVLink system id (QGroundControl and Mission Planner also use
+255) keeps the guard from seeing the tool fall silent.
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ ARDUCOPTER_GUIDED_NOGPS = ARDUPILOT_COPTER_MODES["offboard"].main
 ARDUCOPTER_LAND = ARDUPILOT_COPTER_MODES["land"].main
 #: the guard's own check period (ms): a fraction of the shortest silence it accepts
 GUARD_PERIOD_MS = 50
-MIN_SILENCE_S, MAX_SILENCE_S = 0.5, 30.0
+MIN_SILENCE_S, MAX_SILENCE_S = 0.3, 30.0
 #: keeps the guard's report within one 50-character STATUSTEXT
 MAX_PARAMS = 99
 _NAME = re.compile(r"^[A-Z][A-Z0-9_]{0,15}$")
@@ -110,7 +112,7 @@ def guard_script(restore: dict[str, float], silence_s: float, *,
     restore : dict of str to float
         Values written back on link loss (the tool's backup of what the test changes).
     silence_s : float
-        Seconds without a ground-station heartbeat before it acts, 0.5 to 30.
+        Seconds without a ground-station heartbeat before it acts, 0.3 to 30.
     offboard_mode, land_mode : int
         ArduCopter mode numbers: the one it guards, the one it switches to.
 
@@ -147,7 +149,7 @@ def guard_script(restore: dict[str, float], silence_s: float, *,
     return template.substitute(fields, guard_id=guard_id), guard_id
 
 
-def install_link_loss_guard(link: VehicleLink, restore: dict[str, float], silence_s: float = 1.0,
+def install_link_loss_guard(link: VehicleLink, restore: dict[str, float], silence_s: float = 0.5,
                             *, confirm_timeout_s: float = 10.0) -> LinkLossGuard:
     """Upload the guard for ``restore``, restart scripting, wait until it reports running.
 
@@ -163,7 +165,9 @@ def install_link_loss_guard(link: VehicleLink, restore: dict[str, float], silenc
     restore : dict of str to float
         Parameter name -> value to write back on link loss.
     silence_s : float
-        Seconds without a ground-station heartbeat before the guard acts (0.5 to 30).
+        Seconds without a ground-station heartbeat before the guard acts (0.3 to 30). During
+        the zero-gain window every 0.1 s counts (the last rate command keeps turning the
+        vehicle); a stall of the tool's reader thread this long lands the vehicle.
     confirm_timeout_s : float
         How long to wait for the guard's start report after restarting scripting, s.
 
@@ -187,26 +191,36 @@ def install_link_loss_guard(link: VehicleLink, restore: dict[str, float], silenc
     period = link.heartbeat_period_s
     link.heartbeat_period_s = min(period, silence_s / 4)
     guard = LinkLossGuard(path, guard_id, float(silence_s), tuple(sorted(restore)), period)
-    tag = f"mrftguard {guard_id}"
+    try:
+        _confirm(link, guard, confirm_timeout_s)
+    except GuardFailed:
+        _undo(link, guard)
+        raise
+    return guard
+
+
+def _confirm(link: VehicleLink, guard: LinkLossGuard, timeout_s: float) -> None:
+    """Restart scripting and wait for the guard's own start report."""
+    tag = f"mrftguard {guard.guard_id}"
+    lua_errors: list[str] = []
     with link.subscribe(StatusText) as sub:
         _restart_scripting(link)
-        deadline = time.monotonic() + confirm_timeout_s
-        errors: list[str] = []
+        deadline = time.monotonic() + timeout_s
         while (left := deadline - time.monotonic()) > 0:
             text = sub.get(left)
             if not isinstance(text, StatusText):
                 continue
             if text.text.startswith(f"{tag} on "):
-                return guard
-            if text.text.startswith(tag) or text.text.startswith("Lua:"):
-                errors.append(text.text)
-                if text.text.startswith(tag):
-                    break
-    _undo(link, guard)
-    said = f" (vehicle said: {'; '.join(errors)})" if errors else ""
-    raise GuardFailed(f"the link-loss guard did not report running within "
-                      f"{confirm_timeout_s:g} s of restarting scripting{said}: check "
-                      f"SCR_HEAP_SIZE and the vehicle's messages; it was removed again")
+                return
+            if text.text.startswith(tag):
+                raise GuardFailed(f"the link-loss guard refused to start ('{text.text}': a "
+                                  f"backed-up parameter this firmware lacks); it was removed")
+            if text.text.startswith("Lua:"):
+                lua_errors.append(text.text)
+    said = f" (vehicle said: {'; '.join(lua_errors)})" if lua_errors else ""
+    raise GuardFailed(f"the link-loss guard did not report running within {timeout_s:g} s of "
+                      f"restarting scripting{said}: check the vehicle's messages (e.g. "
+                      f"SCR_HEAP_SIZE too small); it was removed")
 
 
 def remove_link_loss_guard(link: VehicleLink, guard: LinkLossGuard) -> None:
