@@ -133,6 +133,7 @@ def test_silent_ground_station_restores_the_gains_and_lands(copter, tmp_path):
                 print(f"guard {guard.guard_id} installed at {guard.path} in "
                       f"{time.monotonic() - t:.1f} s")
                 assert link.heartbeat_period_s == pytest.approx(silence_s / 4)
+                assert _guard_files(link) == []  # runs from memory: nothing stale on the card
                 link.request_message_interval("LOCAL_POSITION_NED", 50.0)
                 link.set_mode(GUIDED_NOGPS)
                 link.arm()

@@ -14,6 +14,10 @@ Why the values live in the script text: SCR_USER1..6 hold six floats and no name
 holds any number of name/value pairs, needs no parameter writes to arm, and the script refuses
 to start (so the install fails) if a name is unknown to the firmware.
 
+Once the guard reports running the tool deletes its file: it runs from memory until scripting
+restarts or the vehicle reboots, so a tool that dies mid-tune leaves nothing on the card to
+fire in a later flight.
+
 Call order in a tune (the lead wires it into :mod:`mrft_gcs.flight.api`)::
 
     backup = ...read the parameters the test will change...        # before any write
@@ -84,7 +88,7 @@ class LinkLossGuard:
     Attributes
     ----------
     path : str
-        The script's path on the vehicle (MAVLink FTP).
+        Where the script was uploaded (MAVLink FTP); deleted once it runs from memory.
     guard_id : str
         6 hex digits of the script's hash; its STATUSTEXTs start ``mrftguard <id>``.
     silence_s : float
@@ -193,7 +197,8 @@ def install_link_loss_guard(link: VehicleLink, restore: dict[str, float], silenc
     guard = LinkLossGuard(path, guard_id, float(silence_s), tuple(sorted(restore)), period)
     try:
         _confirm(link, guard, confirm_timeout_s)
-    except GuardFailed:
+        _delete(link, path)  # running from memory now: nothing stale survives a reboot
+    except LinkError:
         _undo(link, guard)
         raise
     return guard
@@ -224,22 +229,32 @@ def _confirm(link: VehicleLink, guard: LinkLossGuard, timeout_s: float) -> None:
 
 
 def remove_link_loss_guard(link: VehicleLink, guard: LinkLossGuard) -> None:
-    """Delete the guard's script, restart scripting and put the heartbeat rate back.
+    """Stop the guard (restart scripting: it runs from memory, its file is already deleted)
+    and put the link's heartbeat rate back. Call it after the tune, also on abort; a reboot
+    of the vehicle stops the guard too.
 
     Raises
     ------
     GuardFailed
-        The script is still on the vehicle (delete ``guard.path`` by hand, e.g. with a
-        ground station's MAVLink FTP, before the next flight in GUIDED_NOGPS).
+        Scripting did not report its restart (the guard may still run until the vehicle
+        reboots: it acts only armed in GUIDED_NOGPS with the ground station silent).
     """
     link.heartbeat_period_s = guard.heartbeat_period_s
-    remove_file(link, guard.path)
-    folder, _, name = guard.path.rpartition("/")
+    _delete(link, guard.path)  # only there if an install was cut short
+    _restart_scripting(link, confirm_s=5.0)
+
+
+def _delete(link: VehicleLink, path: str) -> None:
+    folder, _, name = path.rpartition("/")
+    left = list_dir(link, folder)
+    if left is not None and not any(e.name == name for e in left):
+        return
+    remove_file(link, path)
     left = list_dir(link, folder)
     if left is None or any(e.name == name for e in left):
-        raise GuardFailed(f"could not delete the link-loss guard {guard.path}: delete it with a "
-                          f"ground station's MAVLink FTP before flying GUIDED_NOGPS again")
-    _restart_scripting(link)
+        raise GuardFailed(f"could not delete the link-loss guard {path} from the vehicle: "
+                          f"delete it with a ground station's MAVLink FTP before flying "
+                          f"GUIDED_NOGPS again")
 
 
 def _undo(link: VehicleLink, guard: LinkLossGuard) -> None:
@@ -251,11 +266,18 @@ def _undo(link: VehicleLink, guard: LinkLossGuard) -> None:
         pass  # the failure being reported matters more
 
 
-def _restart_scripting(link: VehicleLink) -> None:
-    try:
-        link.command(MAV_CMD_SCRIPTING, (SCRIPTING_CMD_STOP_AND_RESTART,), timeout_s=2.0)
-    except LinkError as err:
-        raise GuardFailed(f"cannot restart the vehicle's Lua scripting: {err}") from err
+def _restart_scripting(link: VehicleLink, confirm_s: float = 0.0) -> None:
+    """MAV_CMD_SCRIPTING stop-and-restart; with ``confirm_s``, wait for ArduPilot's
+    "Scripting: restarted"."""
+    with link.subscribe(StatusText) as sub:
+        try:
+            link.command(MAV_CMD_SCRIPTING, (SCRIPTING_CMD_STOP_AND_RESTART,), timeout_s=2.0)
+        except LinkError as err:
+            raise GuardFailed(f"cannot restart the vehicle's Lua scripting: {err}") from err
+        if confirm_s > 0 and sub.wait_for(lambda t: t.text == "Scripting: restarted",
+                                          confirm_s) is None:
+            raise GuardFailed(f"the vehicle did not report restarting Lua scripting within "
+                              f"{confirm_s:g} s: the link-loss guard may run until it reboots")
 
 
 def _param(client: ParamClient, *names: str) -> float | None:
