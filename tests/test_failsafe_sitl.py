@@ -170,3 +170,44 @@ def test_silent_ground_station_restores_the_gains_and_lands(copter, tmp_path):
         remove_link_loss_guard(link, guard)
         assert _guard_files(link) == [] and link.heartbeat_period_s == 1.0
         assert ParamClient(link).read("ATC_RAT_RLL_P").value == pytest.approx(rll_p)
+
+
+def test_the_guard_ends_itself_when_the_tune_hands_over(copter, tmp_path):
+    """Armed in GUIDED_NOGPS, then a hand-over to LOITER with a new gain written: the guard
+    says it is off, and a silence in a later GUIDED_NOGPS stretch neither reverts the gain nor
+    lands (the observer lands it)."""
+    serial0, serial1 = copter
+    with VehicleLink.connect(serial1, timeout_s=10, source_system=OBSERVER_SYSID) as obs:
+        obs_params = ParamClient(obs)
+        rll_p = obs_params.read("ATC_RAT_RLL_P").value
+        tuned = round(rll_p * 1.1, 4)
+        with obs.subscribe(StatusText) as texts:
+            link = VehicleLink.connect(serial0, timeout_s=10)
+            try:
+                guard = install_link_loss_guard(link, {"ATC_RAT_RLL_P": rll_p}, 0.5)
+                link.request_message_interval("LOCAL_POSITION_NED", 50.0)
+                link.set_mode(GUIDED_NOGPS)
+                link.arm()
+                alt = _fly(link, 30.0, until_m=1.5)
+                assert alt > 1.5, f"did not take off ({alt:.2f} m, armed {link.heartbeat.armed})"
+                ParamClient(link).write({"ATC_RAT_RLL_P": tuned}, tmp_path)
+                link.set_mode(ARDUPILOT_COPTER_MODES["position"])  # LOITER: the hand-over
+                off = texts.wait_for(lambda e: e.text == f"mrftguard {guard.guard_id} off", 3.0)
+                assert off is not None, "the guard did not end itself on the hand-over"
+                link.set_mode(GUIDED_NOGPS)  # a later offboard stretch, no longer guarded
+                _fly(link, 1.0)
+            finally:
+                link.close()
+            fired = texts.wait_for(lambda e: e.text.startswith(f"mrftguard {guard.guard_id} "),
+                                   0.5 + 2.0)
+            assert fired is None, fired
+        assert obs.heartbeat.custom_mode == GUIDED_NOGPS.main and obs.heartbeat.armed
+        assert obs_params.read("ATC_RAT_RLL_P").value == pytest.approx(tuned)
+        obs.set_mode(LAND)
+        end = time.monotonic() + 40
+        while time.monotonic() < end and obs.heartbeat.armed:
+            time.sleep(0.2)
+        assert not obs.heartbeat.armed
+        ParamClient(obs).write({"ATC_RAT_RLL_P": rll_p}, tmp_path)
+    with VehicleLink.connect(serial0, timeout_s=10) as link:
+        remove_link_loss_guard(link, guard)

@@ -7,7 +7,9 @@ own GCS failsafe (FS_GCS_ENABLE) would land on the zeroed gains, seconds later. 
 a Lua script (``linkloss_guard.lua``, package data) generated with the backed-up parameter
 values written into its text: while armed in the offboard mode (GUIDED_NOGPS) it watches
 ``gcs:last_seen()`` (the last heartbeat from MAV_GCS_SYSID) and, after ``silence_s`` without
-one, writes the values back (saved) and switches to LAND, with a STATUSTEXT saying so.
+one, writes the values back (saved) and switches to LAND, with a STATUSTEXT saying so. Once
+the vehicle, armed in that mode, leaves it (the hand-over, a landing, a pilot) or disarms, the
+guard ends itself: restoring later would undo the gains the tune wrote.
 docs/link-and-stream.md has what it was measured to save.
 
 Why the values live in the script text: SCR_USER1..6 hold six floats and no names; the text
