@@ -2,14 +2,17 @@
 
     python benchmarks/tune_ardupilot.py [--hold-s 10] [--instance N] [--runs 1]
                                         [--baro-noise 0.2] [--gust 4] [--autotune]
+                                        [--actuation attitude|rate]
 
 Starts ArduCopter SITL with ``../shared/external/ardupilot-sitl/start.sh`` (parameters wiped,
 an instance of its own; ``$ARDUPILOT_SITL_DIR`` the build), then per run:
 
 1. *before*: take off in GUIDED to 1 m, LOITER for ``--hold-s``, land (the firmware's own
    gains);
-2. ``tune(profile=--profile)`` (default ``ardupilot``) from the ground (time to tune, loops
-   written, the hover check after the hand-over to LOITER); land;
+2. ``tune(profile=--profile, actuation=--actuation)`` (default ``ardupilot`` and its
+   attitude path; ``rate``: all five loops through the rate loop reduced to feed-forward,
+   :mod:`mrft_gcs.flight.ratepath`, with its zero-gain window) from the ground (time to
+   tune, loops written, the hover check after the hand-over to LOITER); land;
 3. *after*: the same take-off and LOITER hold on the written gains; land; restore the backup.
 
 Hold quality over the LOITER window, from an observer link (SERIAL2): altitude spread
@@ -223,6 +226,8 @@ def main() -> int:
     ap.add_argument("--autotune", action="store_true",
                     help="first fly ArduPilot's own AUTOTUNE (roll, pitch), hold on its gains, "
                     "restore them, then the tool's runs")
+    ap.add_argument("--actuation", default=None, choices=("attitude", "rate"),
+                    help="the tune's path (default: the profile's, attitude)")
     args = ap.parse_args()
     instance = args.instance if args.instance is not None else next(
         i for i in range(61, 99) if not _listening(5760 + 10 * i))
@@ -275,10 +280,10 @@ def main() -> int:
                 t = time.monotonic()
                 try:
                     result = tune(f"tcp:127.0.0.1:{base}", args.profile, backup_dir=tmp,
-                                  heartbeat_timeout_s=10)
+                                  heartbeat_timeout_s=10, actuation=args.actuation)
                     status, error = result.status, ""
                 except MrftError as err:
-                    result = err.partial_result  # type: ignore[attr-defined]
+                    result = err.partial_result
                     status, error = result.status, str(err)
                 written = {c.name: f"{c.old:.4g}->{c.new:.4g}" for c in result.parameters}
                 tuned = [lp.value for lp, r in result.loops.items() if r.state == "tuned"]
@@ -287,6 +292,9 @@ def main() -> int:
                       f"{os.getloadavg()[0]:.1f}); loops tuned {tuned}; written {written}; "
                       f"hover check {result.hover_check}; link "
                       f"{result.link.line() if result.link else '-'} {error}", flush=True)
+                for note in result.notes:  # k measured, alignment, zero-gain window
+                    if note.startswith("rate path:"):
+                        print(f"run {run}: {note}", flush=True)
                 obs.land_and_wait()
                 if not result.backup:
                     continue

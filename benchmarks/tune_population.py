@@ -54,7 +54,12 @@ import numpy as np
 from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort
 from mrft_gcs.flight.api import NUMERIC_RETRIES, bundled_identifier
 from mrft_gcs.flight.controllers import FlightState
-from mrft_gcs.flight.onboard import onboard_gains, retarget_delay_s
+from mrft_gcs.flight.onboard import (
+    measure_gcs_delay,
+    onboard_extra_delay_s,
+    onboard_side_gains,
+    robust_onboard_gains,
+)
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
 from mrft_gcs.flight.scoring import score_written
 from mrft_gcs.flight.sequence import LoopState, Phase, SequenceConfig, TuningSequence
@@ -225,15 +230,23 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
     if outcome is not None:
         rec["max_tilt_deg"] = ls.max_tilt
         return _end(rec, outcome, reason)
-    # write-back, as the tool does: re-target the GCS delay measured from the ages, clamp
-    written, delays = {}, {}
+    # write-back, as the tool does: re-target the GCS delay measured from the ages and the
+    # link's round trip (what TIMESYNC times here), robustly; side loops behind the written
+    # attitude gains; clamp
+    written, delays, rts = {}, {}, {}
     for lp, ident in identified.items():
         snap = seq.loops[lp].snapshot
         t0, t1 = (float(snap.t_s[0]), float(snap.t_s[-1])) if snap is not None and len(
             snap.t_s) else (math.inf, -math.inf)
-        a = [age for t, age in ages[lp is Loop.ALTITUDE] if t0 <= t <= t1]
-        delays[lp], _ = retarget_delay_s(a, 1.0 / RATE_HZ)
-        written[lp] = onboard_gains(ident, delays[lp])
+        ta = [(t, age) for t, age in ages[lp is Loop.ALTITUDE] if t0 <= t <= t1]
+        gcs = measure_gcs_delay([a for _, a in ta], 1.0 / RATE_HZ,
+                                sample_t_s=[t for t, _ in ta], round_trip_s=rtt * 1e-3)
+        rts[lp] = robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp))
+        delays[lp], written[lp] = rts[lp].delay_s, rts[lp].gains
+    for lp, inner_lp in _SIDE_INNER.items():
+        if lp in identified and inner_lp in rts:
+            written[lp] = onboard_side_gains(identified[lp], identified[inner_lp],
+                                             rts[inner_lp]).gains
     rec["retarget_delay_ms"] = {lp.value: d * 1e3 for lp, d in delays.items()}
     ranged = params_in_range(prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in written.items()}, hover)
     rec["notes"] += list(ranged.notes)
@@ -275,9 +288,9 @@ def run_live(seed: int) -> dict:
             r = tune(sitl.connection_string, "sitl", backup_dir=d)
             outcome, reason = ("completed", None) if r.status == "ok" else ("aborted", r.status)
         except SafetyAbort as err:
-            r, outcome, reason = getattr(err, "partial_result", None), "aborted", str(err)
+            r, outcome, reason = err.partial_result, "aborted", str(err)
         except MrftError as err:
-            r, outcome, reason = getattr(err, "partial_result", None), "refused", str(err)
+            r, outcome, reason = err.partial_result, "refused", str(err)
     if r is None:
         return _end(rec, outcome, reason)
     rec["time_to_tune_s"] = _num(r.duration_s)

@@ -122,7 +122,7 @@ def run_one(vehicle: str, seed: int, *, truth: bool = False, figure8: bool = Fal
                 os_floor.__enter__()
             r = tune(sitl.connection_string, prof, backup_dir=d, **kw)
         except MrftError as err:
-            r = getattr(err, "partial_result", None)
+            r = err.partial_result
             rec.update(status=f"error: {err}")
         else:
             rec["status"] = r.status

@@ -2,10 +2,10 @@
 
 :func:`dry_run` reads a log (:func:`mrft_gcs.logs.decode_log`), finds the relay
 tests in it (:func:`find_relay_segments`), and for each loop runs the pipeline of a
-live tune (:func:`analyse_segment`): the cycle detector's verdicts as the live
-sequence feeds it, the classifier with exact gain scaling
-(:func:`mrft_gcs.identify.identify`) on the cycles a tune identifies, then residual
-analysis (:func:`mrft_gcs.residual.analyse_residual`). It returns a
+live tune (:func:`analyse_segment`): the live tune's own cycle watcher
+(:class:`mrft_gcs.flight.cycles.CycleWatcher`) fed sample by sample, the classifier with
+exact gain scaling (:func:`mrft_gcs.identify.identify`) on the cycles a tune identifies,
+then residual analysis (:func:`mrft_gcs.residual.analyse_residual`). It returns a
 :class:`DryRunResult` holding the identified models, residuals, the gains a tune
 would write (inner loops re-targeted to the onboard loop as a tune writes them,
 :func:`mrft_gcs.flight.onboard.onboard_gains`) and their parameter values; it never
@@ -62,7 +62,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from mrft_gcs.errors import IdentificationError, MrftError
-from mrft_gcs.identify import CycleDetector, Identification, identify
+from mrft_gcs.flight.cycles import CycleRules, CycleWatcher
+from mrft_gcs.identify import Identification, identify
 from mrft_gcs.logs import decode_log, log_truncation, read_csv_metadata, summarize_log
 from mrft_gcs.logs.describe import LogSummary
 from mrft_gcs.logs.replay import DecodedLog, to_telemetry_log
@@ -489,8 +490,9 @@ def _answer_order(log: TelemetryLog, order: dict[str, np.ndarray]) -> dict[str, 
 
     # the heading: the median of the commands' answers from the latest logged sample, or
     # from the one before. Which of the two most commands answered depends on the phase
-    # between the telemetry and the stream, fixed per session by chance (seen: 63 / 37 %
-    # and 47 / 52 %); a median is exact where the share is near half or more.
+    # between the telemetry and the stream, fixed per session by chance (either can take
+    # most, or they split about evenly); a median is exact where the share is near half
+    # or more.
     share, centre = max((told(c), c) for c in (float(np.median(ref(b)[free]))
                                                for b in range(3)))
     if share < 0.5:
@@ -595,7 +597,7 @@ def _smoothed(t: np.ndarray, x: np.ndarray, v: np.ndarray) -> np.ndarray:
     """
     from scipy.signal import lfilter
 
-    from mrft_gcs.flight.sequence import SequenceConfig
+    from mrft_gcs.flight.config import SequenceConfig
 
     if x.size == 0:
         return x
@@ -1044,54 +1046,38 @@ def _hold_levels(u: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ per loop
+def _watch(t: np.ndarray, u: np.ndarray, y: np.ndarray, rules: CycleRules
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One relay test through the live tune's cycle watcher, sample by sample.
+
+    Returns the sample indices of the rising switches (cycle boundaries) and, for each,
+    whether the watcher said "steady" there and whether it had the cycles to hand over
+    (:meth:`CycleWatcher.cycles`), as the live sequence asks it after each sample.
+    """
+    watch = CycleWatcher(rules)
+    rises: list[int] = []
+    steady: list[bool] = []
+    handed: list[bool] = []
+    for k in range(t.size):
+        watch.update(float(t[k]), float(u[k]), float(y[k]))
+        if watch.rose:
+            rises.append(k)
+            steady.append(watch.steady)
+            handed.append(watch.steady and watch.cycles() is not None)
+    return (np.array(rises, dtype=int), np.array(steady, dtype=bool),
+            np.array(handed, dtype=bool))
+
+
 def _steady_rises(t: np.ndarray, u: np.ndarray, y: np.ndarray, n_periods: int,
                   period_tol: float, amplitude_tol: float = 0.08,
                   relax_after: int | None = None, relaxed_tol: tuple[float, float] = (0.08, 0.16)
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The live cycle detector's verdict at each rising switch, computed on whole arrays.
-
-    Equals feeding :class:`CycleDetector` one sample at a time as the live sequence
-    does: before each sample the period tolerance becomes ``max(period_tol, 2.5 dt/P)``,
-    ``dt`` an exponential average (weight 0.01) of the sample intervals since the first
-    period was known and ``P`` the last period; from ``relax_after`` cycles on both
-    tolerances are at least ``relaxed_tol`` (:meth:`CycleDetector.tolerances`). Returns
-    the sample indices of the rising switches and, for each, whether the detector said
-    "steady" there.
-    """
-    lo, hi = np.minimum.accumulate(u), np.maximum.accumulate(u)
-    known = hi > lo
-    high = known & (u > 0.5 * (lo + hi))
-    rises = np.flatnonzero(known[1:] & known[:-1] & ~high[:-1] & high[1:]) + 1
-    steady = np.zeros(rises.size, dtype=bool)
-    if rises.size < n_periods + 1:
-        return rises, steady
-    from scipy.signal import lfilter
-
-    tr = t[rises]
-    periods = np.diff(tr)  # periods[i - 1]: known from rise i on
-    # dt average, updated from the sample after the second rise on
-    k0 = int(rises[1]) + 1
-    dt_avg = np.full(t.size, np.nan)
-    if k0 < t.size:
-        d = np.diff(t)[k0 - 1:]
-        ema, _ = lfilter([0.01], [1.0, -0.99], d[1:], zi=[0.99 * d[0]])
-        dt_avg[k0:] = np.concatenate([d[:1], ema])
-    # amplitude of the cycle that ends at rise i (i >= 1): y over [rise i-1, rise i)
-    ext_hi = np.maximum.reduceat(y, rises)[:-1]
-    ext_lo = np.minimum.reduceat(y, rises)[:-1]
-    amps = 0.5 * (ext_hi - ext_lo)
-    n = n_periods
-    for i in range(n, rises.size):
-        p = periods[i - n:i]
-        a = amps[i - n:i]
-        r = int(rises[i])
-        tol, atol = period_tol, amplitude_tol
-        if r >= k0 and periods[i - 2] > 0:
-            tol = max(period_tol, 2.5 * float(dt_avg[r]) / float(periods[i - 2]))
-        if relax_after is not None and i >= relax_after:  # i cycles are complete at rise i
-            tol, atol = max(tol, relaxed_tol[0]), max(atol, relaxed_tol[1])
-        steady[i] = (np.ptp(p) / p.mean() <= tol and a.mean() > 0
-                     and np.ptp(a) / a.mean() <= atol)
+    """The cycle watcher's verdict at each rising switch under the given tolerances
+    (:class:`CycleRules`): the sample indices of the rising switches and, for each, whether
+    the watcher said "steady" there."""
+    rules = CycleRules(n_periods=n_periods, period_tol=period_tol, amplitude_tol=amplitude_tol,
+                       relax_after=relax_after, relaxed_tol=relaxed_tol)
+    rises, steady, _ = _watch(t, u, y, rules)
     return rises, steady
 
 
@@ -1102,37 +1088,26 @@ def _live_cycles(seg: RelaySegment, inner: Identification | None
                  ) -> tuple[Identification | None, _Cycles, bool, list[str]]:
     """The cycles a live tune identifies, and their identification.
 
-    The live tune feeds each loop's :class:`CycleDetector` one sample per telemetry
-    sample its relay answered and identifies the last ``identify_cycles`` cycles once
-    the oscillation is steady, then switches the loop to its PD a few milliseconds
-    later; an identification error resets the detector and waits for the next steady
-    cycles. When that happens is up to the ground station's scheduling, but the relay
-    stops right after: so the identified cycles are those that end at the last rising
-    switch, before the relay stopped, at which the detector said "steady"
-    (:func:`_steady_rises`). Where identification fails there, earlier steady cycles
-    are tried (up to five, while the reason differs). Returns the identification (None
-    when none succeeded), the cycles, whether they were steady, notes.
+    The segment goes through the live tune's own cycle watcher
+    (:class:`mrft_gcs.flight.cycles.CycleWatcher`, with the rules of
+    :meth:`SequenceConfig.cycle_rules`) sample by sample; where it is steady, the tune
+    identifies the cycles it hands over, then switches the loop to its PD a few
+    milliseconds later, and an identification error restarts the watcher and waits for
+    the next steady cycles. When that happens is up to the ground station's scheduling,
+    but the relay stops right after: so the identified cycles are those that end at the
+    last rising switch, before the relay stopped, at which the watcher handed cycles over.
+    Where identification fails there, earlier steady cycles are tried (up to five, while
+    the reason differs). Returns the identification (None when none succeeded), the
+    cycles, whether they were steady, notes.
     """
-    from mrft_gcs.flight.sequence import SequenceConfig
+    from mrft_gcs.flight.config import SequenceConfig
 
-    cfg = SequenceConfig()
-    kinds = (LoopKind.ATTITUDE, LoopKind.ALTITUDE, LoopKind.SIDE)
-    i = kinds.index(seg.loop.kind)
-    tol = cfg.period_tol
-    if seg.loop.kind is LoopKind.SIDE:  # where the sequence allows x/y a wider tolerance
-        tol = float(getattr(cfg, "side_period_tol", tol))
-    det = CycleDetector(n_periods=cfg.steady_periods[i], period_tol=tol,
-                        relax_after=cfg.relax_after_cycles[i], relaxed_tol=cfg.relaxed_tol)
-    rises, steady = _steady_rises(seg.t, seg.u, seg.y, det.n_periods, det.period_tol,
-                                  det.amplitude_tol, det.relax_after, det.relaxed_tol)
-    m = cfg.identify_cycles
-    # altitude and side hand over fewer cycles where the sequence says so
-    fewer = getattr(cfg, "identify_cycles_alt_side", None)
-    if fewer is not None and seg.loop.kind is not LoopKind.ATTITUDE:
-        m = min(m, int(fewer[0 if seg.loop.kind is LoopKind.ALTITUDE else 1]))
+    rules = SequenceConfig().cycle_rules(seg.loop)
+    m = rules.identify_cycles
+    rises, _, handed = _watch(seg.t, seg.u, seg.y, rules)
     notes: list[str] = []
     windows = [(int(rises[i - m]), int(rises[i]) + 1)
-               for i in (np.flatnonzero(steady[m:])[::-1][:5] + m)]
+               for i in np.flatnonzero(handed)[::-1][:5]]
     failed: set[str] = set()
     for a, b in windows:
         cyc = (seg.t[a:b], seg.u[a:b], seg.y[a:b])
@@ -1210,9 +1185,10 @@ def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
     if ident is not None:
         gains = ident.gains
         if seg.gcs_period_s > 0 and isinstance(ident.model, InnerModel):
-            from mrft_gcs.flight.onboard import robust_onboard_gains
+            from mrft_gcs.flight.onboard import onboard_extra_delay_s, robust_onboard_gains
 
-            rt = robust_onboard_gains(ident, _gcs_delay(seg, cyc[0]))
+            rt = robust_onboard_gains(ident, _gcs_delay(seg, cyc[0]),
+                                      onboard_extra_s=onboard_extra_delay_s(seg.loop))
             delay, gains = rt.delay_s, rt.gains
             notes.append(f"gains re-targeted to the onboard loop, less delay than the "
                          f"ground-station relay by how old telemetry was when the command "

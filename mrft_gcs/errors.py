@@ -23,6 +23,11 @@ Exit codes (documented in README):
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # for the annotation only: the flight package builds on this module
+    from mrft_gcs.flight.api import TuneResult
+
 __all__ = [
     "MrftError",
     "UsageError",
@@ -38,9 +43,19 @@ __all__ = [
 
 
 class MrftError(Exception):
-    """Base class: a failure the user can act on. ``str(err)`` is one line."""
+    """Base class: a failure the user can act on. ``str(err)`` is one line.
+
+    Attributes
+    ----------
+    exit_code : int
+        The CLI's exit code for this class of failure (table above).
+    partial_result : TuneResult or None
+        Set by :func:`mrft_gcs.flight.api.tune` on a failure after it connected: what
+        the tune did so far (its report is written from it); None otherwise.
+    """
 
     exit_code: int = 1
+    partial_result: TuneResult | None = None
 
     def __init__(self, message: str) -> None:
         super().__init__(" ".join(message.split()))

@@ -249,7 +249,7 @@ def _tune_one(spec: VehicleSpec, tuner: Callable[..., Any],
     except MrftError as err:
         out = VehicleOutcome(spec.name, spec.connect, f"error:{err.exit_code}:"
                              f"{type(err).__name__}", str(err), err.exit_code,
-                             time.monotonic() - t0, getattr(err, "partial_result", None))
+                             time.monotonic() - t0, err.partial_result)
     except Exception as err:  # a bug in one vehicle's run must not stop the others
         out = VehicleOutcome(spec.name, spec.connect, "error:1:internal",
                              f"{type(err).__name__}: {err}", 1, time.monotonic() - t0)

@@ -215,6 +215,23 @@ class ParamClient:
                         return last
         return last
 
+    def write_known(self, values: Mapping[str, float], known: Mapping[str, Param]
+                    ) -> tuple[ParamChange, ...]:
+        """Write ``values`` with read-back, for parameters already backed up: ``known``
+        holds each one's type (e.g. from the write that backed them up), so nothing is read
+        first (ArduPilot answers a read only from its 10 Hz parameter stream). A value that
+        does not stick raises ParameterError naming it; nothing is rolled back."""
+        out = []
+        for name, value in values.items():
+            if name not in known:
+                raise ParameterError(f"{name} was not backed up before this write")
+            new = self._set(name, float(value), known[name].param_type)
+            if new is None or not _same(new.value, float(value), known[name].param_type):
+                seen = "no answer" if new is None else f"vehicle reports {new.value:g}"
+                raise ParameterError(f"parameter {name} did not stick: wrote {value:g}, {seen}")
+            out.append(ParamChange(name, known[name].value, new.value))
+        return tuple(out)
+
     def write(self, values: Mapping[str, float], backup_dir: str | os.PathLike[str] = ".",
               *, label: str = "backup") -> WriteResult:
         """Back up, then write ``values`` with read-back; all or nothing.

@@ -66,6 +66,7 @@ __all__ = [
     "AngleRateParams",
     "CascadeParams",
     "AltitudeParams",
+    "RatePathParams",
     "AutopilotProfile",
     "PROFILE_DIR",
     "G_M_S2",
@@ -92,6 +93,9 @@ class Actuation(enum.Enum):
 
     TORQUE = "torque"  # SET_ACTUATOR_CONTROL_TARGET group 0: all five loops from the GCS
     ATTITUDE = "attitude"  # SET_ATTITUDE_TARGET: autopilot keeps its attitude loop
+    #: SET_ATTITUDE_TARGET body rates through a rate loop reduced to feed-forward
+    #: (``[rate_path]``, :mod:`mrft_gcs.flight.ratepath`): all five loops from the GCS
+    RATE = "rate"
 
 
 @dataclass(frozen=True)
@@ -169,6 +173,23 @@ class AltitudeParams:
 
 
 @dataclass(frozen=True)
+class RatePathParams:
+    """``[rate_path]``: the autopilot's rate loop reduced to a pure feed-forward, so that a
+    body-rate set point ``w`` [rad/s] comes out as the normalised torque ``k w``.
+
+    Per axis (roll, pitch, yaw): the feed-forward gain's name and ``k`` [1/(rad/s)], the
+    rate P and angle P names (the hand-over writes them in stages), and ``test_params``:
+    every value set for the flight (backed up, restored at the end and on any abort).
+    """
+
+    ff: tuple[str, str, str]
+    k: tuple[float, float, float]
+    rate_p: tuple[str, str, str]
+    angle_p: tuple[str, str, str]
+    test_params: Mapping[str, float]
+
+
+@dataclass(frozen=True)
 class AutopilotProfile:
     """One ``profiles/*.toml``."""
 
@@ -194,6 +215,8 @@ class AutopilotProfile:
     #: written gains will fly (``[test_params]``); backed up, restored after the flight
     #: and on any abort
     test_params: Mapping[str, float] = field(default_factory=dict)
+    #: the body-rate path (None: the autopilot has none, or the profile does not say)
+    rate_path: RatePathParams | None = None
 
     def fits_version(self, version: tuple[int, ...] | None) -> bool:
         """True if ``version`` is in :attr:`versions` (or either is unknown)."""
@@ -294,10 +317,11 @@ def _nonnegative(table: Mapping[str, Any], key: str, where: str, default: float)
     return float(value)
 
 
-def _test_params(data: Mapping[str, Any], source: str) -> dict[str, float]:
+def _test_params(data: Mapping[str, Any], source: str,
+                 key: str = "test_params") -> dict[str, float]:
     """``[test_params]``: ``NAME = value`` set for the flight and restored after it."""
-    where = f"{source} [test_params]"
-    table = data.get("test_params", {})
+    where = f"{source} [{key}]"
+    table = data.get(key, {})
     if not isinstance(table, dict):
         raise UsageError(f"{where}: must be a table of NAME = value")
     out: dict[str, float] = {}
@@ -310,6 +334,33 @@ def _test_params(data: Mapping[str, Any], source: str) -> dict[str, float]:
     return out
 
 
+def _rate_path(data: Mapping[str, Any], source: str) -> RatePathParams | None:
+    """``[rate_path]`` with its ``[rate_path.test_params]`` (None where absent)."""
+    table = data.get("rate_path")
+    if table is None:
+        return None
+    where = f"{source} [rate_path]"
+    if not isinstance(table, dict):
+        raise UsageError(f"{where}: must be a table")
+
+    def three(key: str, kind: Any) -> tuple[Any, Any, Any]:
+        v = _need(table, key, list, where)
+        if len(v) != 3 or not all(isinstance(x, kind) and not isinstance(x, bool) for x in v):
+            raise UsageError(f"{where}: '{key}' must list roll, pitch and yaw")
+        return v[0], v[1], v[2]
+
+    names = {key: three(key, str) for key in ("ff", "rate_p", "angle_p")}
+    k = tuple(float(x) for x in three("k", int | float))
+    if not all(math.isfinite(x) and x > 0 for x in k):
+        raise UsageError(f"{where}: 'k' must be positive and finite, got {k}")
+    test = _test_params(table, where)
+    for name, kk in zip(names["ff"], k, strict=True):
+        if test.get(name) != kk:
+            raise UsageError(f"{where}: test_params must set {name} to its k {kk:g}")
+    return RatePathParams(names["ff"], (k[0], k[1], k[2]), names["rate_p"], names["angle_p"],
+                          test)
+
+
 def parse_profile(data: Mapping[str, Any], source: str = "<profile>") -> AutopilotProfile:
     """Validate a parsed TOML table into a profile (UsageError naming the field)."""
     ap = _need(data, "autopilot", dict, source)
@@ -319,7 +370,7 @@ def parse_profile(data: Mapping[str, Any], source: str = "<profile>") -> Autopil
         actuation = Actuation(_need(ap, "actuation", str, w))
     except ValueError as err:
         raise UsageError(f"{w}: {err}; family is px4/ardupilot/generic, actuation "
-                         f"torque/attitude") from None
+                         f"torque/attitude/rate") from None
     modes_t = _need(data, "modes", dict, source)
     modes = {}
     for key in _MODE_KEYS:
@@ -370,7 +421,8 @@ def parse_profile(data: Mapping[str, Any], source: str = "<profile>") -> Autopil
         description=str(ap.get("description", "")), actuation=actuation, modes=modes,
         safety=safety, roll=angle("roll"), pitch=angle("pitch"), side=side,
         altitude=altitude, source=source, versions=_versions(ap, w),
-        alternatives=tuple(alternatives), test_params=_test_params(data, source))
+        alternatives=tuple(alternatives), test_params=_test_params(data, source),
+        rate_path=_rate_path(data, source))
     return replace(prof, param_ranges=_ranges(data, source, prof.parameter_names()))
 
 

@@ -27,6 +27,8 @@ __all__ = [
     "ActuatorTarget",
     "AttitudeTarget",
     "AttitudeSetpoint",
+    "RateTarget",
+    "PidTuning",
     "StatusText",
     "Heartbeat",
     "ParamValue",
@@ -99,6 +101,35 @@ class AttitudeSetpoint:
     pitch_rad: float
     yaw_rad: float
     thrust: float
+
+
+@dataclass(frozen=True, slots=True)
+class RateTarget:
+    """Body-rate set point with thrust (SET_ATTITUDE_TARGET with the attitude ignored):
+    roll, pitch, yaw rates in rad/s (body frame), ``thrust`` in [0, 1]."""
+
+    t_s: float
+    roll_rate_rad_s: float
+    pitch_rate_rad_s: float
+    yaw_rate_rad_s: float
+    thrust: float
+
+
+@dataclass(frozen=True, slots=True)
+class PidTuning:
+    """One axis of the vehicle's rate loop (MAVLink PID_TUNING, ArduPilot ``GCS_PID_MASK``):
+    ``axis`` 1 roll, 2 pitch, 3 yaw; ``desired`` and ``achieved`` rates in rad/s; the
+    output's terms ``ff``, ``p``, ``i``, ``d`` in normalised command units. ``t_s`` is the
+    receive time on this computer's monotonic clock (the message has no timestamp)."""
+
+    t_s: float
+    axis: int
+    desired: float
+    achieved: float
+    ff: float
+    p: float
+    i: float
+    d: float
 
 
 @dataclass(frozen=True, slots=True)

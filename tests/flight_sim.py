@@ -48,7 +48,7 @@ def truth_identifier(vehicle: str):
             kind = LoopKind.ATTITUDE if loop in (Loop.ROLL, Loop.PITCH) else LoopKind.ALTITUDE
         pd = optimal_pd(G, w).pd
         return Identification(kind, model, 0, 1.0, snap.beta, snap.h, snap.status.period_s,
-                              snap.status.amplitude, pd, {"truth": True})
+                              snap.status.amplitude, pd)
 
     return ident
 

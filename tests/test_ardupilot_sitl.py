@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from mrft_gcs.cli import main
-from mrft_gcs.errors import LinkError, SafetyAbort
+from mrft_gcs.errors import LinkError, MrftError, SafetyAbort
 from mrft_gcs.flight.api import tune
 from mrft_gcs.link import VehicleLink, measure_link, require_relay_capable
 from mrft_gcs.link.firmware import detect_firmware
@@ -155,7 +155,7 @@ def test_test_parameters_restored_when_a_tune_aborts(copter, tmp_path):
                           max_test_duration_s=3.0)
     with pytest.raises(SafetyAbort, match="3 s limit") as info:
         tune(serial0, "ardupilot", limits=limits, backup_dir=tmp_path, heartbeat_timeout_s=10)
-    result = info.value.partial_result  # type: ignore[attr-defined]
+    result = info.value.partial_result
     assert result.parameters == () and any("PILOT_THR_FILT" in n for n in result.notes)
     with VehicleLink.connect(serial0, timeout_s=10) as link:
         assert ParamClient(link).read("PILOT_THR_FILT").value == thr_filt
@@ -183,7 +183,7 @@ def test_tune_on_arducopter_writes_altitude_x_y_and_gates_ok_on_the_hover(copter
             raise
         pytest.skip(f"the SITL fell behind real time on this host: {err}")
     except SafetyAbort as err:
-        result = err.partial_result  # type: ignore[attr-defined]
+        result = err.partial_result
         assert "hover check on the written gains in LOITER failed" in str(err), err
     alt = result.loops[Loop.ALTITUDE]
     print(f"tune {result.status} after {time.monotonic() - t:.1f} s, {result.duration_s:.1f} s "
@@ -211,3 +211,106 @@ def test_tune_on_arducopter_writes_altitude_x_y_and_gates_ok_on_the_hover(copter
             link.land()
             if result.backup:
                 ParamClient(link).restore(result.backup, tmp_path)
+
+
+# ---------------------------------------------------------------------- the rate path
+def _rate_test_names() -> list[str]:
+    from mrft_gcs.profiles import load_profile
+
+    rp = load_profile("ardupilot").rate_path
+    assert rp is not None
+    return list(rp.test_params)
+
+
+def test_rate_path_abort_puts_the_gains_back_before_landing(copter, tmp_path):
+    """The rate path zeroes the onboard gains after arming; a safety limit 3 s after the
+    take-off must put every one of them back (before the landing command: a landing on zero
+    gains tumbles), and the vehicle lands and disarms on them."""
+    serial0, _, _ = copter
+    names = _rate_test_names() + ["PILOT_THR_FILT"]
+    with VehicleLink.connect(serial0, timeout_s=10) as link:
+        before = {n: p.value for n, p in ParamClient(link).read_many(names).items()}
+    limits = SafetyLimits(max_tilt_deg=30.0, max_altitude_m=4.0, max_distance_m=5.0,
+                          max_test_duration_s=3.0)
+    with pytest.raises(SafetyAbort, match="3 s limit") as info:
+        tune(serial0, "ardupilot", actuation="rate", limits=limits, backup_dir=tmp_path,
+             heartbeat_timeout_s=10)
+    result = info.value.partial_result  # type: ignore[attr-defined]
+    print("\n".join(n for n in result.notes if n.startswith("rate path")))
+    assert result.parameters == () and result.actuation == "rate"
+    assert any("test parameters set after arming" in n for n in result.notes), result.notes
+    assert any("onboard target on the body before the take-off" in n for n in result.notes)
+    # the backup of the test parameters holds the values from before the tune
+    from mrft_gcs.params import read_params_file
+
+    backup = next(tmp_path.glob("params-rate-test-*.params"))
+    saved = {e.param.name: e.param.value for e in read_params_file(backup)}
+    assert saved == pytest.approx({n: before[n] for n in saved})
+    with VehicleLink.connect(serial0, timeout_s=10) as link:
+        after = {n: p.value for n, p in ParamClient(link).read_many(names).items()}
+        assert after == pytest.approx(before), {n: (before[n], after[n]) for n in names
+                                                if after[n] != pytest.approx(before[n])}
+        end = time.monotonic() + 30
+        while time.monotonic() < end and link.heartbeat.armed:
+            time.sleep(0.2)
+        assert not link.heartbeat.armed
+
+
+def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path):
+    """All five loops from the ground through the stock firmware's rate loop reduced to
+    feed-forward: roll and pitch written into ATC_ANG/ATC_RAT as soon as both are
+    identified (the zero-gain window closes there), x and y then relay-tested on them,
+    altitude and x/y written, hand-over to LOITER with the hover check. Every parameter the
+    tune changed is either written and read back, or back at its value from before; the
+    backup holds the values from before the tune."""
+    serial0, _, _ = copter
+    names = _rate_test_names() + ["PILOT_THR_FILT"]
+    with VehicleLink.connect(serial0, timeout_s=10) as link:
+        before = {n: p.value for n, p in ParamClient(link).read_many(names).items()}
+    t = time.monotonic()
+    result = None
+    try:
+        try:
+            result = tune(serial0, "ardupilot", actuation="rate", backup_dir=tmp_path,
+                          heartbeat_timeout_s=10)
+        except LinkError as err:
+            if "telemetry arrives at" not in str(err):
+                raise
+            pytest.skip(f"the SITL fell behind real time on this host: {err}")
+        except MrftError as err:
+            result = err.partial_result  # type: ignore[attr-defined]
+            raise
+        finally:
+            if result is not None:
+                print(f"\nrate path: {result.status} after {time.monotonic() - t:.1f} s, "
+                      f"{result.duration_s:.1f} s from take-off (load "
+                      f"{os.getloadavg()[0]:.1f}); {result.hover_check}")
+                for lp, lr in result.loops.items():
+                    print(f"  {lp.value}: {lr.state} {lr.gains}")
+                print("\n".join(f"  - {n}" for n in result.notes))
+        assert result.status == "ok" and result.hover_check is not None
+        assert result.hover_check.passed
+        for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE, Loop.X, Loop.Y):
+            assert result.loops[lp].state == "tuned", (lp, result.loops[lp])
+        written = {c.name: c for c in result.parameters}
+        assert {"ATC_ANG_RLL_P", "ATC_RAT_RLL_P", "ATC_ANG_PIT_P", "ATC_RAT_PIT_P",
+                "PSC_POSXY_P", "PSC_VELXY_P"} <= set(written)
+        for n in ("ATC_ANG_RLL_P", "ATC_RAT_RLL_P", "ATC_ANG_PIT_P", "ATC_RAT_PIT_P"):
+            assert written[n].old == pytest.approx(before[n]) and written[n].new > 0
+        assert any("zero-gain window" in n for n in result.notes), result.notes
+        assert result.backup is not None
+        from mrft_gcs.params import read_params_file
+
+        saved = {e.param.name: e.param.value for e in read_params_file(result.backup)}
+        for n, c in written.items():
+            assert saved[n] == pytest.approx(c.old), n
+    finally:
+        with VehicleLink.connect(serial0, timeout_s=10) as link:
+            client = ParamClient(link)
+            now = {n: p.value for n, p in client.read_many(names).items()}
+            done = {c.name: c.new for c in result.parameters} if result else {}
+            for n in names:  # written and read back, or back where it was
+                assert now[n] == pytest.approx(done.get(n, before[n])), n
+            link.land()
+            if result is not None and result.backup:
+                client.restore(result.backup, tmp_path)

@@ -122,9 +122,9 @@ def test_identification_carries_a_side_classifier_shape_at_the_relay_beta():
     assert ident.diagnostics.method is Method.CLOSED_LOOP
     assert isinstance(ident.diagnostics.shape, int) and ident.diagnostics.scale > 0
     m, g = ident.model, ident.gains
-    w = np.asarray(ident.extras["w"])
+    w = ident.diagnostics.measured.w
     T = closed_inner_response(g.Kc, g.Kd, inner_response(m.K, m.T_prop, m.T1, m.tau, w), w)[0]
-    measured = np.asarray(ident.extras["T_re"]) + 1j * np.asarray(ident.extras["T_im"])
+    measured = ident.diagnostics.measured.T
     # not of its form: at a 1.2 s cycle it misses harmonics 1-7 of this loop by 6-15 %, which
     # the side fit absorbs (the cascade is measured at those points: J above)
     assert np.all(np.abs(np.log(T[:4] / measured[:4])) < 0.2)

@@ -232,8 +232,8 @@ def test_side_fit_behind_the_measured_attitude_loop():
     kw = dict(beta=rs.beta, h=rs.h, inner=a_id)
     measured = identify(LoopKind.SIDE, t, u, y, tilt=tilt, **kw)
     modelled = identify(LoopKind.SIDE, t, u, y, **kw)
-    assert measured.extras["t_att_measured"][:2] == [1, 3]
-    assert modelled.extras["t_att_measured"] == []
+    assert measured.diagnostics.fit.t_att_measured[:2] == (1, 3)
+    assert modelled.diagnostics.fit.t_att_measured == ()
     assert measured.model.T2 == pytest.approx(side[1], rel=0.05)
     assert abs(measured.model.tau - side[2]) < 0.005
     # behind the modelled loop the lag it does not know of is taken for side-model lag

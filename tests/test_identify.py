@@ -164,7 +164,8 @@ def test_refinement_keeps_the_rules_margin_on_the_likely_shapes():
     best = optimal_pd(G, w)
     assert (ise(pd.Kc, pd.Kd, G, w) / best.ise - 1) * 100 < 10.0
     # the cycles wander (spread 0.08): the rule stands, not held back towards the refinement
-    assert ident.extras["held_back"] == 0.0 and ident.diagnostics.method is Method.CLASSIFIER
+    assert ident.diagnostics.fit.held_back == 0.0
+    assert ident.diagnostics.method is Method.CLASSIFIER
 
 
 def test_refused_refinement_on_steady_cycles_is_held_back_not_dropped():
@@ -193,7 +194,7 @@ def test_refused_refinement_on_steady_cycles_is_held_back_not_dropped():
     rec = np.load(Path(__file__).parent / "data" / "racer250_pitch_live_cycles.npz")
     ident = identify(LoopKind.ATTITUDE, rec["t"], rec["u"], rec["y"], beta=float(rec["beta"]),
                      h=float(rec["h"]))
-    a = ident.extras["held_back"]
+    a = ident.diagnostics.fit.held_back
     assert 0.0 < a < 1.0 and ident.diagnostics.method is Method.CLASSIFIER_HARMONICS
     models = load_airframe("racer250").linear_models()
     written = onboard_gains(ident, float(rec["gcs_delay_s"]))
@@ -235,7 +236,7 @@ def test_refined_model_the_record_refutes_is_not_trusted(monkeypatch):
 
     J, ident = written_j()
     assert ident.diagnostics.method is Method.CLASSIFIER
-    assert ident.extras["fit_cost"] == float("inf") and J < 5.0
+    assert ident.diagnostics.fit.cost == float("inf") and J < 5.0
     monkeypatch.setattr(runtime, "MAX_FIT_COST", float("inf"))  # the gate off: the misfit
     J, ident = written_j()
     assert ident.diagnostics.method is Method.CLASSIFIER_HARMONICS and J > 20.0
@@ -260,9 +261,9 @@ def test_side_fit_keeps_a_harmonic_the_measured_attitude_loop_would_push_out():
     side = identify(LoopKind.SIDE, rec["t"], rec["u"], rec["y"], beta=float(rec["beta"]),
                     h=float(rec["h"]), inner=roll, setpoint=float(rec["setpoint"]),
                     tilt=rec["tilt"])
-    sd = side.extras["harmonic_sd"]
-    assert side.diagnostics.method is Method.HARMONIC_FIT and 0.45 < sd[1] <= USABLE_SD
-    assert 3 in side.extras["harmonics"] and 3 not in side.extras["t_att_measured"]
+    fit = side.diagnostics.fit
+    assert side.diagnostics.method is Method.HARMONIC_FIT and 0.45 < fit.sd[1] <= USABLE_SD
+    assert 3 in fit.harmonics and 3 not in fit.t_att_measured
     s = score_gains(load_airframe("racer250").linear_models(),
                     {Loop.ROLL: roll.gains, Loop.Y: side.gains})
     assert s[Loop.Y].stable and abs(s[Loop.Y].J_pct) < 10.0, s[Loop.Y]

@@ -91,9 +91,8 @@ def demo(
                               tlog_path=folder / "session.tlog",
                               on_progress=lambda snap: live.update(progress_table(snap)))
         except MrftError as err:
-            partial = getattr(err, "partial_result", None)
-            if partial is not None:
-                console.print(f"report: {write_report(partial, folder / 'report.json')}")
+            if err.partial_result is not None:
+                console.print(f"report: {write_report(err.partial_result, folder / 'report.json')}")
             raise
     console.print(result_table(result))
     for note in result.notes:

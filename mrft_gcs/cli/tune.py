@@ -74,8 +74,10 @@ def tune_command(
     profile: Annotated[str, typer.Option("--profile", "-p", help="px4, ardupilot, sitl or a "
                                          ".toml path")] = "px4",
     actuation: Annotated[str | None, typer.Option(
-        "--actuation", help="torque (SET_ACTUATOR_CONTROL_TARGET, PX4 <= 1.13, SITL) or "
-        "attitude (SET_ATTITUDE_TARGET); default from the profile")] = None,
+        "--actuation", help="torque (SET_ACTUATOR_CONTROL_TARGET, PX4 <= 1.13, SITL), "
+        "attitude (SET_ATTITUDE_TARGET) or rate (ArduCopter: body rates through its rate loop "
+        "reduced to feed-forward, all five loops; docs/ardupilot.md); default from the "
+        "profile")] = None,
     loops: Annotated[str | None, typer.Option(
         "--loops", help="comma-separated loops to tune (altitude, roll, pitch, x, y); default "
         "all the path can tune. Loops not named are never written; x/y not named are not "
@@ -142,9 +144,8 @@ def tune_command(
                           backup_dir=backup_dir, heartbeat_timeout_s=timeout, loops=wanted,
                           on_progress=lambda snap: live.update(progress_table(snap)))
     except MrftError as err:
-        partial = getattr(err, "partial_result", None)
-        if partial is not None:
-            _write_outputs(partial, report, plot)
+        if err.partial_result is not None:
+            _write_outputs(err.partial_result, report, plot)
         raise
     if result.status == "dry-link":
         console.print(f"link ok: {result.link.line() if result.link else ''}")

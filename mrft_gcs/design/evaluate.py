@@ -268,14 +268,16 @@ def evaluate_side(n: int = 200, seed: int = 1, progress=None) -> Evaluation:
             continue
         for name, scale in (("exact gain", 1.0), ("DF gain", None)):
             Kc, Kd = s_id.gains.Kc, s_id.gains.Kd
+            vote, fit = s_id.diagnostics.classifier, s_id.diagnostics.fit
             if scale is None and s_id.diagnostics.method is Method.CLASSIFIER:
+                assert vote is not None  # the side classifier ran
                 # DF: gain from 4/pi |G|, not the simulated amplitude of the chosen class
                 table = json.loads((MODELS_DIR / "side" / f"shape_{a_id.diagnostics.shape:02d}"
                                     / "classes.json").read_text())
-                z = table["zeta"][int(s_id.extras["rule"])]
+                z = table["zeta"][vote.rule]
                 Kc, Kd = Kc * (4 / np.pi) / z, Kd * (4 / np.pi) / z
-            elif scale is None:  # harmonic fit: DF estimate of |G| instead of the measured one
-                Kc, Kd = Kc * s_id.extras["df_factor"], Kd * s_id.extras["df_factor"]
+            elif scale is None and fit is not None:  # DF estimate of |G|, not the measured one
+                Kc, Kd = Kc * fit.df_factor, Kd * fit.df_factor
             Kc, Kd = Kc * Ks[i], Kd * Ks[i]
             m = margins((Kc + Kd * 1j * w) * P, w)
             J[name][i] = (ise(Kc, Kd, P, w) - design.ise) / design.ise * 100 if m.stable else np.inf

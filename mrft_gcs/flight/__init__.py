@@ -1,7 +1,8 @@
 """Live flight: take-off controller, tuning sequence, safety, GCS-side loops, report, plot.
 
 Modules: ``takeoff`` (eq. 21 / climb at a known hover thrust), ``sequence`` (the state
-machine), ``noise`` (noise bands, position smoothing), ``controllers`` (GCS PDs, yaw hold),
+machine), ``config`` (its settings), ``cycles`` (when a relay's cycles are steady; dry-run
+runs it too), ``noise`` (noise bands, position smoothing), ``controllers`` (GCS PDs, yaw hold),
 ``onboard`` (identified gains re-targeted to the autopilot's own loops), ``safety``,
 ``scoring`` (J against a simulated airframe's true models), ``report``, ``plot``, ``api``.
 

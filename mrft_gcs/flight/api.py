@@ -62,9 +62,13 @@ from mrft_gcs.flight.inair import (
 from mrft_gcs.flight.onboard import (
     Retarget,
     measure_gcs_delay,
+    onboard_extra_delay_s,
     onboard_gains,
+    onboard_side_gains,
     robust_onboard_gains,
 )
+from mrft_gcs.flight.ratepath import GCS_PD_SCALE as RATE_GCS_PD_SCALE
+from mrft_gcs.flight.ratepath import RatePath, rate_path_refusal
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
 from mrft_gcs.flight.sequence import AUTOPILOT_ATTITUDE as _AUTOPILOT_ATTITUDE
 from mrft_gcs.flight.sequence import (
@@ -147,8 +151,8 @@ WORKER_CALL_S = 20.0
 def requested_loops(loops: Collection[str | Loop] | None, actuation: Actuation) -> frozenset[Loop]:
     """The loops a tune writes: ``loops`` checked against the actuation path.
 
-    ``None`` is every loop the path can tune (torque: all five; attitude: altitude, x
-    and y, the autopilot keeping its own roll and pitch loops).
+    ``None`` is every loop the path can tune (torque and rate: all five; attitude:
+    altitude, x and y, the autopilot keeping its own roll and pitch loops).
 
     >>> sorted(lp.value for lp in requested_loops(["x", "altitude"], Actuation.TORQUE))
     ['altitude', 'x']
@@ -175,7 +179,7 @@ def requested_loops(loops: Collection[str | Loop] | None, actuation: Actuation) 
     if att and actuation is Actuation.ATTITUDE:
         raise UsageError(f"{' and '.join(att)} cannot be tuned on the attitude path (the "
                          f"autopilot keeps its own attitude loop): drop them from the loops or "
-                         f"use the torque path (--actuation torque)")
+                         f"use the torque or rate path (--actuation torque or rate)")
     return frozenset(chosen)
 
 def tilt_note(by_phase: dict[str, float]) -> str:
@@ -369,7 +373,7 @@ def _check_note(plan: CheckPlan, check: InAirCheck) -> str:
 
 
 def _idle(actuation: Actuation) -> ActuatorTarget | AttitudeTarget:
-    if actuation is Actuation.TORQUE:
+    if actuation in (Actuation.TORQUE, Actuation.RATE):  # the rate path sends it as rates
         return ActuatorTarget(0.0, 0.0, 0.0, 0.0, 0.0)
     return AttitudeTarget(0.0, (1.0, 0.0, 0.0, 0.0), 0.0)
 
@@ -477,7 +481,7 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
     try:
         return run.execute(dry_link, own_worker=identifier is None)
     except MrftError as err:
-        err.partial_result = run.result(_status(err), str(err))  # type: ignore[attr-defined]
+        err.partial_result = run.result(_status(err), str(err))
         raise
     finally:
         run.close_worker()
@@ -485,11 +489,12 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
 
 
 def parse_actuation(value: Actuation | str) -> Actuation:
-    """``torque`` or ``attitude`` as an :class:`Actuation`; anything else is a UsageError."""
+    """``torque``, ``attitude`` or ``rate`` as an :class:`Actuation`; anything else is a
+    UsageError."""
     try:
         return Actuation(value)
     except ValueError:
-        raise UsageError(f"unknown actuation {value!r}: use torque or attitude") from None
+        raise UsageError(f"unknown actuation {value!r}: use torque, attitude or rate") from None
 
 
 def _status(err: MrftError) -> str:
@@ -546,6 +551,8 @@ class _Run:
         self.requested: frozenset[Loop] = frozenset(Loop)
         self.firmware: Firmware | None = None
         self.hover_check: HoverCheck | None = None
+        #: the body-rate path's state (None: another path), :mod:`mrft_gcs.flight.ratepath`
+        self.rate: RatePath | None = None
 
     # ------------------------------------------------------------------ result
     def result(self, status: str, error: str | None = None) -> TuneResult:
@@ -578,7 +585,9 @@ class _Run:
             max_tilt_deg=self.monitor.max_tilt_seen_deg if self.monitor else math.nan,
             max_tilt_by_phase=dict(seq.max_tilt_by_phase) if seq is not None else {},
             limits=self.lim, hover_error_m=self.hover_error_m,
-            notes=tuple([YAW_NOTE] + self.notes + self._log_notes()
+            notes=tuple([(self.rate.yaw_note if self.rate else None) or YAW_NOTE] + self.notes
+                        + (self.rate.notes if self.rate else [])
+                        + self._log_notes()
                         + (list(seq.events) if seq else [])
                         + ([tilt_note(seq.max_tilt_by_phase)]
                            if seq and seq.max_tilt_by_phase else [])),
@@ -645,9 +654,13 @@ class _Run:
         # (measured after the warm-up), time in which no setpoint would go out.
         gc.freeze()
         cfg = dataclasses.replace(
-            self.config, actuation=self.act, z_ref_m=self.z_ref_m,
+            # the rate path flies the torque sequence, its torques sent as rates
+            self.config, actuation=Actuation.TORQUE if self.act is Actuation.RATE else self.act,
+            z_ref_m=self.z_ref_m,
             hover_thrust_guess=self.hover if 0 < self.hover < 1 else None,
             max_tilt_cmd_rad=0.6 * math.radians(self.lim.max_tilt_deg))
+        if self.act is Actuation.RATE and cfg.gcs_attitude_pd_scale == 1.0:
+            cfg = dataclasses.replace(cfg, gcs_attitude_pd_scale=RATE_GCS_PD_SCALE)
         self.seq = TuningSequence(cfg, att, alt)
         for lp in _SIDE_INNER:
             if lp not in self.requested:
@@ -663,6 +676,9 @@ class _Run:
             self._emergency_land()
             raise
         finally:
+            if self.rate is not None:
+                self.rate.restore_rest(client)
+                self.rate.close()
             self._restore_test_params(client, test_backup)
         if self.residuals:
             self._residuals()
@@ -711,9 +727,13 @@ class _Run:
         if prof is not self.prof:
             self.prof = prof
             self.link.modes = dict(prof.modes)
+        if self.act is Actuation.RATE and (why := rate_path_refusal(self.prof, fw)):
+            raise UsageError(f"--actuation rate cannot fly this vehicle: {why}; use "
+                             f"--actuation attitude (tunes altitude, x and y)")
         if self.act is Actuation.TORQUE and (why := torque_path_refusal(fw)) is not None:
             raise UsageError(f"--actuation torque cannot fly this vehicle: {why}; use "
-                             f"--actuation attitude (tunes altitude, x and y)")
+                             f"--actuation attitude (tunes altitude, x and y) or, on "
+                             f"ArduCopter, --actuation rate (all five loops)")
 
     # ------------------------------------------------------------------ identification
     def _start_worker(self) -> None:
@@ -762,7 +782,7 @@ class _Run:
         assert seq is not None
         for lp, t in seq.loops.items():
             snap, ident = t.snapshot, t.identification
-            if ident is None or snap is None or "residual" in ident.extras:
+            if ident is None or snap is None or ident.residual is not None:
                 continue
             u, bias = snap.u, snap.bias
             if lp is Loop.ALTITUDE:  # the model's input is the thrust's deviation from hover
@@ -772,6 +792,8 @@ class _Run:
                                                band=band, hover=self.hover)
 
     def _emergency_land(self) -> None:
+        if self.rate is not None:  # the vehicle's own gains back before any landing
+            self.rate.abort(ParamClient(self.link))
         if self.streamer is not None:
             self.streamer.stop()
         if self.seq is not None and self.seq.phase not in (Phase.DONE, Phase.PREFLIGHT):
@@ -819,7 +841,12 @@ class _Run:
         assert seq is not None
         telemetry = _Telemetry(link)
         link.drain()
-        self.streamer = SetpointStreamer(link, self._setpoint(telemetry), rate_hz=self.rate_hz)
+        make = self._setpoint(telemetry)
+        if self.act is Actuation.RATE:
+            assert self.prof.rate_path is not None
+            self.rate = RatePath(link, self.prof.rate_path, self.backup_dir)
+            make = self.rate.wrap(make, telemetry.latest)  # type: ignore[assignment]
+        self.streamer = SetpointStreamer(link, make, rate_hz=self.rate_hz)
         self.streamer.start()
         qos = self.streamer.cpu_latency
         if qos is not None and qos.denied:
@@ -829,6 +856,11 @@ class _Run:
         link.set_mode(self.prof.modes["offboard"])
         self.mode_watch = self.prof.modes["offboard"]
         link.arm()
+        if self.rate is not None:
+            self.rate.engage(client)  # armed with the stock gains: no arming check is off
+            if (hold := self.rate.yaw_hold()) is not None:
+                seq.yaw = hold
+            self.rate.require_aligned()
         deadline = time.monotonic() + 1.0
         while (s := telemetry.latest()) is None and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -851,6 +883,8 @@ class _Run:
         if self.streamer.abort_reason is not None:
             raise SafetyAbort(self.streamer.abort_reason)
         self._watch_mode()
+        if self.rate is not None:
+            self.rate.check()
 
     def _watch_mode(self) -> None:
         """Stop at once when the vehicle leaves the offboard mode or disarms in flight: the
@@ -885,7 +919,10 @@ class _Run:
             self._check_stream()
             for snap in seq.ready():
                 self._identify(snap)
-            if seq.side_waiting:
+            if self.rate is not None and self.rate.inner_due(all(
+                    seq.loops[lp].state is LoopState.TUNED for lp in _ATTITUDE_LOOPS)):
+                self._rate_inner_hand_over()
+            if seq.side_waiting and (self.rate is None or self.rate.handed_over):
                 self._start_side()
             for lp in Loop:
                 age = seq.relay_age_s(lp)
@@ -905,7 +942,13 @@ class _Run:
         try:
             if snap.loop in _SIDE_INNER:
                 inner = seq.loops[_SIDE_INNER[snap.loop]].identification
-                if inner is None and self.act is Actuation.ATTITUDE:
+                scale = seq.config.gcs_attitude_pd_scale
+                if inner is not None and scale != 1.0:  # the inner PD the side relay flew
+                    g = inner.gains
+                    inner = dataclasses.replace(inner, gains=PD(scale * g.Kc, scale * g.Kd))
+                if self._autopilot_attitude():
+                    inner = None  # the written gains fly it onboard: measured, as below
+                if inner is None and self._autopilot_attitude():
                     inner = self._offload("attitude_loop", measured_attitude_loop, snap)
             ident = self._offload("identify", self.ident_fn, snap.loop, snap, inner)
         except IdentificationError as err:
@@ -931,11 +974,43 @@ class _Run:
             return
         if inner is not None and inner.diagnostics.method is Method.CLOSED_LOOP:
             att = seq.loops[_SIDE_INNER[snap.loop]]
-            att.note = f"{_AUTOPILOT_ATTITUDE}; {closed_loop_summary(inner, snap.loop)}"
-            ident = dataclasses.replace(ident, extras={**ident.extras, "inner": "measured "
-                                                       "closed attitude loop",
-                                                       "inner_identification": inner})
+            why = (_AUTOPILOT_ATTITUDE if self.rate is None else "tuned on the rate path and "
+                   "written at its hand-over; the side test flew on the written gains")
+            att.note = f"{why}; {closed_loop_summary(inner, snap.loop)}"
+            ident = dataclasses.replace(ident, inner=inner)
         seq.apply(snap.loop, ident)
+
+    def _autopilot_attitude(self) -> bool:
+        """The autopilot's own attitude loop flies the tilt commands (attitude path, or the
+        rate path after its hand-over)."""
+        return self.act is Actuation.ATTITUDE or (self.rate is not None
+                                                  and self.rate.handed_over)
+
+    def _rate_inner_hand_over(self) -> None:
+        """Rate path: the identified roll and pitch gains into the onboard cascade now (the
+        rest of the test parameters restored with them), then the sequence flies attitude
+        set points for the side tests, as on the attitude path."""
+        seq, rate = self.seq, self.rate
+        assert seq is not None and rate is not None
+        gains: dict[Loop, PDGains] = {}
+        for lp in _ATTITUDE_LOOPS:
+            t = seq.loops[lp]
+            if lp not in self.requested or t.identification is None:
+                continue  # its own gains go back (the hand-over restores them)
+            rt = self._retarget(lp, t.identification, t.snapshot)
+            self.written[lp], self.delays[lp] = rt.gains, rt.delay_s
+            gains[lp] = PDGains(rt.gains.Kc, rt.gains.Kd)
+        ranged = params_in_range(self.prof, gains, self.hover) if gains else None
+        if ranged is not None:
+            self.notes.extend(ranged.notes)
+        rate.split(ranged.values if ranged is not None else {})
+        rate.hand_over(ParamClient(self.link), self._hold)
+        seq.config = dataclasses.replace(seq.config, actuation=Actuation.ATTITUDE)
+        self.notes.append(
+            "rate path: roll and pitch gains written as soon as both were identified (GCS "
+            "delay re-targeted out: " + ", ".join(
+                f"{lp.value} {self.delays[lp] * 1e3:.1f} ms" for lp in gains)
+            + "); the side tests flew attitude set points on them")
 
     def _start_side(self) -> None:
         seq = self.seq
@@ -944,7 +1019,7 @@ class _Run:
         for lp in seq.side_ready():
             inner_lp = _SIDE_INNER[lp]
             inner = seq.loops[inner_lp].identification
-            if inner is None and self.act is Actuation.ATTITUDE:
+            if self._autopilot_attitude():
                 # the autopilot's attitude loop is measured from this very relay's cycles
                 settings[lp] = self.relay.get(LoopKind.SIDE) or side_relay_settings()
                 continue
@@ -969,6 +1044,8 @@ class _Run:
         for lp, t in seq.loops.items():
             if t.state is not LoopState.TUNED or t.identification is None:
                 continue
+            if self.rate is not None and self.rate.handed_over and lp in _ATTITUDE_LOOPS:
+                continue  # written at the rate path's hand-over (self.written holds them)
             if lp not in self.requested:
                 t.note = (f"{NOT_REQUESTED}: identified (the ground station flew the tests on "
                           f"it) but not written; the report's gains are the identified ones")
@@ -977,7 +1054,17 @@ class _Run:
             rt = self._retarget(lp, t.identification, t.snapshot)
             delay[lp], retargets[lp] = rt.delay_s, rt
             self.written[lp] = rt.gains
-        moved = [lp for lp, g in identified.items() if self.written[lp] != g]
+        side_notes = []
+        for lp, inner_lp in _SIDE_INNER.items():
+            # flown behind the written attitude gains, not the GCS's PD it was identified behind
+            inner, ident = seq.loops[inner_lp].identification, seq.loops[lp].identification
+            if (lp in self.written and inner_lp in retargets and inner is not None
+                    and ident is not None and self.gcs_delay_s is None):
+                side = onboard_side_gains(ident, inner, retargets[inner_lp])
+                self.written[lp] = side.gains
+                side_notes.append(f"{lp.value} {side.note()}")
+        moved = [lp for lp, g in identified.items() if self.written[lp] != g
+                 and lp not in _SIDE_INNER]
         self.delays = {lp: delay[lp] for lp in moved}
         if moved:
             if self.gcs_delay_s is not None:
@@ -991,6 +1078,8 @@ class _Run:
                 f"written {', '.join(lp.value for lp in moved)} gains are re-targeted from the "
                 f"GCS-side loop to the onboard loop ({how}); the report's gains are the "
                 f"written ones")
+        if side_notes:
+            self.notes.append("written side gains: " + "; ".join(side_notes))
         for lp, inner_lp in _SIDE_INNER.items():
             if (lp in self.written and inner_lp not in self.requested
                     and seq.loops[inner_lp].state is LoopState.TUNED):
@@ -1019,6 +1108,8 @@ class _Run:
             ranged = params_in_range(self.prof, gains, self.hover)
         self.notes.extend(ranged.notes)
         values = ranged.values
+        if self.rate is not None:  # the attitude gains go in with the rate path's hand-over
+            values = self.rate.split(values)
         if not values:
             return
         result = client.write(values, self.backup_dir, label="backup")
@@ -1165,14 +1256,21 @@ class _Run:
         if snap is not None and len(snap.t_s):
             t, ages = self.ages.ages_s(lp is Loop.ALTITUDE, float(snap.t_s[0]),
                                        float(snap.t_s[-1]), clock)
-        gcs = measure_gcs_delay(ages, period, sample_t_s=t, clock=clock,
-                                latency_s=0.5 * _round_trip_s(self.quality))
-        return robust_onboard_gains(ident, gcs)
+        rtt, q = _round_trip_s(self.quality), self.quality
+        spread = 1e-3 * (q.rtt_p90_ms - q.rtt_p50_ms) if rtt > 0 and q is not None else 0.0
+        gcs = measure_gcs_delay(ages, period, sample_t_s=t, clock=clock, latency_s=0.5 * rtt,
+                                round_trip_s=rtt, round_trip_spread_s=spread)
+        return robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp))
 
     def _hand_over(self) -> None:
         """Switch to the autopilot's position mode, stop streaming, check it hovers."""
         seq, link = self.seq, self.link
         assert seq is not None and self.streamer is not None and self.monitor is not None
+        if self.rate is not None:
+            staged = self.rate.hand_over(ParamClient(link), self._hold)
+            if staged:
+                self.changes = self.changes + staged
+                self.backup = self.rate.merged_backup(self.backup)
         self.mode_watch = None  # the tool leaves offboard itself from here
         link.set_mode(self.prof.modes["position"])
         self.streamer.stop()

@@ -24,8 +24,12 @@ same on the session's log). Telemetry and the stream's ticks are not synchronise
 250 Hz both, their phase is fixed for a session at whatever it happened to be, so this
 age is anywhere from 0 to 4 ms from one tune to the next (measured live: session means
 1.4-4.9 ms), plus the reader's and the stream's lateness on a loaded machine. The link's
-smallest latency both ways and the vehicle taking the command are not measured and stay
-in the written gains, on the side of margin. Without a measurement (too few samples) or
+own latency both ways is not in these ages: it is the round trip of a message the vehicle
+answers at once (TIMESYNC), added to ``d`` where the link check timed it; a round trip
+also holds the vehicle's and the readers' handling, so the plausible range starts
+:data:`ROUND_TRIP_SLACK_S` below it. Left in, it makes the written gains those of a loop
+with up to twice the link's latency more delay than the autopilot's: cautious.
+Without a measurement (too few samples) or
 with an implausible one (most ages at the clip, a mean over 1.5 setpoint periods plus the
 link's one-way latency, a vehicle clock that slipped during the cycles or drifts over
 1000 ppm), ``d`` is half a setpoint period (:func:`gcs_delay_s`), the mean of an
@@ -57,15 +61,27 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import minimize
 
 from mrft_gcs.identify import Identification
 from mrft_gcs.link.clock import ClockFit
-from mrft_gcs.pd_design import frequency_grid, margins, optimal_pd
-from mrft_gcs.plant import PD, InnerModel, inner_response, loop_response
+from mrft_gcs.loops import Loop
+from mrft_gcs.pd_design import frequency_grid, ise, margins, optimal_pd
+from mrft_gcs.plant import (
+    PD,
+    InnerModel,
+    SideModel,
+    closed_inner_response,
+    inner_response,
+    loop_response,
+    side_response,
+)
 
 __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s",
            "first_answers", "GcsDelay", "measure_gcs_delay", "Retarget",
-           "robust_onboard_gains", "PM_ROBUST_DEG"]
+           "robust_onboard_gains", "PM_ROBUST_DEG", "ROUND_TRIP_SLACK_S", "SideRetarget",
+           "onboard_side_gains", "onboard_extra_delay_s", "CAP_SHARE",
+           "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -91,6 +107,20 @@ MEAN_MAX_PERIODS = 1.5
 SKEW_MAX_PPM = 1000.0
 #: the phase margin the written gains keep on the onboard loop over the plausible range
 PM_ROBUST_DEG = 15.0
+#: the most of the identified delay a re-target may take out: an identification may put
+#: some of the delay into the lags, which no margin check on the model can see
+CAP_SHARE = 0.75
+#: the slowest onboard position loop allowed for (Hz): its sample-and-hold is delay the
+#: altitude and side loops have onboard and did not have during the GCS-side tests
+POSITION_LOOP_MIN_HZ = 50.0
+#: the lowest rate-target low-pass (Hz) an autopilot's attitude loop is allowed to have
+#: unseen (ArduPilot's ATC_RAT_*_FLTT): it slows the closed attitude loop the side loops
+#: are flown behind
+RATE_TARGET_MIN_HZ = 10.0
+#: what a timed round trip may hold beyond the link's own delay both ways (s): the vehicle
+#: answering at its next loop (4 ms at 250 Hz, 1 ms at 1 kHz) and the readers; taken off
+#: the round trip for the least GCS delay that is plausible
+ROUND_TRIP_SLACK_S = 0.002
 
 
 def first_answers(sample_t_s, ages_s) -> np.ndarray:
@@ -177,9 +207,11 @@ class GcsDelay:
         The mean first-answer age, each clipped at :data:`AGE_CLIP_PERIODS` periods (s;
         NaN: too few samples).
     measured : bool
-        ``estimate_s`` is the measurement (it was plausible).
+        The ages' measurement is in ``estimate_s`` (it was plausible).
     why : str
         Why the measurement was not used ("" when it was).
+    round_trip_s : float
+        The link's timed round trip included in ``estimate_s`` (s; 0: none).
     """
 
     estimate_s: float
@@ -188,10 +220,12 @@ class GcsDelay:
     measured_s: float
     measured: bool
     why: str = ""
+    round_trip_s: float = 0.0
 
 
 def measure_gcs_delay(ages_s, setpoint_period_s: float, *, sample_t_s=None,
-                      clock: ClockFit | None = None, latency_s: float = 0.0) -> GcsDelay:
+                      clock: ClockFit | None = None, latency_s: float = 0.0,
+                      round_trip_s: float = 0.0, round_trip_spread_s: float = 0.0) -> GcsDelay:
     """The GCS delay of a relay loop from its samples' ages, checked for plausibility.
 
     Parameters
@@ -209,6 +243,16 @@ def measure_gcs_delay(ages_s, setpoint_period_s: float, *, sample_t_s=None,
         resolution widen or reject the measurement.
     latency_s : float
         The link's one-way latency where measured (s), allowed on top of the ages.
+    round_trip_s : float
+        The link's round trip where timed by a message the vehicle answers at once
+        (TIMESYNC, median; s; 0: not timed). Each telemetry sample comes down and each
+        command goes up over it, so it is part of the GCS delay: added to the estimate
+        and, less :data:`ROUND_TRIP_SLACK_S` (the vehicle's and the readers' handling
+        that a timed round trip holds and the loop need not), to the plausible range.
+    round_trip_spread_s : float
+        How far the round trips spread above their median (s; e.g. p90 - p50): a busy
+        host delays the readers and inflates the median, so the plausible range starts
+        that much lower too.
 
     Examples
     --------
@@ -218,7 +262,16 @@ def measure_gcs_delay(ages_s, setpoint_period_s: float, *, sample_t_s=None,
     >>> g = measure_gcs_delay([0.012] * 30, 0.004)  # every age at the clip
     >>> g.measured, g.estimate_s, g.lo_s, g.why
     (False, 0.002, 0.0, '100 % of the ages at the 12.0 ms clip')
+    >>> g = measure_gcs_delay([0.002] * 30, 0.004, round_trip_s=0.010)  # 5 ms each way
+    >>> round(g.estimate_s, 6), round(g.lo_s, 6), round(g.hi_s, 6)
+    (0.012, 0.01, 0.016)
+    >>> g = measure_gcs_delay([0.002] * 30, 0.004, round_trip_s=0.010, round_trip_spread_s=0.005)
+    >>> round(g.lo_s, 6)  # a jittery round trip: less of it is sure to be the link's
+    0.005
     """
+    rtt = round_trip_s if math.isfinite(round_trip_s) and round_trip_s > 0 else 0.0
+    spread_rtt = round_trip_spread_s if math.isfinite(round_trip_spread_s) else 0.0
+    link_lo = max(0.0, rtt - max(spread_rtt, 0.0) - ROUND_TRIP_SLACK_S)
     p = setpoint_period_s
     a = np.asarray(ages_s, dtype=float)
     if sample_t_s is not None:
@@ -230,7 +283,8 @@ def measure_gcs_delay(ages_s, setpoint_period_s: float, *, sample_t_s=None,
     hi_default = p + latency_s
 
     def fallback(why: str, measured_s: float = math.nan) -> GcsDelay:
-        return GcsDelay(gcs_delay_s(p), 0.0, hi_default, measured_s, False, why)
+        return GcsDelay(gcs_delay_s(p) + rtt, link_lo, hi_default + rtt, measured_s, False,
+                        why, rtt)
 
     if a.size < MIN_AGED_SAMPLES:
         return fallback(f"{a.size} samples, too few to measure")
@@ -252,7 +306,8 @@ def measure_gcs_delay(ages_s, setpoint_period_s: float, *, sample_t_s=None,
             steps = ", ".join(f"{sl.step_s * 1e3:+.1f} ms" for sl in slips)
             return fallback(f"the vehicle clock slipped during the cycles ({steps})", m)
         spread = (clock.spread_s if math.isfinite(clock.spread_s) else 0.0) + clock.resolution_s
-    return GcsDelay(m, max(0.0, m - spread), m + spread + hi_default, m, True)
+    return GcsDelay(m + rtt, max(0.0, m - spread) + link_lo, m + spread + hi_default + rtt, m,
+                    True, "", rtt)
 
 
 @dataclass(frozen=True)
@@ -269,7 +324,9 @@ class Retarget:
         NaN: not an inner loop).
     gcs : GcsDelay
     cap_s : float
-        The most that may be re-targeted: half the identified delay (s).
+        The most that may be re-targeted: :data:`CAP_SHARE` of the identified delay (s).
+    extra_s : float
+        Delay the onboard loop may add unseen by the ground station, allowed for (s).
     """
 
     gains: PD
@@ -277,11 +334,17 @@ class Retarget:
     pm_deg: float
     gcs: GcsDelay
     cap_s: float = math.inf
+    extra_s: float = 0.0
+
+    @property
+    def aimed_s(self) -> float:
+        """The re-target aimed at before the margin check (s)."""
+        return min(self.gcs.estimate_s, self.cap_s)
 
     @property
     def held_back(self) -> bool:
         """Less was re-targeted than the estimate (within the cap) to keep the margin."""
-        return self.delay_s < min(self.gcs.estimate_s, self.cap_s) - 1e-9
+        return self.delay_s < self.aimed_s - 1e-9
 
     def note(self) -> str:
         """``re-targeted by X ms (measured Y ms, plausible Z..W ms)`` and why, if so."""
@@ -289,11 +352,17 @@ class Retarget:
         got = (f"measured {g.measured_s * 1e3:.1f} ms" if g.measured
                else f"not measured: {g.why}" if math.isnan(g.measured_s)
                else f"measured {g.measured_s * 1e3:.1f} ms, rejected: {g.why}")
+        if g.round_trip_s > 0:
+            got += f"; link round trip {g.round_trip_s * 1e3:.1f} ms"
         out = (f"re-targeted by {self.delay_s * 1e3:.1f} ms ({got}; plausible "
                f"{g.lo_s * 1e3:.1f}..{g.hi_s * 1e3:.1f} ms)")
+        if self.extra_s > 0:
+            out += (f"; up to {self.extra_s * 1e3:.1f} ms more onboard allowed for (its "
+                    f"position loop's rate)")
         if self.held_back:
-            out += (f", held back from {min(g.estimate_s, self.cap_s) * 1e3:.1f} ms to keep "
-                    f"PM {self.pm_deg:.0f} deg at {g.lo_s * 1e3:.1f} ms")
+            out += (f", held back from {self.aimed_s * 1e3:.1f} ms to keep PM "
+                    f"{self.pm_deg:.0f} deg at {g.lo_s * 1e3:.1f} ms"
+                    + (" and that" if self.extra_s > 0 else ""))
         return out
 
 
@@ -305,10 +374,18 @@ def _pm_deg(gains: PD, m: InnerModel, tau: float) -> float:
 
 
 def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
-                         pm_min_deg: float = PM_ROBUST_DEG) -> Retarget:
+                         pm_min_deg: float = PM_ROBUST_DEG, *, onboard_extra_s: float = 0.0,
+                         cap_share: float = CAP_SHARE) -> Retarget:
     """:func:`onboard_gains` re-targeted by as much of ``gcs.estimate_s`` as keeps a phase
     margin of ``pm_min_deg`` on the identified model with ``tau - gcs.lo_s`` (the least
-    GCS delay that is plausible, hence the most onboard delay); bisected towards 0.
+    GCS delay that is plausible, hence the most onboard delay); bisected towards the
+    gains designed for that most onboard delay.
+
+    ``onboard_extra_s`` is delay the onboard loop may add that the GCS-side loop did not
+    have and the ground station cannot see (s; the position loop's sample-and-hold, see
+    :func:`onboard_extra_delay_s`): the margin check takes all of it (more delay onboard,
+    held back further; below 0, the gains of a loop with more delay than identified). The
+    re-target is never more than ``cap_share`` of the identified delay.
 
     Examples
     --------
@@ -323,12 +400,18 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     >>> r = robust_onboard_gains(i, GcsDelay(0.006, 0.0, 0.008, math.nan, False, "x"))
     >>> r.held_back, 0.0 < r.delay_s < 0.006, round(r.pm_deg)
     (True, True, 15)
+    >>> r = robust_onboard_gains(i, GcsDelay(0.003, 0.0025, 0.008, 0.003, True),
+    ...                          onboard_extra_s=0.004)
+    >>> r.held_back, r.pm_deg >= 15.0
+    (True, True)
     """
     m = ident.model
-    if not isinstance(m, InnerModel) or not gcs.estimate_s > 0:
+    extra = max(float(onboard_extra_s), 0.0)
+    if not isinstance(m, InnerModel) or not (gcs.estimate_s > 0 or extra > 0):
         return Retarget(ident.gains, 0.0, math.nan, gcs)
-    cap = 0.5 * m.tau
-    tau_on = max(m.tau - min(gcs.lo_s, cap), 1e-6)
+    cap = cap_share * m.tau
+    lo_d = min(gcs.lo_s, cap) - extra  # the most onboard delay: tau - lo_d
+    tau_on = max(m.tau - lo_d, 1e-6)
     d = min(gcs.estimate_s, cap)
 
     def best(tau: float) -> PD:
@@ -338,16 +421,18 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     p0 = best(m.tau)
 
     def gains(dd: float) -> PD:
-        if dd <= 0:
+        if dd == 0:
             return ident.gains
-        p1 = best(m.tau - dd)
+        p1 = best(max(m.tau - dd, 1e-6))
         return PD(ident.gains.Kc * p1.Kc / p0.Kc, ident.gains.Kd * p1.Kd / p0.Kd)
 
     g = gains(d)
     pm = _pm_deg(g, m, tau_on)
     if pm < pm_min_deg:
-        lo, hi = 0.0, d  # largest re-target that keeps the margin, to 0.1 ms
-        g_lo = ident.gains
+        # largest re-target that keeps the margin, to 0.1 ms, from the gains designed for
+        # the most onboard delay (their margin there is the design's)
+        lo, hi = min(lo_d, 0.0) if extra > 0 else 0.0, d
+        g_lo = gains(lo)
         pm_lo = _pm_deg(g_lo, m, tau_on)
         while hi - lo > 1e-4:
             mid = 0.5 * (lo + hi)
@@ -358,4 +443,157 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
             else:
                 hi = mid
         d, g, pm = round(lo, 6), g_lo, pm_lo
-    return Retarget(g, d, pm, gcs, cap)
+    return Retarget(g, d, pm, gcs, cap, extra)
+
+
+# ----------------------------------------------------------------------- side loops
+@dataclass(frozen=True)
+class SideRetarget:
+    """Side gains written behind the written attitude gains.
+
+    Attributes
+    ----------
+    gains : PD
+    share : float
+        How much of the move from the identified gains to those of the onboard cascade
+        the margin over the plausible range allowed (1: all). Below 1, ``gains`` are the
+        better (on the nominal cascade) of that shrunk move and the ISE-optimal PD under
+        the same margin.
+    pm_deg : float
+        Phase margin of ``gains`` on the onboard cascade with the attitude loop at the
+        least plausible GCS delay (deg).
+    """
+
+    gains: PD
+    share: float
+    pm_deg: float
+
+    def note(self) -> str:
+        out = "re-designed behind the written attitude gains"
+        if self.share < 1.0:
+            out += (f" (held back for PM {self.pm_deg:.0f} deg over the plausible GCS delay, "
+                    f"an unseen rate-target filter and position-loop rate)")
+        return out
+
+
+def _side_process(inner: InnerModel, inner_pd: PD, tau: float, side: SideModel,
+                  w: np.ndarray, target_hz: float = 0.0) -> np.ndarray:
+    """The side cascade behind ``inner_pd``; ``target_hz`` > 0: with the angle P's rate
+    target low-passed there (ArduPilot's FLTT), ``u = Kd (F Kc/Kd e - w)``."""
+    g = inner_response(inner.K, inner.T_prop, inner.T1, max(tau, 1e-6), w)[0]
+    if target_hz > 0:
+        f = 1.0 / (1.0 + 1j * w / (2 * np.pi * target_hz))
+        t_att = f * inner_pd.Kc * g / (1.0 + (f * inner_pd.Kc + inner_pd.Kd * 1j * w) * g)
+    else:
+        t_att = closed_inner_response(inner_pd.Kc, inner_pd.Kd, g[None, :], w)[0]
+    return t_att * side_response(side.K, side.T2, side.tau, w)[0]
+
+
+def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Retarget,
+                       pm_min_deg: float = PM_ROBUST_DEG, *,
+                       onboard_extra_s: float = 0.5 / POSITION_LOOP_MIN_HZ) -> SideRetarget:
+    """Side gains for the autopilot's cascade: behind the attitude gains it is written.
+
+    A side loop is identified behind the ground station's attitude PD (``inner.gains``)
+    on the attitude loop with the GCS delay; the autopilot flies it behind the written
+    attitude gains (``inner_rt.gains``) on its own, faster loop (``tau - inner_rt.delay_s``).
+    The side part (``K e^{-tau s}/((T2 s + 1) s)``, the position's delay relative to the
+    angle's) is the same on both sides. As :func:`onboard_gains`, each gain moves by the
+    ratio of the ISE-optimal PDs of the two cascades; the move is shrunk (in log) until
+    the gains keep ``pm_min_deg`` with the attitude loop at the least plausible GCS delay
+    (``inner_rt.gcs.lo_s``) and at the delay re-targeted, also with the attitude loop's
+    rate target low-passed at :data:`RATE_TARGET_MIN_HZ` (a filter the ground station
+    cannot read: ArduPilot-like cascades have one). ``onboard_extra_s``: delay the
+    onboard position loop may add (s, :func:`onboard_extra_delay_s`), half of it designed
+    for, all of it checked. Where the margin holds the move back, the ISE-optimal PD of the
+    nominal cascade under that margin is taken instead when it is better.
+
+    Examples
+    --------
+    >>> from mrft_gcs.loops import LoopKind
+    >>> mi = InnerModel(K=40.0, T_prop=0.02, T1=0.3, tau=0.03)
+    >>> ii = Identification(LoopKind.ATTITUDE, mi, 0, 1.0, -0.8, 0.1, 0.25, 0.03, PD(2.0, 0.2))
+    >>> ms = SideModel(K=9.8, T2=1.5, tau=0.01)
+    >>> si = Identification(LoopKind.SIDE, ms, 0, 1.0, -0.8, 0.1, 1.0, 0.1, PD(0.3, 0.25))
+    >>> rt = robust_onboard_gains(ii, GcsDelay(0.012, 0.010, 0.016, 0.002, True, "", 0.01))
+    >>> r = onboard_side_gains(si, ii, rt)
+    >>> r.gains.Kc > 0.3, r.pm_deg >= 15.0
+    (True, True)
+    """
+    mi, ms = inner.model, side.model
+    if not isinstance(mi, InnerModel) or not isinstance(ms, SideModel):
+        return SideRetarget(side.gains, 0.0, math.nan)
+    w = frequency_grid(mi.T_prop, mi.T1, mi.tau, extra_T=(ms.T2, ms.tau))
+    s = 1j * w
+    extra = max(float(onboard_extra_s), 0.0)
+    g_gcs = _side_process(mi, inner.gains, mi.tau, ms, w)
+    g_on = _side_process(mi, inner_rt.gains, mi.tau - inner_rt.delay_s, ms, w)
+    lo = min(inner_rt.gcs.lo_s, inner_rt.delay_s)
+    worst = [g_on if lo >= inner_rt.delay_s else
+             _side_process(mi, inner_rt.gains, mi.tau - lo, ms, w), g_on,
+             _side_process(mi, inner_rt.gains, mi.tau - lo, ms, w, RATE_TARGET_MIN_HZ)]
+    worst = [G * np.exp(-extra * s) for G in worst]
+    p0, p1 = optimal_pd(g_gcs, w).pd, optimal_pd(g_on * np.exp(-0.5 * extra * s), w).pd
+
+    def gains(share: float) -> PD:
+        return PD(side.gains.Kc * (p1.Kc / p0.Kc) ** share,
+                  side.gains.Kd * (p1.Kd / p0.Kd) ** share)
+
+    def pm(g: PD) -> float:
+        out = math.inf
+        for G in worst:
+            m = margins((g.Kc + g.Kd * s) * G, w)
+            out = min(out, m.pm_deg if m.stable else -math.inf)
+        return out
+
+    best, share = gains(1.0), 1.0
+    pm_best = pm(best)
+    if pm_best < pm_min_deg:
+        a, b = 0.0, 1.0  # the largest share that keeps the margin, to 1 %
+        best, pm_best = side.gains, pm(side.gains)
+        while b - a > 0.01:
+            mid = 0.5 * (a + b)
+            g = gains(mid)
+            p = pm(g)
+            if p >= pm_min_deg:
+                a, best, pm_best = mid, g, p
+            else:
+                b = mid
+        share = a
+        # the shrunk move keeps the identified tuning rule; the ISE-optimal PD of the
+        # nominal cascade under the margin over the plausible range may do better
+        g_nom = g_on * np.exp(-0.5 * extra * s)
+        scale = PD(side.gains.Kc / p0.Kc, side.gains.Kd / p0.Kd)
+
+        def cost(x: np.ndarray) -> float:
+            g = PD(float(np.exp(x[0])), float(np.exp(x[1])))
+            short = max(0.0, pm_min_deg - pm(PD(g.Kc * scale.Kc, g.Kd * scale.Kd)))
+            q = ise(g.Kc, g.Kd, g_nom, w)
+            return q * (1.0 + 0.05 * short + 0.02 * short ** 2) if np.isfinite(q) else 1e12
+
+        x0 = np.log([best.Kc / scale.Kc, best.Kd / scale.Kd])
+        res = minimize(cost, x0, method="Nelder-Mead",
+                       options={"xatol": 1e-4, "fatol": 1e-9, "maxiter": 400})
+        cand = PD(float(np.exp(res.x[0])) * scale.Kc, float(np.exp(res.x[1])) * scale.Kd)
+        pm_cand = pm(cand)
+        if pm_cand >= pm_min_deg and (
+                pm_best < pm_min_deg  # even the identified gains fall short
+                or ise(cand.Kc / scale.Kc, cand.Kd / scale.Kd, g_nom, w)
+                < ise(best.Kc / scale.Kc, best.Kd / scale.Kd, g_nom, w)):
+            best, pm_best = cand, pm_cand
+    return SideRetarget(best, share, float(pm_best))
+
+
+def onboard_extra_delay_s(loop: Loop) -> float:
+    """Delay the autopilot's ``loop`` may have that the GCS-side loop had not, unseen (s).
+
+    Altitude and x/y are flown onboard by the position loop, at a rate the ground station
+    cannot read (PX4 runs it on each position estimate, ArduPilot in its main loop), down
+    to :data:`POSITION_LOOP_MIN_HZ`: its hold adds up to half a period. The relay tests
+    commanded thrust and attitude directly. Roll and pitch: none (the rate loop runs at
+    the rate the tests' torque commands were applied at).
+
+    >>> onboard_extra_delay_s(Loop.ALTITUDE), onboard_extra_delay_s(Loop.ROLL)
+    (0.01, 0.0)
+    """
+    return 0.0 if loop in (Loop.ROLL, Loop.PITCH) else 0.5 / POSITION_LOOP_MIN_HZ

@@ -29,14 +29,12 @@ def _num(x: Any) -> Any:
 
 
 def _residual(lr: LoopResult) -> dict[str, Any]:
-    res = (lr.identification.extras.get("residual") if lr.identification else None) or {}
-    if not isinstance(res, dict):
-        res = {k: getattr(res, k, None) for k in ("rms_before", "rms_after", "effect",
-                                                  "effect_params")}
-    params = res.get("effect_params") or {}
-    return {"rms_before": _num(res.get("rms_before")), "rms_after": _num(res.get("rms_after")),
-            "effect": res.get("effect"),
-            "effect_params": {str(k): _num(v) for k, v in dict(params).items()}}
+    res = lr.identification.residual if lr.identification else None
+    if res is None:
+        return {"rms_before": None, "rms_after": None, "effect": None, "effect_params": {}}
+    return {"rms_before": _num(res.rms_before), "rms_after": _num(res.rms_after),
+            "effect": res.effect,
+            "effect_params": {str(k): _num(v) for k, v in res.effect_params.items()}}
 
 
 def _loop(lr: LoopResult) -> dict[str, Any]:

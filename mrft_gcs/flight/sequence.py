@@ -18,8 +18,8 @@ frame as they come in. x is driven by ``-pitch``, y by ``+roll``; the x and y re
 and PDs output that tilt command in rad, exactly the ``u`` that the side-motion
 identification expects, and it is rotated onto roll and pitch by the *measured*
 heading's departure from the take-off heading, so a yaw drift during the tests
-(measured: 5 deg on racer250 under the attitude relays) does not couple the two
-side tests.
+(the attitude relays turn the heading by a few degrees) does not couple the two side
+tests.
 """
 
 from __future__ import annotations
@@ -34,11 +34,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mrft_gcs.features import crosses_setpoint, rising_switches
+from mrft_gcs.flight.config import SequenceConfig
 from mrft_gcs.flight.controllers import FlightState, PDLoop, YawHold, catch_pd, wrap_pi
+from mrft_gcs.flight.cycles import CycleRules, CycleWatcher
 from mrft_gcs.flight.noise import ComplementaryFilter, NoiseEstimator
-from mrft_gcs.flight.takeoff import TABLE_V, TakeoffController, TakeoffSettings
+from mrft_gcs.flight.takeoff import TakeoffController
 from mrft_gcs.identify import CycleDetector, CycleStatus, Identification, RelaySettings
-from mrft_gcs.loops import INNER_LOOPS, SIDE_LOOPS, Loop, LoopKind
+from mrft_gcs.loops import INNER_LOOPS, SIDE_LOOPS, Loop
 from mrft_gcs.profiles import Actuation
 from mrft_gcs.relay import MRFT, BoundingRelay
 from mrft_gcs.telemetry import ActuatorTarget, AttitudeTarget
@@ -118,8 +120,8 @@ class LoopTest:
     h: float = _NAN
     bias: float = 0.0
     relay: MRFT | None = None
-    detector: CycleDetector = field(default_factory=CycleDetector)
-    status: CycleStatus = field(default_factory=lambda: CycleStatus(0, False, _NAN, _NAN, math.inf))
+    #: the relay's cycles: when they are steady, which to identify (:mod:`.cycles`)
+    watch: CycleWatcher = field(default_factory=lambda: CycleWatcher(CycleRules()))
     pd: PDLoop | None = None
     identification: Identification | None = None
     snapshot: CycleSnapshot | None = None
@@ -135,7 +137,6 @@ class LoopTest:
     center: float = 0.0  # side relays: the position the relay oscillates about (m)
     settling: bool = False  # side relays: bringing the axis to rest before the relay starts
     presettle: bool = False  # side loops: held at rest while waiting for the altitude test
-    dt_s: float = _NAN  # mean telemetry interval seen by the detector
     #: side relays: (t_att_s, measured tilt along the axis) while the relay runs
     tilt: deque = field(default_factory=lambda: deque(maxlen=_TILT_SAMPLES))
     #: roll/pitch: the last steady-looking cycle's (period s, amplitude rad), and the
@@ -163,174 +164,27 @@ class LoopTest:
     #: roll/pitch before the first period: (t, relay state, de/dt)
     probe_rate: deque = field(default_factory=lambda: deque(maxlen=400))
 
+    @property
+    def status(self) -> CycleStatus:
+        """What the cycle watcher has seen of the relay's cycles."""
+        return self.watch.status
+
+    @status.setter
+    def status(self, value: CycleStatus) -> None:
+        self.watch.status = value
+
+    @property
+    def detector(self) -> CycleDetector:
+        """The cycle watcher's detector."""
+        return self.watch.detector
+
+    @detector.setter
+    def detector(self, value: CycleDetector) -> None:
+        self.watch.detector = value
+
     def restart_detection(self) -> None:
         """Forget the cycles seen so far: the relay starts over."""
-        self.detector.reset()
-        self.status = CycleStatus(0, False, _NAN, _NAN, math.inf)
-
-
-@dataclass(frozen=True)
-class SequenceConfig:
-    """How the sequence flies; units in the names.
-
-    ``hover_thrust_guess`` (the autopilot's estimate, normalised thrust) turns the
-    take-off into a climb on a PD about it, with the altitude relay started at rest and
-    biased at it (:mod:`mrft_gcs.flight.takeoff`); without it, eq. 21 with Table V.
-    """
-
-    actuation: Actuation = Actuation.TORQUE
-    z_ref_m: float = 1.0
-    takeoff: TakeoffSettings = TABLE_V
-    hover_thrust_guess: float | None = None
-    #: the climb's brake (``TakeoffSettings.brake_m``) only once roll and pitch are tuned:
-    #: a braked climb starts the altitude relay about 1 s sooner, and its thrust swing then
-    #: overlaps more attitude relays. In-process at 6 x this box's stalls (racer250, 90
-    #: seeds) a brake at any time gave roll/pitch over 10 % J 28 -> 39 of 180, x/y over
-    #: 100 % J or unstable 2 -> 9, tilt over 35 deg 2 -> 5; with this rule 29, 1 and 3
-    #: (a variant changing only the altitude held after the relay: 29, 2 and 4)
-    brake_after_attitude: bool = True
-    max_tilt_cmd_rad: float = 0.35
-    airborne_m: float = 0.03
-    #: lift-off as the attitude sees it: after the take-off command, a roll/pitch rate beyond
-    #: ``liftoff_rate_sigmas`` x its ground noise (at least ``liftoff_rate_floor_rad_s``) or
-    #: an angle off its ground value by more than the relay's noise band starts the attitude
-    #: relays. A centre-of-mass offset is a torque the ground carries until lift-off; waiting
-    #: for ``airborne_m`` on the (delayed) altitude left it 0.15-0.25 s to tilt the vehicle
-    liftoff_rate_sigmas: float = 5.0
-    liftoff_rate_floor_rad_s: float = 0.05
-    #: ... once the thrust command is this share of the hover guess (0.1 without one)
-    liftoff_thrust_share: float = 0.7
-    #: cycles handed to identification (the classifier input averages up to four)
-    identify_cycles: int = 4
-    #: ... except altitude and x/y, which the tune waits for (x and y start once altitude is
-    #: done): they hand over this many (altitude, side) once steady, one cycle sooner
-    #: (measured on the in-process SITL, 3 airframes x 8 seeds: take-off to all loops tuned
-    #: 11.8 s mean with 4 cycles, 10.5 s with 3; see README "Tuning a vehicle" for J).
-    #: Roll and pitch are done seconds before altitude and keep four. Two side cycles:
-    #: racer250 x/y J up to 63 %, one unstable (tune_stalls --gcs-delay, 12 seeds)
-    identify_cycles_alt_side: tuple[int, int] = (3, 3)
-    #: periods (and amplitudes) that must agree before a loop's cycles are identified:
-    #: attitude, altitude, side. x and y run at once and disturb each other: on racer250
-    #: (thrust-to-weight 4.5) each side relay switch saturates the motors, so one axis'
-    #: torque depends on the other's and the two cycles beat (periods 0.62-0.78 s, where
-    #: either axis alone is steady within 1.3 %). Waiting for three steady side periods
-    #: then took up to 12 s. The cycles handed over are still checked for steadiness (the
-    #: harmonic fit's spread, :data:`mrft_gcs.identify.runtime.FIT_MAX_SD`). Measured
-    #: (tune_stalls, 12 seeds per airframe with stalls): racer250 take-off to all tuned
-    #: mean 12.7 s, max 17.9 s with 3; 10.0 / 13.7 s with 2 (24 seeds: max 13.7 s); x/y |J|
-    #: within 7.2 % both ways
-    steady_periods: tuple[int, int, int] = (3, 2, 2)
-    #: from this many cycles on (attitude, altitude, side; None: never) a loop's detector
-    #: accepts periods and amplitudes within ``relaxed_tol`` instead of ``period_tol`` and
-    #: 8 %. Ground-station stalls hold a relay switch for a tick now and then; on 0.2-0.3 s
-    #: roll/pitch cycles that kicks nearly every cycle (racer250 in-process at this box's
-    #: stall rate: periods 176-216 ms, amplitudes 40-64 mrad, 31 cycles before three agreed
-    #: within 8 %). Measured (tune_stalls --gcs-delay, 3 airframes x 24 seeds): qdrone's
-    #: roll/pitch tuned by 3.3 s at the latest instead of 7.3 s; J of the written gains
-    #: unchanged (README "Tuning a vehicle", step 6). Live racer250, 12 seeds each way:
-    #: take-off to all tuned mean 11.04 -> 8.66 s, roll/pitch |J| mean 3.2 -> 2.9 %
-    relax_after_cycles: tuple[int | None, int | None, int | None] = (8, None, None)
-    relaxed_tol: tuple[float, float] = (0.08, 0.16)
-    #: periods agree within this fraction, or 2.5 telemetry intervals if that is more.
-    #: Live over UDP the periods of an otherwise steady cycle wobble by 2-4 % (f550 roll
-    #: 0.496-0.52 s; x/y 1.55-1.66 s while both side relays run): with 3 % the tune waited
-    #: for attitude or x/y up to 13 s longer (f550, 5 seeds: take-off to all tuned
-    #: 12.1-22.0 s with 3 %, 12.5-13.8 s with 5 %, J within +-3 % both ways)
-    period_tol: float = 0.05
-    #: a relay whose error passes ``runaway_factor`` x its cycle amplitude (and the floor:
-    #: rad for attitude, m for altitude and side) while still pushing it out is restarted
-    runaway_factor: float = 3.0
-    runaway_floor: tuple[float, float, float] = (0.1, 0.15, 0.3)
-    #: roll/pitch before any cycle is known (rad): a relay's start-up swings are larger
-    #: than its steady cycle (racer250: 0.10-0.20 rad against 0.05), and a restart as a
-    #: sign relay at such an error swings further out: with GCS stalls in-process, racer250
-    #: was restarted 140-270 times with errors growing to 0.48 rad (tilt 42-56 deg) in 2 of
-    #: 12 seeds with the 0.1 rad floor
-    runaway_floor_startup_rad: float = 0.25
-    #: roll/pitch run-away catch: a swing still carrying out is caught where it will *stop*
-    #: (error plus rate^2 / 2 a, with a = pi A w0^2 / 4 the plant's acceleration per h from
-    #: the relay's cycle) rather than where it is, and the damping PD may use this many
-    #: times the relay amplitude. A GCS stall of 60 ms during racer250's first relay cycle
-    #: sent roll and pitch to -3.5 rad/s; a catch limited to h (what the relay itself
-    #: pushes back with) stopped them only at 25.5 deg. tune_stalls --gcs-delay, racer250
-    #: x 24 seeds: largest tilt 25.5 -> 18.7 deg; x 30 seeds at 6 x the stalls: 33.0 ->
-    #: 24.2 deg, written inner |J| max 24.7 -> 12.8 %; qdrone and f550 unchanged (no catch)
-    catch_torque_factor: float = 3.0
-    #: factor on the identified attitude PDs while they run on the GCS (during the side
-    #: tests and the hover); the written gains are never scaled.
-    gcs_attitude_pd_scale: float = 1.0
-    #: relay noise band = this many standard deviations of the signal's noise, measured
-    #: on the ground before the take-off (the classifiers were trained with 4 sigma)
-    noise_band_sigmas: float = 4.0
-    #: bands used when too few ground samples were seen to measure the noise
-    relay_band_att_rad: float = 0.003
-    relay_band_pos_m: float = 0.003
-    #: the relay amplitude is raised (x ``h_raise``, up to ``h_max``: attitude torque,
-    #: altitude thrust, side tilt in rad) when the oscillation is too small for the noise:
-    #: switches before the MRFT threshold clears the band, or noise over ``max_noise_ratio``
-    #: of the amplitude (the classifiers were trained with up to 3 %)
-    h_raise: float = 1.6
-    h_max: tuple[float, float, float] = (0.3, 0.25, 0.2)
-    max_noise_ratio: float = 0.025
-    #: smallest starting amplitude of the roll/pitch relays (normalised torque): the
-    #: classifiers' default (Table V: 0.05) gives cycles of 0.01-0.016 rad at beta -0.7 on
-    #: the bundled airframes, too small to clear a 4-sigma band of 0.8 mrad noise
-    h_att_min: float = 0.12
-    #: the roll/pitch relays start at this amplitude (a little over Table V's h_att, 0.05),
-    #: and their first period measures how far the axis swings per unit of h and the torque
-    #: that holds it on average (a centre-of-mass offset: the mean relay output over one
-    #: period, as the plant integrates). The relay then takes ``h_att_min`` (or a raised
-    #: amplitude), but no more than swings the axis ``att_amp_max_rad``, and that mean
-    #: torque as its bias when it exceeds ``att_bias_min`` of h. At a fixed 0.12 the cycles
-    #: of light, agile vehicles in the population reached 15-34 deg per axis (harmonic
-    #: balance, GCS delay included). A 3 % centre-of-mass offset is up to 0.045 of torque:
-    #: 0.05 turned a 2.5 kg vehicle against 0.037 so slowly that it drifted 5 m away
-    #: (population benchmark, lockstep, 40 seeds: in-domain tuned 13 of 14 with 0.05, 14 with
-    #: 0.06 or 0.07; bundled airframes under stalls, 54 tunes: alike)
-    h_att_start: float = 0.06
-    #: ... and never below this (a torque a motor dead band or the noise would swamp)
-    h_att_floor: float = 0.02
-    #: a relay pushing back for this long while the axis still speeds away is beaten by a
-    #: torque bias (longer than the push-back takes to act: delays and motor lag, up to 0.15 s here)
-    att_bias_window_s: float = 0.25
-    #: per axis; both at once tilt about 10 deg. The noise needs up to 57 sigma (the raise
-    #: rule's target): 0.02-0.11 rad at the population's 0.4-2 mrad of attitude noise
-    att_amp_max_rad: float = 0.12
-    att_bias_min: float = 0.2
-    #: a larger mean torque is no centre-of-mass offset (3 % of the arm is 0.01-0.05) but a
-    #: disturbed period, and is not taken as the bias
-    att_bias_max: float = 0.1
-    #: later periods may resize a relay this many times (each restarts its detection)
-    att_max_resizes: int = 3
-    #: a resized relay restarts once its axis is within this share of the expected cycle's
-    #: amplitude and peak rate (for three periods at most; then the run-away catch's full
-    #: envelope): a sign relay restarted 1.6 deg off its set point swung out to 16 deg,
-    #: twice its cycle, and locked into a lopsided cycle
-    att_restart_envelope: float = 0.1
-    #: the same for the x/y relays (tilt, rad): the side classifiers' own 0.08. On x and
-    #: y smoothed by the complementary filter (0.16 x the raw noise) it gives cycles of
-    #: 1-10 cm, the noise 0.3-1.5 % of them; a noisier estimate raises it (``h_raise``).
-    #: Each side relay switch steps the attitude set point by 2 h, which the freshly tuned
-    #: attitude PD (15-25 deg of phase margin) overshoots, and a GCS stall holds the torque
-    #: of that step: with 0.16 racer250 reached 42 deg (tune_stalls --gcs-delay, 36 tunes:
-    #: largest tilt 42.0 -> 25.5 deg, racer250 mean 23.3 -> 11.4 deg with 0.08, take-off to
-    #: all tuned mean 11.03 -> 10.62 s, x/y |J| within 4.5 and 3.5 %)
-    h_side_min: float = 0.08
-    #: gain of the complementary filter (position + velocity) on x, y and altitude for the
-    #: relays and their identification (1 = raw position)
-    side_filter_k: float = 0.05
-    #: before a side relay starts, the axis is brought to rest by a soft PD (tilt per m and
-    #: per m/s) until its speed is below ``settle_speed_m_s`` (at most ``settle_max_s``); the
-    #: relay then oscillates about that point: an MRFT on the side cascade started off its
-    #: centre or moving can lock into a slow, drifting cycle the classifier never saw
-    settle_pd: tuple[float, float] = (0.3, 0.4)
-    settle_speed_m_s: float = 0.03
-    settle_max_s: float = 2.0
-    #: largest tilt command of that soft PD (rad): an axis is handed to it from the bounding
-    #: relay as soon as its attitude loop is tuned, possibly moving at 1 m/s, which unclipped
-    #: is a 0.4 rad step on the freshly tuned attitude PD while the other axis still runs
-    #: its relay (the bounding relay itself commands at most 0.1 rad)
-    settle_max_tilt_rad: float = 0.1
+        self.watch.restart()
 
 
 def quat_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
@@ -361,17 +215,11 @@ class TuningSequence:
         self.reset()
 
     # ------------------------------------------------------------------ lifecycle
-    def _detector(self, loop: Loop) -> CycleDetector:
-        cfg = self.config
-        i = (LoopKind.ATTITUDE, LoopKind.ALTITUDE, LoopKind.SIDE).index(loop.kind)
-        return CycleDetector(n_periods=cfg.steady_periods[i],
-                             relax_after=cfg.relax_after_cycles[i], relaxed_tol=cfg.relaxed_tol)
-
     def reset(self) -> None:
         cfg = self.config
         self.phase = Phase.PREFLIGHT
         self.loops: dict[Loop, LoopTest] = {
-            lp: LoopTest(lp, detector=self._detector(lp)) for lp in Loop}
+            lp: LoopTest(lp, watch=CycleWatcher(cfg.cycle_rules(lp))) for lp in Loop}
         self.yaw = YawHold()
         self.bounding = BoundingRelay(cfg.takeoff.eps1_m, cfg.takeoff.eps2_m,
                                       cfg.takeoff.h_o1_rad, cfg.takeoff.h_o2_rad, n=2)
@@ -506,15 +354,14 @@ class TuningSequence:
         Altitude must be done too: its relay swings the thrust by +-h (about a quarter of
         hover), which modulates the horizontal force of a tilt and breaks the side cycles.
         Scaling the tilt commands by hover / thrust does not undo it (it lags by the
-        attitude loop's response): tried, README "Tuning a vehicle" step 7.
+        attitude loop's response).
         """
         done = (LoopState.TUNED, LoopState.LEFT_ALONE)
         if self.loops[Loop.ALTITUDE].state not in done:
             return []
         if not self.inner_done:
-            # both attitude loops first: a side relay tilts its axis +-0.2 rad, which broke
-            # the other attitude loop's relay when it was still running (live qdrone: pitch's
-            # 0.29 s cycle fell into a 0.57 s one under y's test and drifted to 35 deg)
+            # both attitude loops first: a side relay tilts its axis, which can throw the
+            # other attitude loop's relay, still running, into a slow drifting cycle
             return []
         return [lp for lp in SIDE_INNER if self.loops[lp].state is LoopState.WAITING]
 
@@ -560,9 +407,10 @@ class TuningSequence:
                             f"{t.loop.value}: noise {100 * sigma / t.status.amplitude:.1f} % of "
                             f"the cycle amplitude with the relay at its largest amplitude "
                             f"({t.h:.3g}); identified as it is")
-                    ts, u, y = t.detector.last_cycles(self._cycles(t.loop))
-                    if ts.size < 8:
+                    cycles = t.watch.cycles()
+                    if cycles is None:
                         continue
+                    ts, u, y = cycles
                     t.state = LoopState.IDENTIFYING
                     sp = (t.center if t.loop in SIDE_LOOPS else self.takeoff.z_relay_m
                           if t.loop is Loop.ALTITUDE else None)
@@ -580,15 +428,6 @@ class TuningSequence:
         if tt[0] > ts[0] + 0.02 or tt[-1] < ts[-1] - 0.02:  # ATTITUDE and LOCAL_POSITION_NED
             return None  # samples need not coincide, but must cover the cycles
         return np.interp(ts, tt, tv)
-
-    def _cycles(self, loop: Loop) -> int:
-        """Cycles handed to identification for ``loop``."""
-        n = self.config.identify_cycles
-        if loop is Loop.ALTITUDE:
-            return min(n, self.config.identify_cycles_alt_side[0])
-        if loop in SIDE_LOOPS:
-            return min(n, self.config.identify_cycles_alt_side[1])
-        return n
 
     def _h_max(self, loop: Loop) -> float:
         if loop is Loop.ALTITUDE:
@@ -639,8 +478,8 @@ class TuningSequence:
         amp = t.status.amplitude
         if not math.isfinite(amp) and t.loop in (Loop.ROLL, Loop.PITCH):
             # just restarted (detector reset): the cycle seen before the run-away still
-            # sizes the limit; the bare floor made a relay's own start-up swing on racer250
-            # pitch (0.10-0.20 rad) a run-away again, 70 catches in a row
+            # sizes the limit; with the bare floor the relay's own start-up swing would be
+            # caught as a run-away again and again
             amp = t.cycle[1]
         floor = self.config.runaway_floor[0 if t.loop in (Loop.ROLL, Loop.PITCH) else
                                           1 if t.loop is Loop.ALTITUDE else 2]
@@ -654,14 +493,11 @@ class TuningSequence:
         # u pushes y away, or y still moves away (``e_rate``: de/dt, roll and pitch) although
         # u pushes back: GCS stalls can lock a relay into a slow, large mode that swings out
         # on its momentum while u pushes back all along, then drives the return at full h
-        # into as large a swing the other way (racer250 in-process, stalls x 6: pitch to
-        # -48 deg in 0.6 s cycles where the steady one is 0.25 s). The damping PD brings
-        # the return swing to rest instead (tune_stalls --stalls 6, 30 seeds: largest tilt
-        # 48.4 -> 30.5 deg). Only once the detector has measured cycles since the relay
-        # (re)started: its own start-up swing also carries past 3 amplitudes while it
-        # pushes back (live racer250 roll: caught 10 times in a row at -0.18 rad)
-        # (or once a resized roll/pitch relay restarted at rest: its cycle is measured, and
-        # its start-up swing is no larger; a 70 ms stall then swung racer250 to 29 deg)
+        # into as large a swing the other way; the damping PD brings the return swing to
+        # rest instead. Only once the detector has measured cycles since the relay
+        # (re)started, as its own start-up swing also carries past 3 amplitudes while it
+        # pushes back (or once a resized roll/pitch relay restarted at rest: its cycle is
+        # known, and its start-up swing is no larger)
         outward = e * e_rate > 0 and (math.isfinite(t.status.amplitude) or t.from_rest)
         reach = abs(e)
         if outward and t.loop in (Loop.ROLL, Loop.PITCH):
@@ -676,13 +512,11 @@ class TuningSequence:
             if (t.loop in (Loop.ROLL, Loop.PITCH) and not math.isfinite(t.cycle[0])
                     and math.isfinite(t.status.period_s) and t.status.amplitude > 0):
                 # no settled cycle yet: the last complete one still sizes a damping PD (a
-                # sign relay restarted at the run-away's error swings further out: racer250
-                # with stalls in-process, 235 restarts from 0.22 to 0.33 rad, tilt 90 deg)
+                # sign relay restarted at the run-away's error swings further out)
                 t.cycle = (t.status.period_s, t.status.amplitude)
             if t.loop in (Loop.ROLL, Loop.PITCH) and math.isfinite(t.cycle[0]):
                 # A relay is no stabilising controller: restarted after a disturbance (a
-                # GCS stall holding one relay level for 50-100 ms) it had fed each swing
-                # into a larger one (racer250, in-process with stalls: 8 restarts, 36 deg).
+                # GCS stall holding one relay level) it feeds each swing into a larger one.
                 # A damping PD from the relay's own cycle brings the axis back first.
                 t.catch = catch_pd(t.h, *t.cycle)
                 self.events.append(f"{t.loop.value}: relay paused, a damping PD caught the "
@@ -837,17 +671,11 @@ class TuningSequence:
             yaw = self.yaw.step(self.yaw_ref, s.yaw_rad, s.r_rad_s) if airborne else 0.0
             return ActuatorTarget(s.t_att_s, roll, pitch, yaw, thrust)
 
-    def _feed(self, t: LoopTest, t_s: float, u: float, y: float, new: bool) -> None:
-        # one detector sample per telemetry sample (ticks between samples repeat the state)
+    @staticmethod
+    def _feed(t: LoopTest, t_s: float, u: float, y: float, new: bool) -> None:
+        # one watcher sample per telemetry sample (ticks between samples repeat the state)
         if new and t.state in (LoopState.RELAY, LoopState.IDENTIFYING):
-            det = t.detector
-            if det.t and math.isfinite(t.status.period_s) and t.status.period_s > 0:
-                # switches are seen on telemetry samples: a period is known to about one
-                # sample interval either way, so short cycles need a wider tolerance
-                dt = t_s - det.t[-1]
-                t.dt_s = dt if not math.isfinite(t.dt_s) else 0.99 * t.dt_s + 0.01 * dt
-                det.period_tol = max(self.config.period_tol, 2.5 * t.dt_s / t.status.period_s)
-            t.status = det.update(t_s, u, y)
+            t.watch.update(t_s, u, y)
 
     def _altitude(self, s: FlightState, z: float, new: bool) -> float:
         t = self.loops[Loop.ALTITUDE]
@@ -870,7 +698,7 @@ class TuningSequence:
                 cycles = t.status.cycles
                 self._feed(t, s.t_pos_s, u, zf, new)
                 if t.status.cycles > cycles and self._lopsided(t):
-                    self.takeoff.resettle(hover=float(np.mean(t.detector.last_cycles(2)[1])))
+                    self.takeoff.resettle(hover=float(np.mean(t.watch.last_cycles(2)[1])))
                     self.events.append(
                         "altitude: two relay cycles in a row did not cross the set point (a "
                         "lopsided cycle); the relay starts again once the climb controller "
@@ -888,7 +716,7 @@ class TuningSequence:
         """
         if t.state is not LoopState.RELAY or t.status.cycles < 2:
             return False
-        _, u, y = t.detector.last_cycles(2)
+        _, u, y = t.watch.last_cycles(2)
         if u.size < 8:
             return False
         high = u > 0.5 * (u.max() + u.min())
@@ -999,8 +827,8 @@ class TuningSequence:
             if t.relay is not None and self._drives_away(t, ref - y, -rate):
                 # the MRFT's lead braked a return swing short of its set point (too little
                 # swing to arm the switch: a torque bias, an agile vehicle at its first h)
-                # and now pushes the axis away from it: random vehicle 3 went from 4 to 40
-                # deg so. The relay is turned round at once, this point its new extreme
+                # and now pushes the axis away from it, which tilts a light vehicle far
+                # over. The relay is turned round at once, this point its new extreme
                 e = ref - y
                 r = t.relay
                 r.state[:] = 1.0 if e >= 0 else -1.0
@@ -1092,8 +920,8 @@ class TuningSequence:
 
     def _first_swing(self, t: LoopTest) -> None:
         """Size at once on the first swing from turn to turn if it passed twice
-        ``att_amp_max_rad``: the first full period of an agile vehicle at ``h_att_start``
-        tilted it 40 deg (random vehicle 3, 82 g; its bias is measured on later periods)."""
+        ``att_amp_max_rad``: a full first period of a light, agile vehicle at
+        ``h_att_start`` would tilt it far over (its bias is measured on later periods)."""
         i, j = t.turns
         seg = np.array(t.probe[i:j + 1])
         amp = 0.5 * float(np.ptp(seg[:, 2]))
@@ -1153,7 +981,7 @@ class TuningSequence:
             t.amp_per_h = amp / h0
             if t.amp_per_h * h > 1.25 * cfg.att_amp_max_rad:
                 # (with a margin: the first period after lift-off is no steady cycle yet and
-                # swung twice as far as the steady one on racer250's pitch)
+                # can swing twice as far as the steady one)
                 h = cfg.att_amp_max_rad / t.amp_per_h
             # no smaller than the noise needs (the amplitude ``ready`` raises to), within reason
             sigma = t.band / cfg.noise_band_sigmas if math.isfinite(t.band) else 0.0
@@ -1187,8 +1015,8 @@ class TuningSequence:
             # the relay restarts from rest at its set point: an MRFT (beta -0.7) switched to a
             # smaller h or a new bias mid-swing swung out further or locked into a lopsided
             # cycle that never crossed its set point, a sign relay restarted off its set point
-            # swung out to twice the cycle, and a larger h taken mid-swing (racer250 under
-            # stalls) tilted it 26 deg where 11 with the restart. A damping PD sized on that
+            # swung out to twice the cycle, and a larger h taken mid-swing under stalls
+            # tilted the vehicle twice as far as with the restart. A damping PD sized on that
             # cycle brings the axis there first
             t.catch = catch_pd(h, *t.cycle)
             t.catch_release = cfg.att_restart_envelope

@@ -62,16 +62,15 @@ class TakeoffSettings:
     #: integral gain of that climb (1/s^3; with climb_pd the poles are -2 and -1 +- 1j),
     #: integrating only near the set point and nearly at rest (the offset a wrong guess
     #: leaves, not the climb's own transient): it learns the hover thrust the guess got
-    #: wrong (a guess 15 % low held the PD alone 0.29 m under the set point, never
-    #: settled, and the relay on the guess sank into a lopsided cycle)
+    #: wrong, where the PD alone holds the vehicle under the set point and a relay biased
+    #: at the guess sinks into a lopsided cycle
     climb_ki: float = 4.0
     climb_int_band_m: float = 0.3
     climb_int_speed_m_s: float = 0.1
     #: at rest off the set point (climb rate within ``rest_speed_m_s`` for ``rest_s``) the
     #: thrust that holds the vehicle *is* the hover thrust: the PD's steady effort is
     #: folded into the integral at once (once per climb), rather than integrated over
-    #: seconds (f550 with a guess 15 % low crept at 0.02 m/s 0.3 m under the set point, just
-    #: outside the integral's band, and its altitude was tuned at 10.5-10.8 s)
+    #: seconds: a climb resting just outside the integral's band would creep for seconds
     rest_speed_m_s: float = 0.05
     rest_s: float = 0.5
     settle_m: float = 0.05
@@ -80,20 +79,16 @@ class TakeoffSettings:
     #: the climb's last stretch: rising within ``brake_m`` under the set point at less than
     #: ``brake_speed_m_s`` (but faster than ``settle_speed_m_s``), the climb holds where the
     #: vehicle will be ``brake_lead_s`` later instead (once per climb), and the relay starts
-    #: about that altitude. Vertical drag (the altitude model's T1: 0.4-0.7 s on the SITL
-    #: airframes) over-damps the PD, which then crept the last 20 cm at 0.06-0.15 m/s for
-    #: 1-1.5 s (relay start 2.8-3.8 s after the take-off command; with the brake 2.1-2.2 s,
-    #: at 0.83-0.90 m). A linear simulation over the paper's altitude domain (100
-    #: processes): time to rest median 2.64 -> 2.08 s, 90th percentile 4.27 -> 2.64 s
+    #: about that altitude: vertical drag (the altitude model's T1) over-damps the PD, which
+    #: then creeps its last stretch for a second or more
     brake_m: float = 0.3
     brake_speed_m_s: float = 0.2
     brake_lead_s: float = 0.3
     #: a braked climb's relay starts only once the thrust that held the vehicle over the
     #: last ``hover_check_s`` (its mean command over ``1 + a/g``, ``a`` the climb rate's
     #: slope) is within ``hover_check_tol`` of the relay's bias: a wrong hover guess passes
-    #: slowly near the hold at the top of a swing, and a relay started there is biased at
-    #: the guess (15 % low: relay at 0.71 m biased 15 % low; 5 % high: a qdrone relay
-    #: biased 4.5 % high went lopsided and restarted, 9.3 -> 14.3 s)
+    #: slowly near the hold at the top of a swing, and a relay started there would be
+    #: biased at the wrong guess (and go lopsided)
     hover_check_s: float = 0.3
     hover_check_tol: float = 0.02
 
@@ -169,13 +164,11 @@ class TakeoffController:
         and the relay starts again, as after the first climb, once the vehicle holds it.
 
         A relay restarted away from its set point (after a run-away, or on a lopsided
-        cycle) can lock into the slow, lopsided cycle described above: in-process with
-        ground-station stalls, racer250's altitude relay restarted five times at 0.2 m
-        below the set point, each time into a 0.9 s cycle (0.38 s when started at rest),
-        and was never identified. The hover thrust is ``hover`` when given (the mean
-        thrust of the relay's own cycles: over a periodic cycle the mean vertical
-        acceleration is zero, so a wrong first guess is corrected), else the relay's bias
-        ``u_z0``. False, and nothing changed, before the first switch.
+        cycle) can lock into the slow, lopsided cycle described above, about twice the
+        period of the one started at rest, again and again. The hover thrust is ``hover``
+        when given (the mean thrust of the relay's own cycles: over a periodic cycle the
+        mean vertical acceleration is zero, so a wrong first guess is corrected), else the
+        relay's bias ``u_z0``. False, and nothing changed, before the first switch.
         """
         if not self.switched or not math.isfinite(self.u_z0):
             return False

@@ -15,8 +15,10 @@ Interface (stable; other modules build on it):
 - :func:`identify` -> :class:`Identification`: classify the cycle, recover the
   gain by exact gain scaling, return the model and the PD gains in SI units of
   the loop (``u = Kc e - Kd dy/dt``); :class:`Diagnostics` says which path
-  (:class:`Method`) produced it and which bundled shape it belongs to.
-- :func:`attach_residual`: the residual analysis for the report, after the tests.
+  (:class:`Method`) produced it, which bundled shape it belongs to, and holds the
+  classifier's vote (:class:`ClassifierVote`) and the harmonic fit (:class:`HarmonicFit`).
+- :func:`attach_residual`: the residual analysis for the report, after the tests
+  (:class:`ResidualSummary`).
 
 Modules: ``result`` (the typed results), ``detector`` (the cycle detector),
 ``runtime`` (the classifiers, exact gain scaling, the refinement on the measured
@@ -38,23 +40,29 @@ from __future__ import annotations
 from mrft_gcs.identify.detector import CycleDetector, CycleStatus
 from mrft_gcs.identify.residual import attach_residual
 from mrft_gcs.identify.result import (
+    ClassifierVote,
     Diagnostics,
+    HarmonicFit,
     Identification,
     MeasuredLoop,
     Method,
     RelaySettings,
+    ResidualSummary,
 )
 from mrft_gcs.identify.runtime import identify, relay_settings
 
 __all__ = [
     "attach_residual",
+    "ClassifierVote",
     "CycleDetector",
     "CycleStatus",
     "Diagnostics",
+    "HarmonicFit",
     "Identification",
     "MeasuredLoop",
     "Method",
     "RelaySettings",
+    "ResidualSummary",
     "identify",
     "relay_settings",
 ]

@@ -348,10 +348,6 @@ def closed_attitude_identification(t, u, tilt, *, beta: float, h: float,
         confidence=float(chi2.sf(fit.cost, dof)) if dof > 0 else 1.0, beta=beta, h=h,
         period_s=pts.period_s, amplitude=0.5 * float(np.ptp(np.asarray(tilt, float))),
         gains=fit.gains,
-        extras={"rms_sd": fit.rms_sd, "max_dev": list(fit.max_dev),
-                "harmonics": list(fit.harmonics),
-                "w": fit.w.tolist(), "T_re": fit.T.real.tolist(), "T_im": fit.T.imag.tolist(),
-                "sd": fit.sd.tolist()},
         diagnostics=Diagnostics(Method.CLOSED_LOOP, shape=fit.shape, scale=fit.scale,
                                 measured=MeasuredLoop(fit.w, fit.T, fit.sd, fit.rms_sd,
-                                                      fit.harmonics)))
+                                                      fit.harmonics, fit.max_dev)))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from mrft_gcs.identify.result import Identification
+from mrft_gcs.identify.result import Identification, ResidualSummary
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.residual.analysis import RelayTest, analyse_residual
 
@@ -13,24 +13,22 @@ __all__ = ["attach_residual"]
 
 def attach_residual(ident: Identification, t, u, y, *, bias: float = 0.0, band: float = 0.0,
                     hover: float = 0.5) -> Identification:
-    """The identification with its residual analysis (SPEC 4.3 ``residual``) in ``extras``.
+    """The identification with its residual analysis (SPEC 4.3 ``residual``) in ``residual``.
 
     Simulates the identified model under the relay that ran and compares with the
     measured cycles (:func:`mrft_gcs.residual.analyse_residual`); takes a second or
     so, so call it after the tests, not inside the relay loop. Side-motion models
-    are not analysed yet: their residual fields are null, with the reason.
+    are not analysed yet: their residual fields are NaN, with the reason in ``note``.
     """
-    extras = dict(ident.extras)
     if ident.kind is LoopKind.SIDE:
-        extras["residual"] = {"rms_before": None, "rms_after": None, "effect": None,
-                              "effect_params": {}, "note": "side-motion residuals not analysed"}
-        return dataclasses.replace(ident, extras=extras)
+        return dataclasses.replace(
+            ident, residual=ResidualSummary(note="side-motion residuals not analysed"))
     try:
         rep = analyse_residual(ident.model, RelayTest(ident.beta, ident.h, bias), t, u, y,
                                kind=ident.kind, hover=hover, band=band)
     except Exception as exc:  # noqa: BLE001 - the tune stands; say why the residual is missing
-        extras["residual"] = {"rms_before": None, "rms_after": None, "effect": None,
-                              "effect_params": {}, "note": f"residual analysis failed: {exc}"}
-        return dataclasses.replace(ident, extras=extras)
-    extras["residual"] = rep.as_dict()
-    return dataclasses.replace(ident, extras=extras)
+        return dataclasses.replace(
+            ident, residual=ResidualSummary(note=f"residual analysis failed: {exc}"))
+    return dataclasses.replace(ident, residual=ResidualSummary(
+        float(rep.rms_before), float(rep.rms_after), rep.effect,
+        {str(k): float(v) for k, v in rep.effect_params.items()}))

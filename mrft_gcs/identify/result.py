@@ -1,4 +1,9 @@
-"""Typed results of runtime identification: relay settings, the identification, its diagnostics."""
+"""Typed results of runtime identification: relay settings, the identification, its diagnostics.
+
+Every field is typed (no free-form dict): :class:`Diagnostics` holds what the path that
+ran decided (:class:`Method`, the shape, the classifier's vote, the harmonic fit), and
+:class:`ResidualSummary` the residual analysis the report shows.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +15,8 @@ import numpy as np
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.plant import PD, InnerModel, SideModel
 
-__all__ = ["Diagnostics", "Identification", "MeasuredLoop", "Method", "RelaySettings"]
+__all__ = ["ClassifierVote", "Diagnostics", "HarmonicFit", "Identification", "MeasuredLoop",
+           "Method", "RelaySettings", "ResidualSummary"]
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,9 @@ class MeasuredLoop:
         RMS residual of the equivalent loop's fit, in standard errors.
     harmonics : tuple of int
         The harmonic number of each point.
+    max_dev : (float, float)
+        Largest deviation of the fitted loop from the measured points: relative gain
+        (fraction) and phase (deg).
     """
 
     w: np.ndarray
@@ -59,6 +68,77 @@ class MeasuredLoop:
     sd: np.ndarray
     rms_sd: float
     harmonics: tuple[int, ...]
+    max_dev: tuple[float, float] = (float("nan"), float("nan"))
+
+
+@dataclass(frozen=True)
+class ClassifierVote:
+    """What a classifier decided (inner loops; side motion when its harmonic fit was refused).
+
+    Attributes
+    ----------
+    rule : int
+        The shape whose tuning rule gave the gains (the Bayes decision on the
+        probabilities). Inner loops: the same as :attr:`Diagnostics.shape`; side motion:
+        a side shape of the attitude shape's side classifier.
+    top : tuple of int
+        The three likeliest shapes, most likely first (inner loops: after the measured
+        harmonics' likelihood where there were several cycles).
+    duty : float
+        The relay cycle's duty cycle (fraction of the period on the high level).
+    bias : float
+        The relay output's bias seen over the cycle (input units).
+    likeliest : int or None
+        Inner loops: the classifier's own likeliest shape (before the harmonics).
+    probs : tuple of float
+        Inner loops: the classifier's three largest probabilities, largest first.
+    margin_guard_scale : float
+        Side motion: the factor the measured-margin guards scaled the rule's gains by
+        (1: untouched); NaN for inner loops.
+    """
+
+    rule: int
+    top: tuple[int, ...]
+    duty: float
+    bias: float
+    likeliest: int | None = None
+    probs: tuple[float, ...] = ()
+    margin_guard_scale: float = float("nan")
+
+
+@dataclass(frozen=True)
+class HarmonicFit:
+    """The model fitted on (inner loops: refined on) the relay cycle's measured harmonics.
+
+    Attributes
+    ----------
+    cost : float
+        The fit's cost (squared standardised residuals, prior included); infinite when
+        an inner loop's refinement was not trusted and the rule's gains stand.
+    held_back : float
+        Inner loops: how far the gains went from the rule's (0) towards the refined
+        model's optimal PD (1), log-linearly; NaN for side motion.
+    harmonics : tuple of int
+        Side motion: the harmonic numbers the fit used.
+    sd : tuple of float
+        Side motion: the standard error of each measured harmonic (log units).
+    t_att_measured : tuple of int
+        Side motion: the harmonics at which the closed attitude loop was measured
+        during the test rather than modelled.
+    df_factor : float
+        Side motion: the measured fundamental's gain over the describing function's
+        estimate ``4 h / (pi a)`` (to evaluate a describing-function gain instead).
+    pm_deg : float
+        Side motion: the design's phase margin on the fitted model, deg.
+    """
+
+    cost: float
+    held_back: float = float("nan")
+    harmonics: tuple[int, ...] = ()
+    sd: tuple[float, ...] = ()
+    t_att_measured: tuple[int, ...] = ()
+    df_factor: float = float("nan")
+    pm_deg: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -78,12 +158,46 @@ class Diagnostics:
         NaN with no shape.
     measured : MeasuredLoop or None
         The closed attitude loop's measured points (:attr:`Method.CLOSED_LOOP` only).
+    classifier : ClassifierVote or None
+        The classifier's vote, where a classifier ran.
+    fit : HarmonicFit or None
+        The fit on the measured harmonics, where one ran (inner loops: two or more
+        cycles; side motion: :attr:`Method.HARMONIC_FIT`).
+    fit_note : str
+        Side motion decided by the classifier: why the harmonic fit was not used.
     """
 
     method: Method = Method.GIVEN
     shape: int | None = None
     scale: float = float("nan")
     measured: MeasuredLoop | None = None
+    classifier: ClassifierVote | None = None
+    fit: HarmonicFit | None = None
+    fit_note: str = ""
+
+
+@dataclass(frozen=True)
+class ResidualSummary:
+    """The residual analysis of an identification (SPEC 4.3 ``residual``).
+
+    Attributes
+    ----------
+    rms_before, rms_after : float
+        Normalised RMS of the measured cycle minus the model's, without and with the
+        named effect; NaN where not analysed.
+    effect : str or None
+        The effect that explains the residual, if any.
+    effect_params : dict of str to float
+        The effect's fitted parameters.
+    note : str
+        Why the analysis is missing, where it is.
+    """
+
+    rms_before: float = float("nan")
+    rms_after: float = float("nan")
+    effect: str | None = None
+    effect_params: dict[str, float] = field(default_factory=dict)
+    note: str = ""
 
 
 @dataclass(frozen=True)
@@ -106,11 +220,14 @@ class Identification:
         Of the measured steady cycle.
     gains : PD
         PD gains in SI units (``u = Kc e - Kd dy/dt``).
-    extras : dict
-        Free-form diagnostics for reports and debugging (gain estimate, top classes,
-        fit cost, ``residual``...); nothing decides on them.
     diagnostics : Diagnostics
-        What other code decides on: the method, the shape and scale.
+        How it was identified: the method, the shape and scale, the classifier's vote,
+        the harmonic fit.
+    residual : ResidualSummary or None
+        The residual analysis, once attached
+        (:func:`~mrft_gcs.identify.residual.attach_residual`).
+    inner : Identification or None
+        Side motion: the attitude identification the side loop was identified behind.
     """
 
     kind: LoopKind
@@ -122,5 +239,6 @@ class Identification:
     period_s: float
     amplitude: float
     gains: PD
-    extras: dict = field(default_factory=dict)
     diagnostics: Diagnostics = field(default_factory=Diagnostics)
+    residual: ResidualSummary | None = None
+    inner: Identification | None = None

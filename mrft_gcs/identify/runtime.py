@@ -28,7 +28,7 @@ they keep 15 deg of phase margin on every shape the posterior still holds likely
 (the refinement starts from the Bayes rule's shape, and its optimum must not undo
 the rule's safety); otherwise the rule's gains stand. The
 reported model is then the refined one (``diagnostics.method`` says which path
-ran); the classifier's most likely shape is in ``extras["likeliest"]``;
+ran); the classifier's most likely shape is ``diagnostics.classifier.likeliest``;
 ``class_index`` is the representative process of the chosen shape nearest in
 scale. Side motion: see :func:`_identify_side`.
 """
@@ -55,7 +55,14 @@ from mrft_gcs.identify.harmonics import (
     fit_side_model,
     harmonic_points,
 )
-from mrft_gcs.identify.result import Diagnostics, Identification, Method, RelaySettings
+from mrft_gcs.identify.result import (
+    ClassifierVote,
+    Diagnostics,
+    HarmonicFit,
+    Identification,
+    Method,
+    RelaySettings,
+)
 from mrft_gcs.identify.side import SIDE_H, side_features, side_plant_response
 from mrft_gcs.loops import LoopKind
 from mrft_gcs.pd_design import frequency_grid, margins, optimal_pd
@@ -296,9 +303,9 @@ def _identify_side(t, u, y, beta: float, inner: Identification | None,
     fitted, fit_note = _fit_side(t, u, y, beta, b, inner, c, tilt)
     if fitted is not None:
         return fitted
-    classified = _classify_side(t, u, y, beta, b, k, c, setpoint)
-    classified.extras["fit"] = fit_note
-    return classified
+    classified = _classify_side(t, u, y, beta, b, k, c, setpoint, inner)
+    return dataclasses.replace(classified, diagnostics=dataclasses.replace(
+        classified.diagnostics, fit_note=fit_note))
 
 
 def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, tilt=None):
@@ -382,13 +389,13 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, til
         kind=LoopKind.SIDE, model=model, class_index=near,
         confidence=float(chi2.sf(fit.cost, dof)) if dof > 0 else 1.0, beta=beta, h=h,
         period_s=pts.period_s, amplitude=amplitude, gains=design.pd,
-        extras={"att_shape": int(b.att_shape), "att_scale": c,
-                "gain": fit.K, "fit_cost": fit.cost, "harmonics": list(fit.used),
-                "harmonic_sd": [float(s) for s in pts.sd], "df_factor": df,
-                "t_att_measured": [int(k) for k, m in zip(pts.harmonics, measured,
-                                                          strict=True) if m],
-                "pm_deg": float(design.margins.pm_deg)},
-        diagnostics=Diagnostics(Method.HARMONIC_FIT)), None
+        diagnostics=Diagnostics(Method.HARMONIC_FIT, fit=HarmonicFit(
+            cost=float(fit.cost), harmonics=tuple(int(k) for k in fit.used),
+            sd=tuple(float(s) for s in pts.sd),
+            t_att_measured=tuple(int(k) for k, m in zip(pts.harmonics, measured, strict=True)
+                                 if m),
+            df_factor=df, pm_deg=float(design.margins.pm_deg))),
+        inner=inner), None
 
 
 #: prior on the side model's ``K / T2`` (m/s^2 per rad of tilt: ``g`` in hover) and its
@@ -441,8 +448,8 @@ def _measured_t_att(t, u, tilt, pts, modelled: np.ndarray):
     return T_att, dataclasses.replace(pts, sd=sd), ok
 
 
-def _classify_side(t, u, y, beta, b: SideBundle, k: int, c: float,
-                   setpoint=None) -> Identification:
+def _classify_side(t, u, y, beta, b: SideBundle, k: int, c: float, setpoint,
+                   inner: Identification) -> Identification:
     f, x = side_features(t, u, y, c, setpoint)
     probs = _softmax(b.logits(x)[0])
     order = np.argsort(-probs)[:3]
@@ -464,11 +471,10 @@ def _classify_side(t, u, y, beta, b: SideBundle, k: int, c: float,
     return Identification(kind=LoopKind.SIDE, model=model, class_index=j,
                           confidence=float(probs[j]), beta=beta, h=f.h, period_s=f.period_s,
                           amplitude=f.amplitude, gains=PD(float(Kc), float(Kd)),
-                          extras={"att_shape": k, "att_scale": c,
-                                  "gain": float(K), "rule": r,
-                                  "margin_guard_scale": scale,
-                                  "top": order.tolist(), "duty": f.duty, "bias": f.bias},
-                          diagnostics=Diagnostics(Method.CLASSIFIER))
+                          diagnostics=Diagnostics(Method.CLASSIFIER, classifier=ClassifierVote(
+                              rule=r, top=tuple(int(i) for i in order), duty=float(f.duty),
+                              bias=float(f.bias), margin_guard_scale=float(scale))),
+                          inner=inner)
 
 
 def _softmax(z: np.ndarray) -> np.ndarray:
@@ -724,12 +730,13 @@ def identify(kind: LoopKind, t: np.ndarray, u: np.ndarray, y: np.ndarray, *, bet
     rep = int(same[np.argmin(np.abs(np.log(b.reps[same, 1] / c)))]) if same.size else k
     return Identification(kind=kind, model=model, class_index=rep, confidence=float(post[k]),
                           beta=beta, h=f.h, period_s=f.period_s, amplitude=f.amplitude,
-                          gains=pd, extras={"gain": model.K, "rule": k,
-                                            "top": np.argsort(-post)[:3].tolist(),
-                                            "likeliest": int(np.argmax(probs)),
-                                            "probs": np.sort(probs)[::-1][:3].tolist(),
-                                            "fit_cost": cost, "held_back": held_back,
-                                            "duty": f.duty, "bias": f.bias},
-                          diagnostics=Diagnostics(
+                          gains=pd, diagnostics=Diagnostics(
                               Method.CLASSIFIER if pts is None or not np.isfinite(cost)
-                              else Method.CLASSIFIER_HARMONICS, shape=k, scale=float(c)))
+                              else Method.CLASSIFIER_HARMONICS, shape=k, scale=float(c),
+                              classifier=ClassifierVote(
+                                  rule=k, top=tuple(int(i) for i in np.argsort(-post)[:3]),
+                                  duty=float(f.duty), bias=float(f.bias),
+                                  likeliest=int(np.argmax(probs)),
+                                  probs=tuple(float(p) for p in np.sort(probs)[::-1][:3])),
+                              fit=None if pts is None else HarmonicFit(float(cost),
+                                                                       float(held_back))))

@@ -43,12 +43,12 @@ import numpy as np
 
 from mrft_gcs.errors import SafetyAbort
 from mrft_gcs.link.latency import CpuWakeLatency, latency_hints
-from mrft_gcs.telemetry import ActuatorTarget, AttitudeTarget
+from mrft_gcs.telemetry import ActuatorTarget, AttitudeTarget, RateTarget
 
 __all__ = ["SetpointStreamer", "StreamStats", "SetpointSink", "Setpoint", "period_stats",
            "latency_hints", "spin_margin_s", "stream_cpus"]
 
-Setpoint = ActuatorTarget | AttitudeTarget
+Setpoint = ActuatorTarget | AttitudeTarget | RateTarget
 #: The callback: monotonic seconds since the stream started -> setpoint, or None to skip a tick.
 SetpointFn = Callable[[float], Setpoint | None]
 

@@ -45,6 +45,8 @@ from mrft_gcs.telemetry import (
     Heartbeat,
     LocalPosition,
     ParamValue,
+    PidTuning,
+    RateTarget,
     Sample,
     StatusText,
     is_finite_sample,
@@ -69,6 +71,7 @@ MAV_AUTOPILOT_INVALID = 8
 MAV_STATE_ACTIVE = 4
 FORCE_DISARM_MAGIC = 21196.0
 ATTITUDE_TARGET_IGNORE_RATES = 0b0000_0111
+ATTITUDE_TARGET_IGNORE_ATTITUDE = 0b1000_0000
 MESSAGE_IDS = {"ATTITUDE": 30, "LOCAL_POSITION_NED": 32, "HIGHRES_IMU": 105}
 _MAV_RESULT_NAMES = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED",
                      4: "FAILED", 5: "IN_PROGRESS", 6: "CANCELLED"}
@@ -135,7 +138,7 @@ class FtpFrame:
 #: answers that go to subscribers only, never into the telemetry queue
 _REPLIES = (CommandAck, AutopilotVersion, TimesyncReply, FtpFrame)
 Event = (Sample | CommandAck | ParamReport | AutopilotVersion | TimesyncReply | AttitudeSetpoint
-         | FtpFrame)
+         | PidTuning | FtpFrame)
 
 
 @dataclass
@@ -395,8 +398,8 @@ class VehicleLink:
         if isinstance(event, _REPLIES):
             self._publish(event)
             return
-        if isinstance(event, AttitudeSetpoint):  # for whoever subscribed; not telemetry
-            if is_finite_sample(event):
+        if isinstance(event, AttitudeSetpoint | PidTuning):  # for subscribers; not telemetry
+            if is_finite_sample(event):  # type: ignore[arg-type]
                 self._publish(event)
             return
         if isinstance(event, ParamReport):
@@ -433,6 +436,9 @@ class VehicleLink:
         if kind == "ATTITUDE_TARGET":
             r, p, y = _euler(m.q)
             return AttitudeSetpoint(m.time_boot_ms * 1e-3, r, p, y, m.thrust)
+        if kind == "PID_TUNING":
+            return PidTuning(time.monotonic(), int(m.axis), m.desired, m.achieved, m.FF, m.P,
+                             m.I, m.D)
         if kind == "LOCAL_POSITION_NED":
             self._boot_s = m.time_boot_ms * 1e-3
             return LocalPosition(self._boot_s, m.x, m.y, m.z, m.vx, m.vy, m.vz)
@@ -603,10 +609,24 @@ class VehicleLink:
             ATTITUDE_TARGET_IGNORE_RATES, qn, 0.0, 0.0, 0.0, _clip(target.thrust, 0, 1)),
             "SET_ATTITUDE_TARGET")
 
-    def send_setpoint(self, target: ActuatorTarget | AttitudeTarget) -> None:
-        """Send either kind of setpoint."""
+    def send_rate_target(self, target: RateTarget) -> None:
+        """SET_ATTITUDE_TARGET with the attitude ignored: body rates (rad/s) and thrust in
+        [0, 1] (ArduCopter GUIDED_NOGPS; raw thrust with GUID_OPTIONS 8)."""
+        rates = (target.roll_rate_rad_s, target.pitch_rate_rad_s, target.yaw_rate_rad_s)
+        if not all(math.isfinite(v) for v in (*rates, target.thrust)):
+            raise LinkError(f"refusing to send a non-finite rate setpoint {rates}, "
+                            f"{target.thrust}")
+        self._send(lambda mav: mav.set_attitude_target_send(
+            self._boot_ms(), self.target_system, self.target_component,
+            ATTITUDE_TARGET_IGNORE_ATTITUDE, [1.0, 0.0, 0.0, 0.0], float(rates[0]),
+            float(rates[1]), float(rates[2]), _clip(target.thrust, 0, 1)), "SET_ATTITUDE_TARGET")
+
+    def send_setpoint(self, target: ActuatorTarget | AttitudeTarget | RateTarget) -> None:
+        """Send any kind of setpoint."""
         if isinstance(target, ActuatorTarget):
             self.send_actuator_target(target)
+        elif isinstance(target, RateTarget):
+            self.send_rate_target(target)
         else:
             self.send_attitude_target(target)
 

@@ -41,7 +41,11 @@ def _watch_parent(stop, period_s: float = 0.25) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m mrft_gcs.sitl",
                                  description="Simulated multirotor serving MAVLink over UDP.")
-    ap.add_argument("--vehicle", default="qdrone")
+    ap.add_argument("--vehicle", default=None,
+                    help="profile or TOML path (default qdrone); with --physics rotorpy a "
+                         "RotorPy parameter set (default crazyfliebrushless)")
+    ap.add_argument("--physics", default="native", choices=("native", "rotorpy"),
+                    help="rigid body, rotors and motors: the project's (native) or RotorPy's")
     ap.add_argument("--port", type=int, default=DEFAULT_PORT)
     ap.add_argument("--speedup", type=float, default=1.0)
     ap.add_argument("--effect", action="append", default=[], metavar="NAME=VALUE")
@@ -57,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = SitlConfig(vehicle=args.vehicle, port=args.port, speedup=args.speedup,
                          effects=parse_effects(args.effect), seed=args.seed,
                          signing_key_file=args.signing_key, wind_m_s=args.wind,
-                         random_seed=args.random)
+                         random_seed=args.random, physics=args.physics)
         server = make_server(cfg)
     except (MrftError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)

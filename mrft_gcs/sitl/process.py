@@ -13,6 +13,7 @@ Example
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import socket
@@ -38,6 +39,7 @@ __all__ = [
     "read_signing_key",
     "free_udp_port",
     "vehicle_airframe",
+    "build_vehicle",
 ]
 
 DEFAULT_PORT = 14540
@@ -86,7 +88,9 @@ def read_signing_key(path: str | Path) -> bytes:
 class SitlConfig:
     """Everything that defines one SITL run (command line beats profile beats default)."""
 
-    vehicle: str = "qdrone"
+    #: bundled profile or TOML path (default ``qdrone``); with ``physics="rotorpy"`` one of
+    #: RotorPy's parameter sets (default ``crazyfliebrushless``)
+    vehicle: str | None = None
     port: int = DEFAULT_PORT
     speedup: float = 1.0
     effects: Mapping[str, float] = field(default_factory=dict)
@@ -96,6 +100,8 @@ class SitlConfig:
     host: str = "127.0.0.1"
     #: draw the vehicle at random from this seed (:func:`random_airframe`) instead
     random_seed: int | None = None
+    #: ``native`` (the project's physics) or ``rotorpy`` (:mod:`mrft_gcs.sitl.rotorpy_physics`)
+    physics: str = "native"
 
     @property
     def connection_string(self) -> str:
@@ -103,17 +109,46 @@ class SitlConfig:
         return f"udp:{self.host}:{self.port}"
 
 
-def vehicle_airframe(vehicle: str, random_seed: int | None = None) -> Airframe:
-    """The bundled or TOML vehicle ``vehicle``, or the random one of ``random_seed``."""
+def _check_physics(physics: str) -> None:
+    from mrft_gcs.sitl.rotorpy_physics import PHYSICS_BACKENDS
+
+    if physics not in PHYSICS_BACKENDS:
+        raise UsageError(f"physics '{physics}': use one of {', '.join(PHYSICS_BACKENDS)}")
+
+
+def vehicle_airframe(vehicle: str | None, random_seed: int | None = None,
+                     physics: str = "native") -> Airframe:
+    """The bundled or TOML vehicle ``vehicle`` (default ``qdrone``), or the random one of
+    ``random_seed``; with ``physics="rotorpy"`` the airframe matching that RotorPy vehicle
+    (its hover linearisation: the truth to score on)."""
+    _check_physics(physics)
+    if physics == "rotorpy":
+        from mrft_gcs.sitl.rotorpy_physics import rotorpy_airframe
+
+        return rotorpy_airframe(vehicle, random_seed).airframe
     if random_seed is not None:
         return random_airframe(random_seed)
-    return load_airframe(vehicle)
+    return load_airframe(vehicle or "qdrone")
+
+
+def build_vehicle(cfg: SitlConfig):  # -> SimVehicle
+    """The in-process vehicle of ``cfg``, on the physics it names; raises :class:`UsageError`."""
+    from mrft_gcs.sitl.vehicle import SimVehicle
+
+    _check_physics(cfg.physics)
+    if cfg.physics == "rotorpy":
+        from mrft_gcs.sitl.rotorpy_physics import rotorpy_airframe, rotorpy_vehicle
+
+        spec = rotorpy_airframe(cfg.vehicle, cfg.random_seed)
+        spec = dataclasses.replace(spec, airframe=spec.airframe.with_effects(dict(cfg.effects)))
+        return rotorpy_vehicle(spec, seed=cfg.seed, wind_m_s=cfg.wind_m_s)
+    airframe = vehicle_airframe(cfg.vehicle, cfg.random_seed).with_effects(dict(cfg.effects))
+    return SimVehicle(airframe, seed=cfg.seed, wind_m_s=cfg.wind_m_s)
 
 
 def make_server(cfg: SitlConfig):  # -> SitlServer (imported lazily: pymavlink is heavy)
     """Build the vehicle and its MAVLink server for ``cfg``; raises :class:`UsageError`."""
     from mrft_gcs.sitl.server import SitlServer
-    from mrft_gcs.sitl.vehicle import SimVehicle
 
     if not 0 < cfg.port < 65536:
         raise UsageError(f"port {cfg.port} is out of range 1-65535")
@@ -121,9 +156,8 @@ def make_server(cfg: SitlConfig):  # -> SitlServer (imported lazily: pymavlink i
         raise UsageError(f"speedup {cfg.speedup} must be in (0, 100]")
     if len(cfg.wind_m_s) != 3:
         raise UsageError("wind needs 3 components (north, east, down) in m/s")
-    airframe = vehicle_airframe(cfg.vehicle, cfg.random_seed).with_effects(dict(cfg.effects))
+    vehicle = build_vehicle(cfg)
     key = read_signing_key(cfg.signing_key_file) if cfg.signing_key_file else None
-    vehicle = SimVehicle(airframe, seed=cfg.seed, wind_m_s=cfg.wind_m_s)
     return SitlServer(vehicle, port=cfg.port, host=cfg.host, speedup=cfg.speedup,
                       signing_key=key)
 
@@ -139,8 +173,9 @@ class SitlProcess:
 
     Parameters
     ----------
-    vehicle : str
-        Bundled profile name or path to a TOML profile.
+    vehicle : str, optional
+        Bundled profile name or path to a TOML profile (default ``qdrone``); with
+        ``physics="rotorpy"`` a RotorPy parameter set (default ``crazyfliebrushless``).
     port : int or None
         UDP port the ground station listens on; ``None`` picks a free one.
     speedup : float
@@ -157,7 +192,11 @@ class SitlProcess:
         How long to wait for the subprocess to report ready.
     random_seed : int or None
         Fly the random vehicle of this seed (:func:`mrft_gcs.sitl.random_airframe`)
-        instead of ``vehicle``.
+        instead of ``vehicle`` (with ``physics="rotorpy"``:
+        :func:`mrft_gcs.sitl.rotorpy_physics.rotorpy_airframe` of this seed).
+    physics : str
+        ``native`` (the project's physics, default) or ``rotorpy`` (RotorPy's, the ``test``
+        extra).
 
     Raises
     ------
@@ -167,17 +206,20 @@ class SitlProcess:
         The subprocess did not come up.
     """
 
-    def __init__(self, vehicle: str = "qdrone", port: int | None = DEFAULT_PORT,
+    def __init__(self, vehicle: str | None = None, port: int | None = DEFAULT_PORT,
                  speedup: float = 1.0, effects: Mapping[str, float] | None = None,
                  seed: int = 0, signing_key: bytes | None = None,
                  wind_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                 startup_timeout_s: float = 20.0, random_seed: int | None = None) -> None:
+                 startup_timeout_s: float = 20.0, random_seed: int | None = None,
+                 physics: str = "native") -> None:
         # fail early, in this process
-        self.airframe = vehicle_airframe(vehicle, random_seed).with_effects(dict(effects or {}))
+        self.airframe = vehicle_airframe(vehicle, random_seed, physics).with_effects(
+            dict(effects or {}))
         self.random_seed = random_seed
+        self.physics = physics
         if signing_key is not None and len(signing_key) != 32:
             raise UsageError("signing_key must be exactly 32 bytes")
-        self.vehicle = str(vehicle)
+        self.vehicle = vehicle
         self.port = free_udp_port() if port is None else int(port)
         self.speedup = float(speedup)
         self.effects = dict(effects or {})
@@ -205,10 +247,13 @@ class SitlProcess:
 
     def command(self) -> list[str]:
         """The argument vector of the subprocess."""
-        cmd = [sys.executable, "-m", "mrft_gcs.sitl", "--vehicle", self.vehicle,
-               "--port", str(self.port), "--speedup", repr(self.speedup),
-               "--seed", str(self.seed), "--wind", ",".join(repr(w) for w in self.wind_m_s),
-               "--exit-with-parent"]
+        cmd = [sys.executable, "-m", "mrft_gcs.sitl", "--port", str(self.port),
+               "--speedup", repr(self.speedup), "--seed", str(self.seed),
+               "--wind", ",".join(repr(w) for w in self.wind_m_s), "--exit-with-parent"]
+        if self.vehicle is not None:
+            cmd += ["--vehicle", str(self.vehicle)]
+        if self.physics != "native":
+            cmd += ["--physics", self.physics]
         if self.random_seed is not None:
             cmd += ["--random", str(self.random_seed)]
         for name, value in self.effects.items():
@@ -248,7 +293,9 @@ class SitlProcess:
                     break
         tail = self._stderr_tail()
         self.stop()
-        raise LinkError(f"the SITL subprocess did not start ({' '.join(cmd[2:5])}): "
+        what = self.vehicle or ("random " + str(self.random_seed) if self.random_seed is not None
+                                else "default vehicle")
+        raise LinkError(f"the SITL subprocess did not start ({what}, {self.physics} physics): "
                         f"{tail or 'no output'}")
 
     def _stderr_tail(self) -> str:

@@ -31,14 +31,18 @@ class SimVehicle:
         Constant wind, NED.
     dt_s : float
         Physics step (1 ms); the autopilot runs at ``airframe.onboard.loop_hz``.
+    physics : Multirotor, optional
+        Another physics with the same interface and step ``dt_s`` (e.g.
+        :class:`mrft_gcs.sitl.rotorpy_physics.RotorpyMultirotor`); default the bundled one.
     """
 
     def __init__(self, airframe: Airframe, seed: int = 0,
                  wind_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                 dt_s: float = DT_S) -> None:
+                 dt_s: float = DT_S, physics: Multirotor | None = None) -> None:
         self.airframe = airframe
         self.dt = dt_s
-        self.physics = Multirotor(airframe, dt_s=dt_s, seed=seed, wind_m_s=wind_m_s)
+        self.physics = physics if physics is not None else Multirotor(
+            airframe, dt_s=dt_s, seed=seed, wind_m_s=wind_m_s)
         spec = airframe.onboard
         #: the autopilot runs on every ``control_every``-th physics step, its command held
         self.control_every = max(1, int(round(1.0 / (spec.loop_hz * dt_s))))

@@ -1,0 +1,584 @@
+"""The body-rate path (``--actuation rate``): all five loops through a stock autopilot.
+
+ArduCopter has no torque input over MAVLink, but its rate loop adds a feed-forward term to
+P/I/D. With P = I = D = 0, angle P = 0, no acceleration limit, no target filter and
+feed-forward ``k`` (the profile's ``[rate_path]``), a body-rate set point ``w`` of
+SET_ATTITUDE_TARGET (attitude ignored) comes out as the normalised command ``k w``. The
+sequence's torques ``u`` are therefore sent as rates ``u / k``.
+
+Two things stand between the rate sent and the torque that comes out, and both are
+measured in flight:
+
+* ``k``: ArduPilot's PID_TUNING reports per axis the desired rate and the output's FF, P,
+  I and D terms (``GCS_PID_MASK``). ``FF / desired`` is the ``k`` in effect; P, I and D
+  must stay zero. A ``k`` off by more than :data:`K_CORRECT` is corrected (the rates are
+  scaled), by more than :data:`K_REFUSE` refused (the tune stops and lands).
+* Alignment: the onboard attitude target integrates the commanded rates open loop, and the
+  feed-forward is rotated from that target into the body frame (scaled down above 30 deg
+  of target-to-body thrust angle). The target is read from ATTITUDE_TARGET and every rate
+  sent is pre-rotated by the inverse, so the body gets the torque asked for; beyond
+  :data:`MAX_THRUST_ERROR_DEG` the tune stops and lands.
+
+The test parameters are written only after arming (arming checks see the stock gains:
+none is switched off), backed up first. The hand-over back to onboard control is staged
+while the ground station flies: rate P first (its effect is inverted in the rates sent),
+then the feed-forward, then the rates go to zero and the written angle P and every other
+test parameter go in at once (:meth:`RatePath.hand_over`). On any abort the test
+parameters are restored *before* the landing command (a landing on zero gains would tumble).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mrft_gcs.errors import LinkError, MrftError, SafetyAbort, UsageError
+from mrft_gcs.flight.controllers import FlightState, YawHold
+from mrft_gcs.link.firmware import Firmware
+from mrft_gcs.link.vehicle import MAV_CMD_SET_MESSAGE_INTERVAL, VehicleLink
+from mrft_gcs.params import (
+    Param,
+    ParamChange,
+    ParamClient,
+    read_params_file,
+    write_params_file,
+)
+from mrft_gcs.profiles import AutopilotProfile, RatePathParams
+from mrft_gcs.telemetry import (
+    ActuatorTarget,
+    AttitudeSetpoint,
+    AttitudeTarget,
+    AutopilotFamily,
+    PidTuning,
+    RateTarget,
+)
+
+__all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignment",
+           "check_feed_forward", "rate_path_refusal", "body_rates", "LINK_LOSS_GUARD",
+           "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE"]
+
+#: relative error of the measured ``k`` above which the rates are scaled to it
+K_CORRECT = 0.02
+#: ... and above which the tune is refused (a rate loop that is not what was written)
+K_REFUSE = 0.25
+#: P, I or D output (normalised) that shows the rate loop is not pure feed-forward
+PID_ACTIVE = 1e-3
+#: target-to-body thrust angle that stops the tune (ArduPilot scales the feed-forward
+#: down from 30 deg and drops it at 60)
+MAX_THRUST_ERROR_DEG = 28.0
+#: PID_TUNING samples with a feed-forward output above this (normalised) measure ``k``
+MIN_FF = 0.01
+#: samples per axis before ``k`` is judged
+MIN_SAMPLES = 25
+#: ATTITUDE_TARGET and PID_TUNING rates asked for (Hz)
+STREAM_HZ = 50.0
+#: largest target-to-body thrust angle and heading difference accepted on the ground before
+#: the take-off (ArduCopter resets the target to the body while landed; a target left from
+#: an earlier flight, 84 deg off after a crash, spun the SITL at the take-off)
+GROUND_ALIGNMENT_DEG = (5.0, 10.0)
+#: hold between the hand-over's stages (s): each stage's transient settles
+STAGE_HOLD_S = 0.3
+#: factor on the identified roll/pitch PDs while the ground station flies them on this
+#: path (``SequenceConfig.gcs_attitude_pd_scale``; the written gains are not scaled). The
+#: designed PD keeps ~17 deg of phase margin at a ~70 rad/s crossover on ArduCopter SITL's
+#: quad; the GCS loop's stream jitter and telemetry lag took it unstable at full gain
+#: (roll diverged within 0.2 s). At 0.5 the crossover halves and 4 ms more delay still
+#: leaves a gain margin of 2 (identified roll model).
+GCS_PD_SCALE = 0.5
+#: the yaw hold's output limit on this path (normalised yaw command)
+YAW_LIMIT = 0.5
+_ATTITUDE_TARGET_ID = 83
+_PID_TUNING_ID = 194
+_AXES = ("roll", "pitch", "yaw")
+
+#: Where a link-loss guard is installed once the gains are zero onboard (the other helper's
+#: ArduPilot Lua script, :mod:`mrft_gcs.link.failsafe`): ``f(link, client, backup) -> note``.
+#: None: no guard; the report says that link loss in the zero-gain window is unprotected.
+LINK_LOSS_GUARD: Callable[[VehicleLink, ParamClient, Path], str] | None = None
+
+
+def rate_path_refusal(profile: AutopilotProfile, fw: Firmware) -> str | None:
+    """Why the rate path cannot fly ``fw`` with ``profile``; None if it can.
+
+    >>> from mrft_gcs.profiles import load_profile
+    >>> rate_path_refusal(load_profile("ardupilot"),
+    ...                   Firmware(AutopilotFamily.ARDUPILOT, 2, (4, 7, 0), "dev")) is None
+    True
+    >>> rate_path_refusal(load_profile("px4"), Firmware(AutopilotFamily.PX4, 2))[:26]
+    'profile px4 has no [rate_p'
+    """
+    if profile.rate_path is None:
+        return (f"profile {profile.name} has no [rate_path] (the rate loop reduced to "
+                f"feed-forward is spelled out for ArduCopter only)")
+    if fw.family is not AutopilotFamily.ARDUPILOT:
+        return f"{fw.name}: the rate path is proven on ArduCopter only"
+    return None
+
+
+# ---------------------------------------------------------------------- rotation numerics
+def _quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """ZYX Euler angles (rad) -> unit quaternion (w, x, y, z), body to NED."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return np.array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+
+
+def _rotation(q: np.ndarray) -> np.ndarray:
+    """3x3 matrix of the unit quaternion ``q`` (w, x, y, z)."""
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """The onboard attitude target against the body.
+
+    Attributes
+    ----------
+    thrust_error_rad : float
+        Angle between the target's and the body's thrust axes (rad).
+    heading_error_rad : float
+        Target yaw minus body yaw, wrapped to [-pi, pi] (rad).
+    target_to_body : ndarray, shape (3, 3)
+        Rotates a vector from the target frame into the body frame (what ArduPilot does to
+        the feed-forward rate).
+    """
+
+    thrust_error_rad: float
+    heading_error_rad: float
+    target_to_body: np.ndarray
+
+
+def alignment(target_rpy: tuple[float, float, float],
+              body_rpy: tuple[float, float, float]) -> Alignment:
+    """How far the onboard target is from the body (ZYX Euler angles in rad).
+
+    >>> a = alignment((0.0, 0.0, 0.3), (0.0, 0.0, 0.0))
+    >>> round(a.thrust_error_rad, 6), round(a.heading_error_rad, 6)
+    (0.0, 0.3)
+    >>> (a.target_to_body @ [1.0, 0.0, 0.0]).round(3).tolist()  # target x, seen by the body
+    [0.955, 0.296, 0.0]
+    """
+    rt, rb = _rotation(_quat(*target_rpy)), _rotation(_quat(*body_rpy))
+    tb = rb.T @ rt
+    cos_thrust = float(np.clip(rt[:, 2] @ rb[:, 2], -1.0, 1.0))
+    heading = (target_rpy[2] - body_rpy[2] + math.pi) % (2 * math.pi) - math.pi
+    return Alignment(math.acos(cos_thrust), heading, tb)
+
+
+def body_rates(torque: np.ndarray, gyro: np.ndarray, ff: np.ndarray, rate_p: np.ndarray,
+               target_to_body: np.ndarray | None = None) -> np.ndarray:
+    """The rates to send so that the onboard rate loop puts out ``torque``.
+
+    The loop (angle P zero) puts out ``ff d + P (d - gyro)`` for the desired body rate
+    ``d``, which is the rate sent rotated from the target into the body frame. Hence
+    ``d = (torque + P gyro) / (ff + P)`` and the rate sent is ``R^T d``.
+
+    Parameters
+    ----------
+    torque, gyro, ff, rate_p : ndarray, shape (3,)
+        Roll, pitch, yaw: normalised torque, measured body rate (rad/s), the feed-forward
+        and rate-P gains in effect onboard (normalised per rad/s).
+    target_to_body : ndarray, shape (3, 3), optional
+        :attr:`Alignment.target_to_body`; None: aligned.
+
+    >>> body_rates(np.array([0.1, 0, 0]), np.zeros(3), np.ones(3), np.zeros(3)).tolist()
+    [0.1, 0.0, 0.0]
+    >>> body_rates(np.array([0.1, 0, 0]), np.array([0.5, 0, 0]), np.zeros(3),
+    ...            np.full(3, 0.1)).round(6).tolist()
+    [1.5, 0.0, 0.0]
+    """
+    d = (torque + rate_p * gyro) / (ff + rate_p)
+    return d if target_to_body is None else target_to_body.T @ d
+
+
+# ---------------------------------------------------------------------- k from PID_TUNING
+@dataclass(frozen=True)
+class FeedForwardCheck:
+    """The rate loop as PID_TUNING showed it, one axis.
+
+    ``k_measured`` is the median of ``FF / desired`` over samples with a feed-forward output
+    above :data:`MIN_FF`; ``pid_max`` the largest |P|, |I| or |D| output seen.
+    ``verdict`` is ``ok``, ``corrected`` or ``refused``.
+    """
+
+    axis: str
+    samples: int
+    k_set: float
+    k_measured: float
+    pid_max: float
+    verdict: str
+
+    def line(self) -> str:
+        return (f"{self.axis} k {self.k_measured:.4g} measured ({self.k_set:g} set, "
+                f"{self.samples} PID_TUNING samples, P/I/D at most {self.pid_max:.2g}): "
+                f"{self.verdict}")
+
+
+def check_feed_forward(axis: str, k_set: float, desired: np.ndarray, ff: np.ndarray,
+                       pid_abs: np.ndarray) -> FeedForwardCheck:
+    """Judge one axis of PID_TUNING samples (arrays of equal length; see the class).
+
+    >>> d = np.linspace(0.05, 0.5, 30)
+    >>> check_feed_forward("roll", 1.0, d, 1.0 * d, np.zeros(30)).verdict
+    'ok'
+    >>> check_feed_forward("roll", 1.0, d, 0.9 * d, np.zeros(30)).verdict
+    'corrected'
+    >>> check_feed_forward("roll", 1.0, d, 1.0 * d, np.full(30, 0.01)).verdict
+    'refused'
+    """
+    use = (np.abs(ff) > MIN_FF) & (np.abs(desired) > 0)
+    k = float(np.median(ff[use] / desired[use])) if use.any() else math.nan
+    pid = float(np.max(pid_abs)) if len(pid_abs) else 0.0
+    err = abs(k / k_set - 1.0) if math.isfinite(k) else math.inf
+    verdict = ("refused" if err > K_REFUSE or pid > PID_ACTIVE
+               else "corrected" if err > K_CORRECT else "ok")
+    return FeedForwardCheck(axis, int(use.sum()), k_set, k, pid, verdict)
+
+
+# ---------------------------------------------------------------------- streaming state
+class RateChannel:
+    """Torque set points -> body-rate set points, on the stream's ticks.
+
+    Holds what the onboard rate loop is believed to be (feed-forward and rate P per axis,
+    updated as the hand-over writes them) and the latest onboard attitude target.
+    """
+
+    def __init__(self, params: RatePathParams) -> None:
+        self.params = params
+        self.reset()
+
+    def reset(self) -> None:
+        self.ff = np.array(self.params.k, dtype=float)
+        self.rate_p = np.zeros(3)
+        self.target: AttitudeSetpoint | None = None
+        self.released = False  # True: zero rates (the onboard angle loop holds the target)
+        self.last: Alignment | None = None
+        self.worst_thrust_rad = 0.0
+        self.worst_heading_rad = 0.0
+        self.last_thrust = 0.0
+
+    def see_target(self, sp: AttitudeSetpoint) -> None:
+        self.target = sp
+
+    def step(self, out: ActuatorTarget, s: FlightState | None) -> RateTarget:
+        """The rate set point that makes the onboard loop put out ``out``'s torques."""
+        self.last_thrust = out.thrust
+        if self.released or s is None:
+            return RateTarget(out.t_s, 0.0, 0.0, 0.0, out.thrust)
+        tb = None
+        if self.target is not None:
+            tgt = self.target
+            a = alignment((tgt.roll_rad, tgt.pitch_rad, tgt.yaw_rad),
+                          (s.roll_rad, s.pitch_rad, s.yaw_rad))
+            self.last, tb = a, a.target_to_body
+            self.worst_thrust_rad = max(self.worst_thrust_rad, a.thrust_error_rad)
+            self.worst_heading_rad = max(self.worst_heading_rad, abs(a.heading_error_rad))
+        w = body_rates(np.array([out.roll, out.pitch, out.yaw]),
+                       np.array([s.p_rad_s, s.q_rad_s, s.r_rad_s]), self.ff, self.rate_p, tb)
+        return RateTarget(out.t_s, float(w[0]), float(w[1]), float(w[2]), out.thrust)
+
+
+# ---------------------------------------------------------------------- the path
+class RatePath:
+    """One tune's rate path: test parameters, conversion, checks, hand-over, restore.
+
+    The api calls :meth:`wrap` (the stream's set points), :meth:`engage` (after arming),
+    :meth:`check` (main loop), :meth:`split` and :meth:`hand_over` (write-back),
+    :meth:`abort` (before landing on any abort) and :meth:`restore_rest` (always, last).
+    """
+
+    def __init__(self, link: VehicleLink, params: RatePathParams, backup_dir: Path) -> None:
+        self.link = link
+        self.params = params
+        self.backup_dir = backup_dir
+        self.channel = RateChannel(params)
+        self.notes: list[str] = []
+        self.backup: Path | None = None  # originals of every test parameter
+        self.originals: dict[str, float] = {}
+        self.known: dict[str, Param] = {}  # name -> value before the tune, with its type
+        self.restored: set[str] = set()  # test parameters back at their final value
+        self.checks: dict[str, FeedForwardCheck] = {}
+        self.t_engaged: float | None = None
+        self.zero_gain_s = math.nan
+        self.staged: dict[str, float] = {}  # the tune's written values among test params
+        self.handed_over = False
+        self.changes: tuple[ParamChange, ...] = ()
+        self.yaw_note: str | None = None  # how yaw was held, where not the default hold
+        self._stack = contextlib.ExitStack()
+        self._targets = self._stack.enter_context(link.subscribe(AttitudeSetpoint))
+        self._pid = self._stack.enter_context(link.subscribe(PidTuning))
+        self._pid_rows: dict[int, list[tuple[float, float, float]]] = {1: [], 2: [], 3: []}
+        self._checking = False
+
+    def close(self) -> None:
+        self._stack.close()
+
+    # -------------------------------------------------------------- stream
+    def wrap(self, make: Callable[[float], object], latest: Callable[[], FlightState | None]
+             ) -> Callable[[float], RateTarget | AttitudeTarget | None]:
+        """The stream's set-point function with torques sent as rates."""
+        channel, targets = self.channel, self._targets
+
+        def rate_make(t: float):
+            out = make(t)
+            while (sp := targets.get(0.0)) is not None:
+                if isinstance(sp, AttitudeSetpoint):
+                    channel.see_target(sp)
+            if isinstance(out, ActuatorTarget):
+                return channel.step(out, latest())
+            return out  # type: ignore[return-value]
+
+        return rate_make
+
+    def _ask(self, message_id: int, rate_hz: float) -> bool:
+        try:
+            self.link.command(MAV_CMD_SET_MESSAGE_INTERVAL,
+                              (float(message_id), 1e6 / rate_hz if rate_hz > 0 else 0.0),
+                              timeout_s=0.5)
+        except LinkError:
+            return False
+        return True
+
+    # -------------------------------------------------------------- engage
+    def engage(self, client: ParamClient) -> None:
+        """Write the test parameters (armed, on the ground; backed up first) and ask for
+        ATTITUDE_TARGET and PID_TUNING. The zero-gain window starts here."""
+        if not self._ask(_ATTITUDE_TARGET_ID, STREAM_HZ):
+            raise LinkError("the vehicle refused to stream ATTITUDE_TARGET, which the rate "
+                            "path needs to align its rates: use --actuation attitude")
+        self._ask(_PID_TUNING_ID, STREAM_HZ)
+        result = client.write(dict(self.params.test_params), self.backup_dir, label="rate-test")
+        self.backup = result.backup_path
+        self.originals = {c.name: c.old for c in result.changes}
+        self.known = {e.param.name: e.param for e in read_params_file(self.backup)}
+        self.t_engaged = time.monotonic()
+        self._checking = True
+        self.channel.worst_thrust_rad = self.channel.worst_heading_rad = 0.0
+        changed = sum(1 for c in result.changes if c.old != c.new)
+        self.notes.append(
+            f"rate path: {changed} test parameters set after arming (rate loop reduced to "
+            f"feed-forward k {'/'.join(f'{k:g}' for k in self.params.k)}, angle P 0; backup "
+            f"{self.backup}); restored at the hand-over, the written gains kept")
+        if LINK_LOSS_GUARD is not None:
+            self.notes.append(LINK_LOSS_GUARD(self.link, client, self.backup))
+        else:
+            self.notes.append("rate path: link loss in the zero-gain window is unprotected "
+                              "onboard (no link-loss guard installed): GUID_TIMEOUT only "
+                              "levels the attitude target, the gains stay zero")
+
+    def yaw_hold(self) -> YawHold | None:
+        """The ground station's yaw hold on this path: the vehicle's own yaw gains (angle P
+        times rate P, and rate P; the rate I left out), read before the test parameters
+        zeroed them. The default hold (Kc 0.2) let ArduCopter SITL's yaw drift 20 deg
+        during the side tests. None where the values are not known."""
+        names = (self.params.angle_p[2], self.params.rate_p[2])
+        if not all(n in self.originals for n in names):
+            return None
+        ang, rate = (self.originals[n] for n in names)
+        if not (ang > 0 and rate > 0):
+            return None
+        self.yaw_note = (f"yaw is not tuned: the ground station held it during the tests on "
+                         f"the vehicle's own yaw gains (Kc {ang * rate:.3g} /rad, Kd "
+                         f"{rate:.3g} s/rad on the normalised yaw command, rate I left out), "
+                         f"which are restored afterwards")
+        return YawHold(ang * rate, rate, limit=YAW_LIMIT)
+
+    def require_aligned(self, timeout_s: float = 1.5) -> Alignment:
+        """Before the take-off: the onboard target must sit on the body (ATTITUDE_TARGET
+        against ATTITUDE, as the stream sees them); otherwise the tune stops on the ground."""
+        end = time.monotonic() + timeout_s
+        a = None
+        while time.monotonic() < end:
+            a = self.channel.last
+            if a is not None and (math.degrees(a.thrust_error_rad) <= GROUND_ALIGNMENT_DEG[0]
+                                  and abs(math.degrees(a.heading_error_rad))
+                                  <= GROUND_ALIGNMENT_DEG[1]):
+                self.notes.append(
+                    f"rate path: onboard target on the body before the take-off "
+                    f"({math.degrees(a.thrust_error_rad):.1f} deg thrust, "
+                    f"{math.degrees(a.heading_error_rad):+.1f} deg heading)")
+                return a
+            time.sleep(0.05)
+        seen = ("no ATTITUDE_TARGET seen" if a is None else
+                f"{math.degrees(a.thrust_error_rad):.0f} deg thrust, "
+                f"{math.degrees(a.heading_error_rad):+.0f} deg heading")
+        raise SafetyAbort(f"rate path: the onboard attitude target is not on the body before "
+                          f"the take-off ({seen}): not taking off; disarm, re-arm and retry")
+
+    # -------------------------------------------------------------- checks
+    def check(self) -> None:
+        """Measure ``k`` from PID_TUNING and the target's alignment; correct or refuse."""
+        rows = self._pid_rows
+        while (ev := self._pid.get(0.0)) is not None:
+            if not (self._checking and isinstance(ev, PidTuning)) or ev.axis not in rows:
+                continue
+            rows[ev.axis].append((ev.desired, ev.ff, max(abs(ev.p), abs(ev.i), abs(ev.d))))
+            if len(rows[ev.axis]) > 2000:
+                del rows[ev.axis][:1000]
+        if self._checking:
+            for axis in (1, 2, 3):
+                self._judge(axis)
+        if self.t_engaged is not None and (self.channel.worst_thrust_rad
+                                           > math.radians(MAX_THRUST_ERROR_DEG)):
+            raise SafetyAbort(
+                f"rate path: the onboard attitude target drifted "
+                f"{math.degrees(self.channel.worst_thrust_rad):.0f} deg from the body (more "
+                f"than {MAX_THRUST_ERROR_DEG:.0f} deg; ArduPilot scales its feed-forward down "
+                f"from 30): test stopped, gains restored, landing commanded")
+
+    def _judge(self, axis: int) -> None:
+        name = _AXES[axis - 1]
+        a = np.array(self._pid_rows[axis]).reshape(-1, 3)
+        big = np.abs(a[:, 1]) > MIN_FF
+        if name in self.checks and self.checks[name].verdict != "refused":
+            # judged: P, I and D must stay off while the ground station flies
+            if len(a) and float(np.max(a[:, 2])) > PID_ACTIVE:
+                raise SafetyAbort(f"rate path: the {name} rate loop put out P/I/D "
+                                  f"{float(np.max(a[:, 2])):.3g} (not pure feed-forward): "
+                                  f"test stopped, gains restored, landing commanded")
+            return
+        if int(big.sum()) < MIN_SAMPLES:
+            return
+        k_set = self.params.k[axis - 1]
+        chk = check_feed_forward(name, k_set, a[:, 0], a[:, 1], a[:, 2])
+        self.checks[name] = chk
+        self.notes.append(f"rate path: {chk.line()}")
+        if chk.verdict == "refused":
+            raise SafetyAbort(f"rate path: {chk.line()}: the rate loop is not the feed-forward "
+                              f"the test needs; test stopped, gains restored, landing "
+                              f"commanded")
+        if chk.verdict == "corrected":
+            self.channel.ff[axis - 1] = chk.k_measured
+        self._pid_rows[axis] = []
+
+    # -------------------------------------------------------------- write-back
+    def split(self, values: Mapping[str, float]) -> dict[str, float]:
+        """The write-back's values less those that are test parameters (kept for
+        :meth:`hand_over`, which writes them staged; after it, already written)."""
+        test = self.params.test_params
+        if not self.handed_over:
+            self.staged = {n: v for n, v in values.items() if n in test}
+        return {n: v for n, v in values.items() if n not in test}
+
+    def _final(self, keep_written: bool = True) -> dict[str, float]:
+        """Each test parameter's value after the tune: the written gain, else its own."""
+        staged = self.staged if keep_written else {}
+        return {n: staged.get(n, self.originals.get(n, v))
+                for n, v in self.params.test_params.items()}
+
+    def _write(self, client: ParamClient, values: Mapping[str, float]) -> None:
+        """Every value read back; all were backed up at :meth:`engage` (no read first)."""
+        values = {n: v for n, v in values.items() if n not in self.restored}
+        if values:
+            client.write_known(values, self.known)
+            self.restored.update(values)
+
+    def hand_over(self, client: ParamClient, hold: Callable[[float], None]
+                  ) -> tuple[ParamChange, ...]:
+        """Give attitude control back to the autopilot while the ground station flies.
+
+        1. rate P (roll, pitch: the written Kd; yaw: its own) - the rates sent invert it;
+        2. feed-forward back to the vehicle's own values - likewise;
+        3. rates to zero, then the written angle P and every other test parameter.
+
+        ``hold(s)`` keeps the stream checked in between. Returns the written gains among
+        the test parameters as changes from their values before the tune. Done once: a
+        second call (the write-back after an early hand-over) returns the same changes.
+        """
+        if self.handed_over:
+            return self.changes
+        self._checking = False  # the rate loop is no longer pure feed-forward from here
+        final, p = self._final(), self.params
+        t0 = time.monotonic()
+        self._write(client, {n: final[n] for n in p.rate_p})
+        self.channel.rate_p = np.array([final[n] for n in p.rate_p])
+        hold(STAGE_HOLD_S)
+        self._write(client, {n: final[n] for n in p.ff})
+        self.channel.ff = np.array([final[n] for n in p.ff])
+        hold(STAGE_HOLD_S)
+        self.channel.released = True
+        hold(0.02)  # a zero-rate set point out before the angle loop comes back
+        rest = {n: final[n] for n in p.angle_p}
+        rest.update({n: v for n, v in final.items() if n not in rest})
+        self._write(client, rest)
+        t_done = time.monotonic()
+        if self.t_engaged is not None:
+            self.zero_gain_s = t_done - self.t_engaged
+        self.notes.append(
+            f"rate path: zero-gain window {self.zero_gain_s:.1f} s (test parameters written "
+            f"after arming to the written gains in effect); hand-over in "
+            f"{t_done - t0:.2f} s (rate P, feed-forward, then angle P and the rest); largest "
+            f"target-to-body misalignment {math.degrees(self.channel.worst_thrust_rad):.1f} "
+            f"deg thrust, {math.degrees(self.channel.worst_heading_rad):.1f} deg heading "
+            f"(compensated)")
+        self.handed_over = True
+        self.changes = tuple(ParamChange(n, self.originals.get(n, math.nan), v)
+                             for n, v in self.staged.items())
+        return self.changes
+
+    def inner_due(self, roll_pitch_tuned: bool) -> bool:
+        """True once roll and pitch are identified and the hand-over has not run: the side
+        tests then fly on the written gains onboard (as on the attitude path), and the
+        zero-gain window closes there."""
+        return roll_pitch_tuned and not self.handed_over and self.backup is not None
+
+    def merged_backup(self, other: str | None) -> str:
+        """A backup file with the values from before the tune of every parameter it wrote:
+        ``other`` (the write-back's own backup) plus the written test parameters' originals
+        (the write-back itself saw them at their test values)."""
+        assert self.backup is not None
+        entries = {e.param.name: e.param for e in read_params_file(self.backup)
+                   if e.param.name in self.staged}
+        if other:
+            for e in read_params_file(other):
+                entries.setdefault(e.param.name, e.param)
+        path = self.backup_dir / f"{self.backup.stem.replace('rate-test', 'backup')}.params"
+        write_params_file(path, entries.values(), self.link.target_system,
+                          self.link.target_component, stack=self.link.family.value)
+        return str(path)
+
+    # -------------------------------------------------------------- abort, restore
+    def abort(self, client: ParamClient) -> None:
+        """Before a landing command on any abort: zero rates, then the vehicle's own gains
+        back (a landing on zero gains would tumble)."""
+        self.channel.released = True
+        self._checking = False
+        self.restored -= set(self.staged)  # an abort puts the vehicle's own values back
+        with contextlib.suppress(MrftError):
+            self.link.send_rate_target(RateTarget(0.0, 0.0, 0.0, 0.0, self.channel.last_thrust))
+        self.restore_rest(client, keep_written=False)
+
+    def restore_rest(self, client: ParamClient, keep_written: bool = True) -> None:
+        """Every test parameter not yet back, at its value from before the tune (with
+        ``keep_written``, the tune's written gains instead where it wrote them)."""
+        if self.backup is None:
+            return
+        left = {n: v for n, v in self._final(keep_written).items() if n not in self.restored}
+        if not left:
+            return
+        try:
+            self._write(client, left)
+        except MrftError as err:
+            self.notes.append(f"rate path: the test parameters were not all restored ({err}): "
+                              f"restore {self.backup} by hand")
+        else:
+            self.notes.append(f"rate path: {len(left)} test parameters restored")
+
+
+def check_profile(profile: AutopilotProfile) -> RatePathParams:
+    """The profile's ``[rate_path]`` or a UsageError saying what to use instead."""
+    if profile.rate_path is None:
+        raise UsageError(f"profile {profile.name} has no [rate_path]: use --actuation "
+                         f"attitude or torque")
+    return profile.rate_path
