@@ -11,6 +11,7 @@ vehicle's ground-station id, so its own heartbeats cannot keep the guard quiet.
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import time
 
@@ -23,6 +24,7 @@ from mrft_gcs.link.failsafe import (
     GuardFailed,
     GuardRefused,
     install_link_loss_guard,
+    rate_path_guard,
     remove_link_loss_guard,
 )
 from mrft_gcs.link.ftp import list_dir
@@ -172,10 +174,11 @@ def test_silent_ground_station_restores_the_gains_and_lands(copter, tmp_path):
         assert ParamClient(link).read("ATC_RAT_RLL_P").value == pytest.approx(rll_p)
 
 
-def test_the_guard_ends_itself_when_the_tune_hands_over(copter, tmp_path):
-    """Armed in GUIDED_NOGPS, then a hand-over to LOITER with a new gain written: the guard
-    says it is off, and a silence in a later GUIDED_NOGPS stretch neither reverts the gain nor
-    lands (the observer lands it)."""
+def test_the_rate_path_hook_guards_after_arming_and_ends_at_the_hand_over(copter, tmp_path):
+    """As the rate path does: armed on the ground, a test parameter written (backed up), the
+    hook installs the guard for that backup. Take-off, a new gain written, hand-over to
+    LOITER: the guard says it is off, and a silence in a later GUIDED_NOGPS stretch neither
+    reverts the gain nor lands (the observer lands it)."""
     serial0, serial1 = copter
     with VehicleLink.connect(serial1, timeout_s=10, source_system=OBSERVER_SYSID) as obs:
         obs_params = ParamClient(obs)
@@ -184,22 +187,28 @@ def test_the_guard_ends_itself_when_the_tune_hands_over(copter, tmp_path):
         with obs.subscribe(StatusText) as texts:
             link = VehicleLink.connect(serial0, timeout_s=10)
             try:
-                guard = install_link_loss_guard(link, {"ATC_RAT_RLL_P": rll_p}, 0.5)
                 link.request_message_interval("LOCAL_POSITION_NED", 50.0)
                 link.set_mode(GUIDED_NOGPS)
                 link.arm()
+                client = ParamClient(link)
+                backup = client.write({"ATC_RAT_RLL_P": round(rll_p * 0.9, 4)}, tmp_path)
+                note = rate_path_guard(link, client, backup.backup_path)
+                print(note)
+                found = re.search(r"mrftguard ([0-9a-f]{6}) on the vehicle", note)
+                assert found is not None, note
+                tag = f"mrftguard {found.group(1)}"
+                assert link.heartbeat.armed and _guard_files(link) == []
                 alt = _fly(link, 30.0, until_m=1.5)
                 assert alt > 1.5, f"did not take off ({alt:.2f} m, armed {link.heartbeat.armed})"
-                ParamClient(link).write({"ATC_RAT_RLL_P": tuned}, tmp_path)
+                client.write({"ATC_RAT_RLL_P": tuned}, tmp_path)
                 link.set_mode(ARDUPILOT_COPTER_MODES["position"])  # LOITER: the hand-over
-                off = texts.wait_for(lambda e: e.text == f"mrftguard {guard.guard_id} off", 3.0)
+                off = texts.wait_for(lambda e: e.text == f"{tag} off", 3.0)
                 assert off is not None, "the guard did not end itself on the hand-over"
                 link.set_mode(GUIDED_NOGPS)  # a later offboard stretch, no longer guarded
                 _fly(link, 1.0)
             finally:
                 link.close()
-            fired = texts.wait_for(lambda e: e.text.startswith(f"mrftguard {guard.guard_id} "),
-                                   0.5 + 2.0)
+            fired = texts.wait_for(lambda e: e.text.startswith(f"{tag} "), 0.5 + 2.0)
             assert fired is None, fired
         assert obs.heartbeat.custom_mode == GUIDED_NOGPS.main and obs.heartbeat.armed
         assert obs_params.read("ATC_RAT_RLL_P").value == pytest.approx(tuned)
@@ -209,5 +218,16 @@ def test_the_guard_ends_itself_when_the_tune_hands_over(copter, tmp_path):
             time.sleep(0.2)
         assert not obs.heartbeat.armed
         ParamClient(obs).write({"ATC_RAT_RLL_P": rll_p}, tmp_path)
+
+
+def test_the_rate_path_hook_says_why_link_loss_stays_unprotected(copter, tmp_path):
+    serial0, _ = copter
     with VehicleLink.connect(serial0, timeout_s=10) as link:
-        remove_link_loss_guard(link, guard)
+        client = ParamClient(link)
+        backup = client.write({"SCR_ENABLE": 0}, tmp_path).backup_path
+        try:
+            note = rate_path_guard(link, client, backup)
+        finally:
+            client.restore(backup, tmp_path)
+        assert note.startswith("rate path: link loss in the zero-gain window is unprotected")
+        assert "SCR_ENABLE 1" in note and "reboot" in note

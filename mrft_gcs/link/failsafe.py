@@ -46,17 +46,19 @@ import re
 import time
 from dataclasses import dataclass
 from importlib import resources
+from pathlib import Path
 from string import Template
 
 from mrft_gcs.errors import LinkError, ParameterError, UsageError
 from mrft_gcs.link.ftp import list_dir, put_file, remove_file
 from mrft_gcs.link.modes import ARDUPILOT_COPTER_MODES
 from mrft_gcs.link.vehicle import VehicleLink
-from mrft_gcs.params import ParamClient
+from mrft_gcs.params import ParamClient, read_params_file
 from mrft_gcs.telemetry import AutopilotFamily, StatusText
 
 __all__ = ["GuardRefused", "GuardFailed", "LinkLossGuard", "guard_script",
-           "install_link_loss_guard", "remove_link_loss_guard", "GUARD_FILE"]
+           "install_link_loss_guard", "remove_link_loss_guard", "rate_path_guard",
+           "GUARD_FILE", "DEFAULT_SILENCE_S"]
 
 GUARD_FILE = "mrft_linkloss_guard.lua"
 #: where ArduPilot loads scripts from: flight controllers (SD card), then SITL and Linux
@@ -69,6 +71,8 @@ ARDUCOPTER_LAND = ARDUPILOT_COPTER_MODES["land"].main
 #: the guard's own check period (ms): a fraction of the shortest silence it accepts
 GUARD_PERIOD_MS = 50
 MIN_SILENCE_S, MAX_SILENCE_S = 0.3, 30.0
+#: the zero-gain window's default (docs/link-and-stream.md has what 1.0, 0.5 and 0.3 s saved)
+DEFAULT_SILENCE_S = 0.5
 #: keeps the guard's report within one 50-character STATUSTEXT
 MAX_PARAMS = 99
 _NAME = re.compile(r"^[A-Z][A-Z0-9_]{0,15}$")
@@ -155,8 +159,10 @@ def guard_script(restore: dict[str, float], silence_s: float, *,
     return template.substitute(fields, guard_id=guard_id), guard_id
 
 
-def install_link_loss_guard(link: VehicleLink, restore: dict[str, float], silence_s: float = 0.5,
-                            *, confirm_timeout_s: float = 10.0) -> LinkLossGuard:
+def install_link_loss_guard(link: VehicleLink, restore: dict[str, float],
+                            silence_s: float = DEFAULT_SILENCE_S, *,
+                            confirm_timeout_s: float = 10.0,
+                            allow_armed: bool = False) -> LinkLossGuard:
     """Upload the guard for ``restore``, restart scripting, wait until it reports running.
 
     Call it disarmed, before arming, once the parameters the test changes are backed up
@@ -176,6 +182,9 @@ def install_link_loss_guard(link: VehicleLink, restore: dict[str, float], silenc
         vehicle); a stall of the tool's reader thread this long lands the vehicle.
     confirm_timeout_s : float
         How long to wait for the guard's start report after restarting scripting, s.
+    allow_armed : bool
+        Install on an armed vehicle too: only on the ground (restarting scripting stops the
+        vehicle's other scripts for a moment), e.g. right after arming as the rate path does.
 
     Raises
     ------
@@ -187,7 +196,7 @@ def install_link_loss_guard(link: VehicleLink, restore: dict[str, float], silenc
     """
     script, guard_id = guard_script(restore, silence_s, offboard_mode=link.modes["offboard"].main,
                                     land_mode=link.modes["land"].main)
-    _check_vehicle(link)
+    _check_vehicle(link, allow_armed)
     folder = _scripts_dir(link)
     path = f"{folder}/{GUARD_FILE}"
     try:
@@ -204,6 +213,25 @@ def install_link_loss_guard(link: VehicleLink, restore: dict[str, float], silenc
         _undo(link, guard)
         raise
     return guard
+
+
+def rate_path_guard(link: VehicleLink, client: ParamClient, backup: Path) -> str:
+    """The rate path's link-loss hook (``mrft_gcs.flight.ratepath.LINK_LOSS_GUARD``): install
+    the guard for the test parameters' backup, right after they were written on the ground.
+
+    Returns the report's note: the guard's id and what it does, or why link loss stays
+    unprotected (scripting off, no card ...: the tune goes on, as on a firmware without Lua).
+    The guard ends itself at the hand-over out of GUIDED_NOGPS; :func:`remove_link_loss_guard`
+    is not needed (a vehicle reboot or scripting restart also ends it).
+    """
+    restore = {e.param.name: e.param.value for e in read_params_file(backup)}
+    try:
+        guard = install_link_loss_guard(link, restore, DEFAULT_SILENCE_S, allow_armed=True)
+    except (GuardRefused, GuardFailed) as err:
+        return f"rate path: link loss in the zero-gain window is unprotected onboard: {err}"
+    return (f"rate path: link-loss guard mrftguard {guard.guard_id} on the vehicle: after "
+            f"{guard.silence_s:g} s without a ground-station heartbeat it restores the "
+            f"{len(restore)} backed-up parameters and lands; it ends at the hand-over")
 
 
 def _confirm(link: VehicleLink, guard: LinkLossGuard, timeout_s: float) -> None:
@@ -292,11 +320,11 @@ def _param(client: ParamClient, *names: str) -> float | None:
     return None
 
 
-def _check_vehicle(link: VehicleLink) -> None:
+def _check_vehicle(link: VehicleLink, allow_armed: bool) -> None:
     if link.family is not AutopilotFamily.ARDUPILOT:
         raise GuardRefused("the link-loss guard is an ArduPilot Lua script: this vehicle is "
                            "not ArduPilot")
-    if link.heartbeat.armed:
+    if link.heartbeat.armed and not allow_armed:
         raise GuardRefused("install the link-loss guard while disarmed (restarting scripting "
                            "in flight would stop every script): land and disarm first")
     client = ParamClient(link)
