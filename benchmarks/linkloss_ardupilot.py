@@ -9,7 +9,9 @@ in GUIDED_NOGPS to 2 m (level SET_ATTITUDE_TARGET, raw thrust), then in one burs
 feed-forward set of issue 23 (ATC_RAT_*_P/I/D/D_FF/FLTT/NTF 0, ATC_RAT_*_FF 0.1/0.1/0.2,
 ATC_ANG_*_P 0, ATC_ACCEL_*_MAX 0, ATC_RATE_FF_ENAB 1, ...), sends one last body-rate command
 (roll rate ``R`` rad/s, attitude ignored: what a relay test leaves behind) and closes the
-link. A case ``S:R`` installs the guard with silence ``S`` s first; ``none:R`` does not.
+link. ``--profile-set`` writes the ardupilot profile's rate-path set instead (k 1,
+GUID_TIMEOUT 0.2 s: what the tool flies). A case ``S:R`` installs the guard with silence
+``S`` s first; ``none:R`` does not.
 An observer on SERIAL1 (system id 254, not a ground-station id) records the largest tilt,
 when the guard spoke, the touch-down speed the SITL reports ("SIM Hit ground at") and
 whether the vehicle disarmed within 25 s.
@@ -33,7 +35,15 @@ from mrft_gcs.link import VehicleLink
 from mrft_gcs.link.failsafe import install_link_loss_guard
 from mrft_gcs.link.modes import ARDUPILOT_COPTER_MODES
 from mrft_gcs.params import ParamClient
-from mrft_gcs.telemetry import Attitude, AttitudeTarget, Heartbeat, LocalPosition, StatusText
+from mrft_gcs.profiles import load_profile
+from mrft_gcs.telemetry import (
+    Attitude,
+    AttitudeTarget,
+    Heartbeat,
+    LocalPosition,
+    RateTarget,
+    StatusText,
+)
 
 ZERO_SET: dict[str, float] = {
     **{f"ATC_RAT_{a}_{k}": 0.0 for a in ("RLL", "PIT", "YAW")
@@ -45,7 +55,6 @@ ZERO_SET: dict[str, float] = {
     "MOT_BAT_VOLT_MAX": 0, "ATC_THR_G_BOOST": 0, "ACRO_BAL_ROLL": 0, "ACRO_BAL_PITCH": 0,
 }
 MAV_PARAM_TYPE_REAL32 = 9
-IGNORE_ATTITUDE = 0b1000_0000
 
 
 def start_sitl(instance: int, run_dir: str) -> str:
@@ -76,16 +85,10 @@ def fly(link: VehicleLink, seconds: float, until_m: float | None = None) -> floa
     return -z
 
 
-def send_body_rate(link: VehicleLink, roll_rate: float, thrust: float) -> None:
-    # a body-rate setpoint (the rate path's); the link's own sender ignores rates
-    link._send(lambda mav: mav.set_attitude_target_send(
-        0, link.target_system, link.target_component, IGNORE_ATTITUDE, [1.0, 0.0, 0.0, 0.0],
-        roll_rate, 0.0, 0.0, thrust), "SET_ATTITUDE_TARGET")
-
-
 def run_case(base: int, silence_s: float | None, roll_rate: float) -> dict[str, object]:
     serial0, serial1 = f"tcp:127.0.0.1:{base}", f"tcp:127.0.0.1:{base + 2}"
-    out: dict[str, object] = {"silence_s": silence_s, "last_roll_rate_rad_s": roll_rate}
+    out: dict[str, object] = {"silence_s": silence_s, "last_roll_rate_rad_s": roll_rate,
+                              "params_written": len(ZERO_SET)}
     with VehicleLink.connect(serial1, timeout_s=10, source_system=254) as obs:
         backup = {n: p.value for n, p in ParamClient(obs).read_many(ZERO_SET).items()}
         obs.request_message_interval("ATTITUDE", 50.0)
@@ -105,7 +108,7 @@ def run_case(base: int, silence_s: float | None, roll_rate: float) -> dict[str, 
                 for name, value in ZERO_SET.items():  # a burst, no read-back: no time passes
                     link.send_param_set(name, value, MAV_PARAM_TYPE_REAL32)
                 for _ in range(5):
-                    send_body_rate(link, roll_rate, 0.37)
+                    link.send_rate_target(RateTarget(0.0, roll_rate, 0.0, 0.0, 0.37))
                     time.sleep(0.02)
             finally:
                 link.close()
@@ -133,7 +136,15 @@ def main() -> int:
     ap.add_argument("--instance", type=int, default=5)
     ap.add_argument("--case", action="append", help="SILENCE_S:ROLL_RATE or none:ROLL_RATE")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--profile-set", action="store_true",
+                    help="write the ardupilot profile's [rate_path.test_params] (k 1, "
+                         "GUID_TIMEOUT 0.2 s) instead of issue 23's probe set")
     args = ap.parse_args()
+    if args.profile_set:
+        rate_path = load_profile("ardupilot").rate_path
+        assert rate_path is not None
+        ZERO_SET.clear()
+        ZERO_SET.update(rate_path.test_params)
     cases = args.case or ["none:0.1", "1.0:0.1", "0.5:0.1", "0.5:0.3", "0.3:0.3", "none:0.3"]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
