@@ -7,7 +7,7 @@ message into a typed value once (:mod:`mrft_gcs.telemetry` samples, plus
 :class:`~mrft_gcs.telemetry.TelemetrySource` protocol) and to any
 :meth:`~VehicleLink.subscribe` waiter. Senders (the CLI thread, the setpoint
 streamer) share one lock, so frames and signing timestamps never interleave. The
-GCS heartbeat goes out once a second from the reader thread.
+GCS heartbeat goes out once a second (``heartbeat_period_s``) from the reader thread.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ from mrft_gcs.telemetry import (
 )
 
 __all__ = ["VehicleLink", "CommandAck", "ParamReport", "AutopilotVersion", "TimesyncReply",
-           "Subscription", "LinkCounters"]
+           "FtpFrame", "Subscription", "LinkCounters"]
 
 # Wire constants (common.xml), named once here.
 MAV_CMD_NAV_LAND = 21
@@ -127,10 +127,18 @@ class TimesyncReply:
     ts1_ns: int
 
 
+@dataclass(frozen=True, slots=True)
+class FtpFrame:
+    """FILE_TRANSFER_PROTOCOL addressed to this ground station: the 251-byte MAVLink FTP
+    payload (header and data), for :mod:`mrft_gcs.link.ftp`."""
+
+    payload: bytes
+
+
 #: answers that go to subscribers only, never into the telemetry queue
-_REPLIES = (CommandAck, AutopilotVersion, TimesyncReply)
+_REPLIES = (CommandAck, AutopilotVersion, TimesyncReply, FtpFrame)
 Event = (Sample | CommandAck | ParamReport | AutopilotVersion | TimesyncReply | AttitudeSetpoint
-         | PidTuning)
+         | PidTuning | FtpFrame)
 
 
 @dataclass
@@ -230,6 +238,9 @@ class VehicleLink:
         #: mode numbers used by :meth:`land`; a profile replaces them
         #: (``link.modes = profile.modes``)
         self.modes: dict[str, CustomMode] = self.default_modes()
+        #: seconds between GCS heartbeats; a firmware-side link-loss guard that watches them
+        #: (:mod:`mrft_gcs.link.failsafe`) shortens it
+        self.heartbeat_period_s = 1.0
         conn.mav.set_send_callback(self._on_sent)
         self._reader = threading.Thread(target=self._read_loop, name="mavlink-reader", daemon=True)
         self._reader.start()
@@ -306,6 +317,11 @@ class VehicleLink:
         self.close()
 
     @property
+    def source_ids(self) -> tuple[int, int]:
+        """This ground station's MAVLink system and component id."""
+        return int(self._conn.source_system), int(self._conn.source_component)
+
+    @property
     def tlog_path(self) -> Path | None:
         return self._tlog.path if self._tlog is not None else None
 
@@ -354,7 +370,7 @@ class VehicleLink:
         while not self._stop.is_set():
             now = time.monotonic()
             if now >= next_beat:
-                next_beat = now + 1.0
+                next_beat = now + self.heartbeat_period_s
                 try:
                     self._send(lambda mav: mav.heartbeat_send(
                         MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE), "HEARTBEAT")
@@ -453,6 +469,10 @@ class VehicleLink:
         if kind == "TIMESYNC":
             # tc1 0 is the peer's own request (ArduPilot sends some); only answers count
             return TimesyncReply(int(m.tc1), int(m.ts1)) if m.tc1 != 0 else None
+        if kind == "FILE_TRANSFER_PROTOCOL":
+            mine = (m.target_system == self._conn.source_system
+                    and m.target_component == self._conn.source_component)
+            return FtpFrame(bytes(m.payload)) if mine else None
         if kind == "AUTOPILOT_VERSION":
             return AutopilotVersion(int(m.capabilities), int(m.flight_sw_version),
                                     int(m.vendor_id), int(m.product_id))
@@ -644,6 +664,12 @@ class VehicleLink:
         """PARAM_REQUEST_READ by name (index -1) or by index."""
         self._send(lambda mav: mav.param_request_read_send(
             self.target_system, self.target_component, name.encode(), index), "PARAM_REQUEST_READ")
+
+    def send_file_transfer(self, payload: bytes, network: int = 0) -> None:
+        """FILE_TRANSFER_PROTOCOL (MAVLink FTP) to the vehicle; ``payload`` is 251 bytes."""
+        self._send(lambda mav: mav.file_transfer_protocol_send(
+            network, self.target_system, self.target_component, payload),
+            "FILE_TRANSFER_PROTOCOL")
 
     def send_param_request_list(self) -> None:
         self._send(lambda mav: mav.param_request_list_send(
