@@ -41,6 +41,7 @@ import numpy as np
 from mrft_gcs.errors import LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState, YawHold
 from mrft_gcs.flight.source import Setpoint
+from mrft_gcs.link.failsafe import rate_path_guard
 from mrft_gcs.link.firmware import Firmware
 from mrft_gcs.link.vehicle import MAV_CMD_SET_MESSAGE_INTERVAL, VehicleLink
 from mrft_gcs.params import (
@@ -97,10 +98,11 @@ _ATTITUDE_TARGET_ID = 83
 _PID_TUNING_ID = 194
 _AXES = ("roll", "pitch", "yaw")
 
-#: Where a link-loss guard is installed once the gains are zero onboard (the other helper's
-#: ArduPilot Lua script, :mod:`mrft_gcs.link.failsafe`): ``f(link, client, backup) -> note``.
-#: None: no guard; the report says that link loss in the zero-gain window is unprotected.
-LINK_LOSS_GUARD: Callable[[VehicleLink, ParamClient, Path], str] | None = None
+#: The link-loss guard installed once the gains are zero onboard (an ArduPilot Lua script
+#: that restores the backed-up gains and lands: :mod:`mrft_gcs.link.failsafe`):
+#: ``f(link, client, backup) -> note``. None: no guard; the report then says that link loss
+#: in the zero-gain window is unprotected.
+LINK_LOSS_GUARD: Callable[[VehicleLink, ParamClient, Path], str] | None = rate_path_guard
 
 
 def rate_path_refusal(profile: AutopilotProfile, fw: Firmware) -> str | None:
