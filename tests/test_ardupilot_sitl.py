@@ -65,8 +65,11 @@ def copter(tmp_path_factory):
     """``(serial0, serial1)`` connection strings of a booted ArduCopter SITL with a position."""
     instance = _free_instance()
     run_dir = tmp_path_factory.mktemp("arducopter")
+    scripting = run_dir / "scripting.parm"  # the rate path's link-loss guard is a Lua script
+    scripting.write_text("SCR_ENABLE 1\n")
     env = dict(os.environ, ARDUPILOT_SITL_DIR=str(SITL_DIR), INSTANCE=str(instance), NOWAIT="1",
-               WIPE="1", RUN_DIR=str(run_dir), READY_TIMEOUT="120")
+               WIPE="1", RUN_DIR=str(run_dir), READY_TIMEOUT="120",
+               EXTRA_DEFAULTS=str(scripting))
     out = subprocess.run([str(RECIPE / "start.sh")], env=env, capture_output=True, text=True,
                          timeout=180)
     if out.returncode != 0:
@@ -298,6 +301,8 @@ def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path
         for n in ("ATC_ANG_RLL_P", "ATC_RAT_RLL_P", "ATC_ANG_PIT_P", "ATC_RAT_PIT_P"):
             assert written[n].old == pytest.approx(before[n]) and written[n].new > 0
         assert any("zero-gain window" in n for n in result.notes), result.notes
+        # scripting is on: the link-loss guard covered the zero-gain window
+        assert any("link-loss guard mrftguard" in n for n in result.notes), result.notes
         assert result.backup is not None
         from mrft_gcs.params import read_params_file
 

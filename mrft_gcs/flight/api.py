@@ -207,6 +207,9 @@ class LoopResult:
     gcs_delay_s: float = math.nan
     #: how the written loop was checked in the air (None: no check ran; ``note`` says why)
     verification: Verification | None = None
+    #: how the re-target was decided: the GCS delay measured, its plausible range, the cap
+    #: (None: not re-targeted by measurement)
+    retarget: Retarget | None = None
 
 
 @dataclass(frozen=True)
@@ -504,6 +507,7 @@ class _Run:
         self.ages = _AgeLog()
         self.clock = _ReceiveClock(link)  # ages are counted on it
         self.delays: dict[Loop, float] = {}  # re-targeted out of the written gains (s)
+        self.retargets: dict[Loop, Retarget] = {}
         self.config = SequenceConfig()
         self.written: dict[Loop, PD] = {}
         self.residuals = True
@@ -545,7 +549,8 @@ class _Run:
                 ident, self.written.get(lp, ident.gains if ident else None),
                 t.t_tuned_s - (seq.t_start_s if seq is not None else math.nan), t.note,
                 (snap.t_s, snap.u, snap.y) if snap else None, t.band,
-                self.delays.get(lp, math.nan), self._verification(lp, status))
+                self.delays.get(lp, math.nan), self._verification(lp, status),
+                self.retargets.get(lp))
         stream = self.streamer.stats() if self.streamer is not None else None
         return TuneResult(
             connection=self.connection, autopilot=self.link.family.value, profile=self.prof.name,
@@ -916,6 +921,7 @@ class _Run:
                 continue  # its own gains go back (the hand-over restores them)
             rt = self._retarget(lp, t.identification, t.snapshot)
             self.written[lp], self.delays[lp] = rt.gains, rt.delay_s
+            self.retargets[lp] = rt
             gains[lp] = PDGains(rt.gains.Kc, rt.gains.Kd)
         ranged = params_in_range(self.prof, gains, self.hover) if gains else None
         if ranged is not None:
@@ -957,6 +963,7 @@ class _Run:
             rt = self._retarget(lp, t.identification, t.snapshot)
             delay[lp], retargets[lp] = rt.delay_s, rt
             self.written[lp] = rt.gains
+            self.retargets[lp] = rt
         side_notes = []
         for lp, inner_lp in _SIDE_INNER.items():
             # flown behind the written attitude gains, not the GCS's PD it was identified behind
