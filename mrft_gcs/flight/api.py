@@ -620,9 +620,8 @@ class _Run:
             return self.result("dry-link")
         att = self.relay.get(LoopKind.ATTITUDE) or relay_settings(LoopKind.ATTITUDE)
         alt = self.relay.get(LoopKind.ALTITUDE) or relay_settings(LoopKind.ALTITUDE)
-        # also for an identifier passed in: one that wraps the bundled identification (a
-        # script keeping each snapshot did) would otherwise load it in flight, next to the
-        # stream (racer250, the first tune of such a script: aborted at 48 deg of tilt)
+        # also for an identifier passed in: one that wraps the bundled identification
+        # would otherwise load it in flight, next to the stream, and stall it
         warm_up_identification(relay_settings(LoopKind.ATTITUDE),
                                relay_settings(LoopKind.ALTITUDE))
         self._worker_ready()

@@ -41,18 +41,14 @@ more than ``d_true`` leaves it less margin than designed, so the written gains m
 a phase margin of :data:`PM_ROBUST_DEG` on the model with ``tau - d_lo``: ``d`` is held
 back towards 0 until they do.
 
-A busy host (issue 22): a simulated vehicle whose loop fell behind real time slipped its
-clock 5-11 times in a tune; ages counted from an offset taken once grew with every slip,
-every sample reached the clip (12 ms) and the written gains were re-targeted by it,
-leaving the onboard loop 3-13 deg of phase margin.
+A busy host: a vehicle whose loop falls behind real time slips its clock; ages counted
+from a clock offset taken once grow with every slip, so the clock is modelled and
+implausible measurements are rejected (:mod:`mrft_gcs.link.clock`).
 
-Why it matters: racer250's roll (8 ms of delay) loses about 3.5 % of J per millisecond
-of GCS delay left in its gains. Re-targeting by a fixed half period left the written
-gains from 5 % aggressive to 9 % cautious with the session's phase (live, 3 seeds);
-earlier, a fixed whole period (4 ms) left them aggressive: PM on the true process below
-15 deg in 6 of 9 tunes (11.1-14.8). Racer250's roll was once identified with 6.4 ms of
-delay against a true 8 ms plus the GCS's 2.5-3 ms: the identification does not resolve
-all of the GCS delay, hence the cap below.
+Why it matters: a short-delay attitude loop loses a few % of J per millisecond of GCS delay
+left in its gains, and a fixed guess is wrong both ways with the session's phase; the
+identification does not resolve all of the GCS delay either, hence the cap below. The
+figures behind each choice: docs/writing-gains.md.
 """
 
 from __future__ import annotations

@@ -356,8 +356,7 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, til
     except ValueError as exc:
         # the check above reads the cycle-to-cycle spread; the fit weighs each harmonic by
         # its whole error (with the noise and timing terms), which can be over the limit
-        # when the spread is just under it (racer250 x under 6 x the stalls: 0.49996
-        # spread, 0.503 error): a refusal to retry on, not a crash
+        # when the spread is just under it: a refusal to retry on, not a crash
         raise IdentificationError(
             f"the side relay cycles are too noisy to measure their 3rd harmonic (error "
             f"{fit_pts.sd[1]:.3f} in log units with noise and timing, need <= "
@@ -437,9 +436,7 @@ def _measured_t_att(t, u, tilt, pts, modelled: np.ndarray):
     ok = (cl.sd <= MEASURED_T_ATT_MAX_SD) & np.isfinite(cl.G) & (np.abs(cl.G) > 0)
     combined = np.hypot(pts.sd, cl.sd)
     # a harmonic whose error, with the measured loop's added, would leave the fit keeps
-    # the modelled loop (racer250 seed 10 of tune_stalls --gcs-delay: the 3rd harmonic's
-    # 0.494 with 0.101 added made 0.504 > USABLE_SD, the fit was left with the fundamental
-    # alone, and the tune stopped on its ValueError)
+    # the modelled loop (else the fit can be left with the fundamental alone and fail)
     ok[1:] &= combined[1:] <= USABLE_SD
     if cl.cycles != pts.cycles or not np.allclose(cl.w, pts.w) or not ok[0]:
         return modelled, pts, none
@@ -527,9 +524,9 @@ HOLD_BACK_MAX_SPREAD = 0.05
 #: Steps of the hold-back from the rule's gains (0) to the refined ones (1).
 HOLD_BACK_STEPS = 20
 #: The loop kinds whose refused refinements are held back rather than dropped: attitude,
-#: whose posterior spreads over time constants its short cycles cannot tell apart (live
-#: racer250: the rule's gains up to 14.6 % J). Altitude's rule stays within 2.3 % J
-#: there, and holding back only spent phase margin (live racer250: 12.4 -> 12.1 deg).
+#: whose posterior spreads over time constants its short cycles cannot tell apart, so the
+#: rule's gains alone can be well off the optimum; altitude's rule is close to it, and a
+#: hold-back there only spends phase margin (docs/identification.md).
 HOLD_BACK_KINDS = (LoopKind.ATTITUDE,)
 
 
@@ -577,9 +574,7 @@ def held_back_gains(b: Bundle, post: np.ndarray, f, rule: PD, refined: PD) -> tu
     that ``a`` (0: the rule's gains).
 
     The rule keeps about 20 deg there by construction; the step that first loses the
-    margin ends the search. Replayed on 40 live racer250 roll/pitch identifications not
-    used to choose it (README, "How identification works"): written J at most 12.9 -> 6.2
-    %, the smallest phase margin on the true process unchanged (13.8 deg).
+    margin ends the search (its evidence: docs/identification.md).
     """
     held, a = rule, 0.0
     for step in range(1, HOLD_BACK_STEPS + 1):
@@ -671,11 +666,10 @@ def refined_identification(b: Bundle, probs: np.ndarray, f, pts,
     if K_true is not None or _min_pm_on_likely(b, post, f, design.pd) >= REFINED_MIN_PM_DEG:
         return Refinement(design.pd, refined, k, c, post, cost, 1.0)
     # the refinement starts from the Bayes rule's shape, not the likeliest one: its optimum
-    # must not undo the rule's safety on the shapes still in play. On wandering cycles
-    # (qdrone with GCS stalls: refined tau 0.010 s against 0.022, PM 6.8 deg on the true
-    # process where the rule alone kept 16 deg) the rule stands; on steady ones (racer250,
-    # whose posterior spreads over T1 it cannot see at its 0.2 s cycles) the gains move
-    # towards the refined ones as far as the margin on the likely shapes allows
+    # must not undo the rule's safety on the shapes still in play. On wandering cycles the
+    # refined delay can be far off, so the rule stands; on steady ones (whose posterior may
+    # spread over a time constant the short cycles cannot see) the gains move towards the
+    # refined ones as far as the margin on the likely shapes allows
     if b.kind not in HOLD_BACK_KINDS or pts.spread[0] > HOLD_BACK_MAX_SPREAD:
         return Refinement(pd, model, k, c, post, float("inf"), 0.0)
     held, a = held_back_gains(b, post, f, pd, design.pd)

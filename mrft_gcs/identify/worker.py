@@ -3,10 +3,7 @@
 A live tune streams setpoints at 250 Hz from threads of the ground station's process while
 its main thread identifies each loop (classifier, exact gain scaling, the refined fit's
 optimisation: 60-120 ms a loop, much of it Python holding the interpreter lock). In the
-same process every such call delays stream ticks; measured live on the 2-core development
-machine (racer250, two stream workers): 243.3 and 245.1 Hz, p99 period jitter 3.0 and
-2.7 ms, 55-101 ticks skipped with identification in the main thread, against 249.7 and
-249.4 Hz, 0.9 and 1.5 ms, 3-8 ticks skipped with it here.
+same process every such call delays stream ticks (the figures: docs/link-and-stream.md).
 
 :class:`IdentificationWorker` starts ``python -m mrft_gcs.identify.worker`` (a plain child
 process: nothing of the caller's ``__main__`` is imported again, unlike ``multiprocessing``'s

@@ -53,12 +53,7 @@ Setpoint = ActuatorTarget | AttitudeTarget | RateTarget
 SetpointFn = Callable[[float], Setpoint | None]
 
 #: two workers sleep right to the deadline: the other covers a late wake-up, and spinning
-#: holds the GIL. Live racer250, 8 tunes a side, each batch against one unpinned spinning
-#: worker: two spinning the last 0.4 ms, 248.1 vs 249.3 Hz mean; two sleeping to the
-#: deadline, 249.3 vs 248.1 Hz, p99 jitter < 2 ms in 7 of 8 tunes vs 3 of 7. Interleaved
-#: (seeds 580-587), sleeping vs spinning: 248.0 vs 246.5 Hz mean, faster in 5 of 8 pairs.
-#: streamer_jitter.py, no tune: two sleeping workers take 9-10 % of one core; one spinning,
-#: 28-59 %.
+#: holds the GIL and costs a third to half a core (docs/link-and-stream.md)
 _TWIN_MARGIN_S = 0.0
 _SPIN_MIN_S = 0.0004  # never sleep closer to a deadline than this (sleep() overshoots ~0.1 ms)
 _SPIN_PAD_S = 0.0002  # added to the measured overshoot percentile
