@@ -33,7 +33,7 @@ on the model with the ground station's delay: 2 x link + half a telemetry period
 setpoint period + half an onboard loop period).
 
     .venv/bin/python benchmarks/tune_population.py [--seeds 40] [--first-seed 0] \
-        [--mode lockstep|live] [--with-hog] [--hog-procs 2] \
+        [--mode lockstep|live] [--with-hog] [--hog-procs 2] [--in-domain-only] \
         [--json benchmarks/results/population.json]
 """
 
@@ -368,6 +368,8 @@ def main() -> None:
     ap.add_argument("--with-hog", action="store_true",
                     help="run busy-looping processes beside the tunes (killed at the end)")
     ap.add_argument("--hog-procs", type=int, default=2)
+    ap.add_argument("--in-domain-only", action="store_true",
+                    help="tune only the seeds whose vehicle is in Table I's domain")
     ap.add_argument("--json", type=Path, default=DEFAULT_JSON)
     args = ap.parse_args()
     if args.seeds < 1 or args.first_seed < 0 or args.hog_procs < 1:
@@ -388,6 +390,9 @@ def main() -> None:
         if hog is not None:
             hog.__enter__()
         for seed in range(args.first_seed, args.first_seed + args.seeds):
+            if args.in_domain_only and domain_check(random_airframe(seed)).category != (
+                    "in-domain"):
+                continue
             t0 = time.monotonic()
             r = run(seed)
             r["wall_s"] = time.monotonic() - t0
@@ -402,7 +407,8 @@ def main() -> None:
     print(f"wall time {time.monotonic() - wall0:.0f} s")
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({"mode": args.mode, "hog": args.with_hog,
-                                     "seeds": [args.first_seed, args.seeds], "runs": recs},
+                                     "seeds": [args.first_seed, args.seeds],
+                                     "in_domain_only": args.in_domain_only, "runs": recs},
                                     indent=1))
     print(f"records: {args.json}")
 
