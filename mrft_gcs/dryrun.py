@@ -186,7 +186,7 @@ class LoopResult:
     gcs_delay_s: float = math.nan
 
     def as_dict(self) -> dict:
-        """The loop's entry of the tuning report (SPEC 4.3), as far as dry-run knows it."""
+        """The loop's entry of the tuning report (README's schema), as dry-run knows it."""
         ident = self.identification
         seg = self.segment
         out: dict = {"beta": seg.beta, "h": seg.h, "bias": seg.bias, "source": seg.source,

@@ -195,7 +195,7 @@ class FleetResult:
     def as_dict(self) -> dict[str, Any]:
         """One JSON for the fleet: a summary per vehicle and each vehicle's tune report.
 
-        ``report`` is the vehicle's tune report (SPEC 4.3, partial for a failed flight) or
+        ``report`` is the vehicle's tune report (README's schema; partial if it failed) or
         null where nothing was flown (no heartbeat, a bad argument).
         """
         return {

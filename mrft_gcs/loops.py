@@ -16,7 +16,7 @@ class LoopKind(enum.Enum):
 
 
 class Loop(enum.Enum):
-    """A tuned loop. The value is the key used in reports (SPEC 4.3)."""
+    """A tuned loop. The value is the key used in reports (README's report schema)."""
 
     ROLL = "roll"
     PITCH = "pitch"

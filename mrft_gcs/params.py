@@ -1,4 +1,4 @@
-"""The MAVLink parameter protocol, with a backup before every write (SPEC 5).
+"""The MAVLink parameter protocol, with a backup before every write (README, safety).
 
 :class:`ParamClient` reads one parameter (PARAM_REQUEST_READ), all of them
 (PARAM_REQUEST_LIST, re-requesting indices that went missing), and writes a set

@@ -1,4 +1,4 @@
-"""Optimal PD design (SPEC section 2, paper Table III) and the performance deterioration J.
+"""Optimal PD design (docs/method.md, paper Table III) and the performance deterioration J.
 
 The deployed controller is ``u = Kc e - Kd dy/dt`` (derivative on the
 measurement). For a unit set-point step the error is::

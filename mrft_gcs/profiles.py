@@ -1,11 +1,11 @@
-"""Autopilot profiles (SPEC 4.2): identified PD gains -> the autopilot's own parameters.
+"""Autopilot profiles (docs/writing-gains.md): identified PD gains -> autopilot parameters.
 
 A profile is a TOML file in ``profiles/`` (``px4``, ``ardupilot``, ``sitl``) loaded
 with :mod:`tomllib` into frozen dataclasses and validated on load. It says which
 actuation path the relay tests use, which custom-mode numbers to switch to, the
 default safety limits, and the parameter names each loop's gains land in.
 
-The conversion (SPEC 2, 4.2) rests on one identity. The deployed PD acts on the
+The conversion (docs/writing-gains.md) rests on one identity. The deployed PD acts on the
 loop error ``e`` and the measured rate ``w``: ``u = Kc e - Kd w``. An angle-P
 ``Kc/Kd`` feeding a rate-P ``Kd`` gives ``u = Kd (Kc/Kd e - w)``, the same thing,
 with the rate loop's I and D set to zero. Per loop (g = 9.80665 m/s^2):
@@ -108,7 +108,7 @@ class PDGains:
 
 @dataclass(frozen=True)
 class SafetyLimits:
-    """Limits that abort a test and land (SPEC 5). Command line overrides them."""
+    """Limits that abort a test and land (README, safety). Command line overrides them."""
 
     max_tilt_deg: float = 35.0
     max_altitude_m: float = 5.0

@@ -1,4 +1,4 @@
-"""Trajectory check after tuning (SPEC 3): fly the minimum-snap figure-eight on the vehicle's gains.
+"""Trajectory check after tuning (docs/verify.md): fly a minimum-snap figure-eight on the gains.
 
 How it flies (stated in every result, :attr:`VerifyResult.method`):
 
@@ -396,7 +396,7 @@ class VerifyResult:
 
 
 def load_models(report_path: str | Path) -> dict[str, dict[str, float]]:
-    """Loop models from a tuning report (SPEC 4.3, ``loops.<loop>.model``), for feed-forward.
+    """Loop models from a tuning report (``loops.<loop>.model``), for feed-forward.
 
     Raises
     ------

@@ -91,7 +91,7 @@ def render(res: DryRunResult) -> list:
 
 
 def report_dict(res: DryRunResult, profile: str | None) -> dict:
-    """JSON report of a dry-run (the loops part follows SPEC 4.3)."""
+    """JSON report of a dry-run (the loops part follows README's report schema)."""
     return {
         "schema": SCHEMA,
         "log": res.source,

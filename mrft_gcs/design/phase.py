@@ -12,7 +12,7 @@ into PD gains: ``Kc = c1 h / a``, ``Kd = c2 Kc T / (2 pi)``. Each shape's own
 optimum fixes its ``(c1, c2)``; applying that rule to every other shape gives
 its worst deterioration. The distinguishing phase is the ``beta`` of the rule
 whose worst deterioration is least (Algorithm 1). Over-tuning is not better
-tuning (negative J bought with a smaller margin, SPEC Appendix B), so the
+tuning (negative J bought with a smaller margin, docs/method.md), so the
 deterioration of a rule on a process is scored as :func:`rule_cost`:
 ``|J| + 5 max(0, 20 - PM)`` (five points per degree of margin lost), and
 infinite when the loop is unstable.

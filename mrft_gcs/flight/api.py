@@ -1,6 +1,6 @@
 """``tune(connection, profile=...) -> TuneResult``: one live tune, from the ground to hovering.
 
-The steps (SPEC 1, 2, 5): connect (the session's .tlog is written as traffic
+The steps (README, docs/method.md): connect (the session's .tlog is written as traffic
 passes); measure the link and refuse one that cannot carry a relay test; read
 every parameter the tune will write (a missing one fails before take-off) and
 the hover thrust; get the relay settings of the bundled classifiers; stream

@@ -1,7 +1,7 @@
 """GCS-side loops used during and after the tests: the PD, a conservative yaw hold, the state.
 
 Once a loop is identified its relay is replaced at once by the deployed PD
-``u = trim + Kc e - Kd dy/dt`` (derivative on the measurement, SPEC 2). ``trim``
+``u = trim + Kc e - Kd dy/dt`` (derivative on the measurement, docs/method.md). ``trim``
 is the mean relay output over the identified cycles: over a steady cycle of an
 integrating plant the mean rate is zero, so the mean input is what balances the
 constant load (hover thrust for altitude, the torque bias for roll and pitch).

@@ -1,4 +1,4 @@
-"""Is the vehicle airborne and steady on the written gains? (SPEC 4.3 ``status``.)
+"""Is the vehicle airborne and steady on the written gains? (README's report schema ``status``.)
 
 After the gains are written the ground station hands the vehicle to the autopilot's
 position mode and watches a short window. A tune's status is ``ok`` only when, over that

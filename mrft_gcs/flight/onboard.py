@@ -8,7 +8,7 @@ tests and the hover); the written gains are re-targeted to the onboard loop:
 
 ``gains_onboard = gains_identified * PD*(model, tau - d) / PD*(model, tau)``
 
-per gain, where ``PD*`` is the ISE-optimal PD (SPEC 2) of the identified model and
+per gain, where ``PD*`` is the ISE-optimal PD (docs/method.md) of the identified model and
 ``d`` the GCS delay. The ratio keeps the identification's choice of tuning rule
 and only moves it by the change the delay makes. ``d`` is never allowed to take
 more than half of the identified delay (the correction is steep: over-correcting

@@ -1,4 +1,4 @@
-"""The tuning report (SPEC 4.3), rendered from a :class:`~mrft_gcs.flight.api.TuneResult`.
+"""The tuning report (schema: README), rendered from a :class:`~mrft_gcs.flight.api.TuneResult`.
 
 Schema ``mrft-gcs/tune-report/1`` (documented in README, section "Report schema").
 Numbers that do not exist (a loop left alone, a tune that stopped early) are
@@ -60,7 +60,7 @@ def _loop(lr: LoopResult) -> dict[str, Any]:
 
 
 def report_dict(result: TuneResult) -> dict[str, Any]:
-    """The report as plain JSON types (keys in SPEC 4.3 order, extras after)."""
+    """The report as plain JSON types (keys in README's report schema order, extras after)."""
     st = result.stream
     lq = result.link
     lim = result.limits

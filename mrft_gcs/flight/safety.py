@@ -1,4 +1,4 @@
-"""Safety limits (SPEC 5): tilt, altitude, distance from take-off, test duration.
+"""Safety limits (README, safety): tilt, altitude, distance from take-off, test duration.
 
 :class:`SafetyMonitor` is checked on every setpoint tick. A limit crossed raises
 :class:`LimitExceeded` (a :class:`~mrft_gcs.errors.SafetyAbort`, exit code 5) from

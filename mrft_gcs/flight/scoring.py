@@ -2,7 +2,7 @@
 
 Used by the benchmark, the end-to-end tests and the demo: the bundled SITL knows
 its own small-signal models (:meth:`mrft_gcs.sitl.Airframe.linear_models`), so
-the deterioration ``J`` (SPEC 2, eq. 17) of the gains a tune wrote can be
+the deterioration ``J`` (docs/method.md, eq. 17) of the gains a tune wrote can be
 computed exactly. For x and y the process is the true cascade: the closed
 attitude loop under the attitude gains *actually in use*, then the side part. On
 the attitude path that closed loop is the autopilot's own cascade under its own
@@ -276,7 +276,7 @@ def onboard_process(airframe: Airframe, loop: Loop, params: Mapping[str, float]
 
 
 def _pd_equivalent(loop: Loop, params: Mapping[str, float]) -> PD:
-    """The PD a parameter set amounts to (SPEC 4.2), ignoring I, D, FF and filters."""
+    """The PD a parameter set amounts to (docs/writing-gains.md), ignoring I, D, FF and filters."""
     if loop in _AXIS:
         a = _AXIS[loop]
         kd = params[f"MC_{a}RATE_P"] * params.get(f"MC_{a}RATE_K", 1.0)

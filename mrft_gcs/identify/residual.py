@@ -1,4 +1,4 @@
-"""The residual analysis of an identification, attached for the report (SPEC 4.3 ``residual``)."""
+"""The residual analysis of an identification, for the report's ``residual``."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ __all__ = ["attach_residual"]
 
 def attach_residual(ident: Identification, t, u, y, *, bias: float = 0.0, band: float = 0.0,
                     hover: float = 0.5) -> Identification:
-    """The identification with its residual analysis (SPEC 4.3 ``residual``) in ``residual``.
+    """The identification with its residual analysis (the report's ``residual``).
 
     Simulates the identified model under the relay that ran and compares with the
     measured cycles (:func:`mrft_gcs.residual.analyse_residual`); takes a second or

@@ -178,7 +178,7 @@ class Diagnostics:
 
 @dataclass(frozen=True)
 class ResidualSummary:
-    """The residual analysis of an identification (SPEC 4.3 ``residual``).
+    """The residual analysis of an identification (README's report schema ``residual``).
 
     Attributes
     ----------

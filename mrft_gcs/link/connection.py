@@ -1,6 +1,6 @@
 """Opening a MAVLink connection: connection strings, heartbeat, autopilot family.
 
-Connection strings follow pymavlink (SPEC 4.1, Appendix A):
+Connection strings follow pymavlink (docs/link-and-stream.md):
 
 =======================  =====================================================
 ``udp:HOST:PORT``        listen on HOST:PORT (same as ``udpin:``); PX4 SITL
@@ -100,7 +100,7 @@ _SERIAL = re.compile(r"^((?:/dev/|/)[^\s,:]+|COM\d+)(?:,(\d+))?$", re.IGNORECASE
 
 
 def parse_connection_string(text: str, baud: int | None = None) -> ConnectionSpec:
-    """Validate a SPEC 4.1 connection string.
+    """Validate a connection string (docs/link-and-stream.md).
 
     Parameters
     ----------

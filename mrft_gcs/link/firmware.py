@@ -93,7 +93,7 @@ class Firmware:
         return self.version[:2] >= (major, minor)
 
     def as_dict(self) -> dict[str, Any]:
-        """The report's ``vehicle.firmware`` (SPEC 4.3)."""
+        """The report's ``vehicle.firmware`` (README's report schema)."""
         return {"name": self.name, "autopilot": self.family.value, "product": self.product,
                 "vehicle_type": self.vehicle_type,
                 "version": ".".join(str(n) for n in self.version) if self.version else None,

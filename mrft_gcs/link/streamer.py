@@ -1,4 +1,4 @@
-"""A setpoint stream at a steady rate, with the telemetry watchdog (SPEC 5).
+"""A setpoint stream at a steady rate, with the telemetry watchdog (README, safety).
 
 :class:`SetpointStreamer` asks a callback for the next setpoint every ``1/rate_hz``
 seconds, on absolute deadlines of the monotonic clock, and sends it. Deadlines do not
@@ -7,7 +7,7 @@ period late is skipped and counted rather than sent in a burst. Each achieved pe
 recorded for the jitter figures.
 
 Every tick also checks the link's telemetry age: past ``watchdog_s`` (0.5 s by
-SPEC 5) the stream stops, a landing is commanded and :attr:`abort_reason` says
+README, safety) the stream stops, a landing is commanded and :attr:`abort_reason` says
 why; :meth:`raise_if_aborted` turns it into :class:`~mrft_gcs.errors.SafetyAbort`.
 
 Timing: where the process may use two CPUs (Linux), two worker threads, each pinned to
@@ -188,7 +188,7 @@ class SetpointStreamer:
     rate_hz : float
         Default 250 Hz.
     watchdog_s : float or None
-        Stop and land when no telemetry arrived for this long (0.5 s, SPEC 5). None
+        Stop and land when no telemetry arrived for this long (0.5 s, README, safety). None
         disables the watchdog (bench tests without a vehicle only).
     land_on_abort : bool
         Command a landing when the watchdog fires or the callback raises.

@@ -251,7 +251,7 @@ class VehicleLink:
                 tlog_path: str | os.PathLike[str] | None = None,
                 signing_key: str | os.PathLike[str] | bytes | None = None,
                 source_system: int = 255) -> VehicleLink:
-        """Open ``connection`` (SPEC 4.1 string), wait for a vehicle heartbeat.
+        """Open ``connection`` (docs/link-and-stream.md), wait for a vehicle heartbeat.
 
         Parameters
         ----------

@@ -1,4 +1,4 @@
-"""Write a .tlog as MAVLink traffic passes (SPEC 4.4).
+"""Write a .tlog as MAVLink traffic passes (docs/logs-and-dry-run.md).
 
 Each record is the time the frame passed (microseconds since the Unix epoch,
 8-byte big-endian unsigned) followed by the raw frame bytes, the format

@@ -5,7 +5,7 @@ After each identification the model is simulated under the very relay that ran
 the measured one. A significant residual is traced to one effect of a library of
 candidate unmodelled effects (:mod:`~mrft_gcs.residual.effects`), whose parameter
 is fitted; the PD is re-designed with it. Entry point: :func:`analyse_residual`
--> :class:`ResidualReport` (``as_dict()`` is the ``residual`` field of SPEC 4.3).
+-> :class:`ResidualReport` (``as_dict()`` is the ``residual`` field of README's report schema).
 """
 
 from mrft_gcs.residual.analysis import (

@@ -28,7 +28,7 @@ that ran (``beta``, ``h``, ``bias``) and the measured ``(t, u, y)``. It
    gain change.
 
 :class:`ResidualReport.as_dict` gives the ``residual`` field of the tuning
-report (SPEC 4.3).
+report (README's report schema).
 """
 
 from __future__ import annotations
@@ -177,7 +177,7 @@ class ResidualReport:
         return 1.0 - self.rms_after / self.rms_before if self.rms_before > 0 else 0.0
 
     def as_dict(self) -> dict[str, Any]:
-        """The SPEC 4.3 ``residual`` field: rms_before, rms_after, effect, effect_params."""
+        """The ``residual`` field of the report: rms_before, rms_after, effect, effect_params."""
         return {"rms_before": _num(self.rms_before), "rms_after": _num(self.rms_after),
                 "effect": self.effect,
                 "effect_params": {k: _num(v) for k, v in self.effect_params.items()}}

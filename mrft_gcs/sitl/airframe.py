@@ -3,7 +3,7 @@
 A profile lives in ``profiles/vehicles/NAME.toml`` and describes one multirotor: mass,
 inertia, geometry, propulsion, drag, delays, sensor noise, biases and the switchable
 *unmodelled effects*. :meth:`Airframe.linear_models` turns it into the true small-signal
-models of SPEC section 2, the ground truth against which a tune is scored.
+models of docs/method.md, the ground truth against which a tune is scored.
 
 Conventions
 -----------

@@ -1,6 +1,6 @@
 """The simulated vehicle's onboard flight software: PX4-style modes, parameters and cascades.
 
-The structures are exactly those the tuner's gains are written for (SPEC 4.2), so a PD
+The structures are exactly those the tuner's gains are written for (docs/writing-gains.md), so a PD
 ``u = Kc e - Kd w`` written as ``MC_ROLL_P = Kc/Kd``, ``MC_ROLLRATE_P = Kd``
 (``I = D = 0``, ``K = 1``) flies as that PD:
 

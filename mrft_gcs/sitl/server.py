@@ -1,4 +1,4 @@
-"""MAVLink 2 over UDP for the simulated vehicle, PX4-style (SPEC 4.1 subset).
+"""MAVLink 2 over UDP for the simulated vehicle, PX4-style (the subset in docs/link-and-stream.md).
 
 Like PX4 SITL's offboard port, the server *sends* to ``127.0.0.1:PORT`` (default 14540) from
 an ephemeral local port and answers on the same socket; a ground station listens on the port
