@@ -33,7 +33,8 @@ on the model with the ground station's delay: 2 x link + half a telemetry period
 setpoint period + half an onboard loop period).
 
     .venv/bin/python benchmarks/tune_population.py [--seeds 40] [--first-seed 0] \
-        [--mode lockstep|live] [--with-hog] [--hog-procs 2] [--in-domain-only] \
+        [--mode lockstep|live] [--with-hog] [--hog-procs 2] [--hog-nice 10] \
+        [--in-domain-only] \
         [--json benchmarks/results/population.json]
 """
 
@@ -341,16 +342,18 @@ def summary(recs: list[dict]) -> list[str]:
 
 class CpuHog:
     """Busy-looping processes beside the benchmark, each ending by itself after
-    ``limit_s`` and killed (by their own pids) when the block ends."""
+    ``limit_s`` and killed (by their own pids) when the block ends; ``nice`` as a build job
+    started with ``nice`` would be (10), 0 for an equal share."""
 
-    def __init__(self, procs: int, limit_s: float) -> None:
-        self.procs, self.limit_s = procs, limit_s
+    def __init__(self, procs: int, limit_s: float, nice: int = 10) -> None:
+        self.procs, self.limit_s, self.nice = procs, limit_s, nice
         self._p: list[subprocess.Popen] = []
 
     def __enter__(self) -> CpuHog:
         code = f"import time\nend = time.monotonic() + {self.limit_s!r}\n" \
                "while time.monotonic() < end:\n    sum(range(1000))\n"
-        self._p = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(self.procs)]
+        self._p = [subprocess.Popen(["nice", "-n", str(self.nice), sys.executable, "-c", code])
+                   for _ in range(self.procs)]
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -368,6 +371,8 @@ def main() -> None:
     ap.add_argument("--with-hog", action="store_true",
                     help="run busy-looping processes beside the tunes (killed at the end)")
     ap.add_argument("--hog-procs", type=int, default=2)
+    ap.add_argument("--hog-nice", type=int, default=10,
+                    help="niceness of the hog (10: a build started with nice; 0: equal share)")
     ap.add_argument("--in-domain-only", action="store_true",
                     help="tune only the seeds whose vehicle is in Table I's domain")
     ap.add_argument("--json", type=Path, default=DEFAULT_JSON)
@@ -379,13 +384,14 @@ def main() -> None:
            "live: the real tune() over loopback UDP against the SITL process, real time")
     print(f"population of {args.seeds} random vehicles (seeds {args.first_seed}-"
           f"{args.first_seed + args.seeds - 1}), {how}; CPU hog: "
-          f"{f'{args.hog_procs} processes' if args.with_hog else 'none'}; "
+          f"{f'{args.hog_procs} processes at nice {args.hog_nice}' if args.with_hog else 'none'}; "
           f"{platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}",
           flush=True)
     run = run_lockstep if args.mode == "lockstep" else run_live
     recs = []
     wall0 = time.monotonic()
-    hog = CpuHog(args.hog_procs, limit_s=120.0 * args.seeds) if args.with_hog else None
+    hog = (CpuHog(args.hog_procs, limit_s=120.0 * args.seeds, nice=args.hog_nice)
+           if args.with_hog else None)
     try:
         if hog is not None:
             hog.__enter__()
@@ -407,6 +413,7 @@ def main() -> None:
     print(f"wall time {time.monotonic() - wall0:.0f} s")
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({"mode": args.mode, "hog": args.with_hog,
+                                     "hog_nice": args.hog_nice if args.with_hog else None,
                                      "seeds": [args.first_seed, args.seeds],
                                      "in_domain_only": args.in_domain_only, "runs": recs},
                                     indent=1))
