@@ -3,6 +3,7 @@ gains) and the figures of a tune and a dry-run (labelled axes; nothing written w
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -134,6 +135,27 @@ def test_tune_figure_has_relay_step_and_bode_per_loop(dry, tmp_path):
         assert want in text, (want, text)
     png = plot_tune(result, tmp_path / "tune.png")
     assert png is not None and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_tune_figure_marks_the_margin_measured_in_the_air(dry):
+    import matplotlib.pyplot as plt
+
+    from mrft_gcs.flight.api import Verification
+    from mrft_gcs.plots.figures import panels_figure, tune_panels
+
+    result = _tune_result(dry)
+    roll = result.loops[Loop.ROLL]
+    ver = Verification("square wave", True, 20.0, 18.4, "none", "")
+    result = dataclasses.replace(result, loops={
+        **result.loops, Loop.ROLL: dataclasses.replace(roll, verification=ver)})
+    panels = tune_panels(result)
+    assert panels[0].measured_pm == (18.4, 20.0)
+    fig = panels_figure(panels, "tune")
+    try:
+        assert "measured in the air: PM 18.4 deg (predicted 20.0)" in _labels(fig)
+    finally:
+        plt.close(fig)
+    assert tune_panels(_tune_result(dry))[0].measured_pm is None  # no check ran
 
 
 def test_nothing_to_show_writes_nothing(dry, tmp_path):

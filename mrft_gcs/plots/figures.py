@@ -45,6 +45,9 @@ class LoopPanel:
     cycles_s: tuple[float, float] | None  # the identified cycles within ``relay`` (s)
     curves: LoopCurves | None
     note: str = ""
+    #: the written loop's phase margin measured in the air, and the prediction it was
+    #: checked against (deg); None where no in-air check measured it
+    measured_pm: tuple[float, float] | None = None
 
     @property
     def empty(self) -> bool:
@@ -96,8 +99,12 @@ def tune_panels(result: Any) -> list[LoopPanel]:
             relay = (t - t[0], u, y)
         title = (f"{lp.value}: {lr.state}; relay beta {lr.beta:.3g}, h {lr.h:.3g}, "
                  f"period {lr.period_s:.3f} s" + _gains_text(lr.gains))
+        ver = getattr(lr, "verification", None)
+        measured = None
+        if ver is not None and math.isfinite(ver.measured_pm_deg):
+            measured = (ver.measured_pm_deg, ver.predicted_pm_deg)
         panels.append(LoopPanel(lp, title, relay, None, _curves(lp, lr, result.loops),
-                                lr.note or ""))
+                                lr.note or "", measured))
     return panels
 
 
@@ -179,6 +186,10 @@ def _draw_bode(ax_m: Any, ax_p: Any, p: LoopPanel) -> None:
         ax_p.plot([m.wc, m.wc], [-180.0, ph_c], color="tab:orange", lw=2.5, marker="o", ms=3,
                   label=f"phase margin {m.pm_deg:.1f} deg at {m.wc:.3g} rad/s")
         ax_m.axvline(m.wc, color="tab:orange", lw=0.8, ls=":")
+        if p.measured_pm is not None:  # the in-air check, at the predicted crossover
+            got, want = p.measured_pm
+            ax_p.plot([m.wc], [-180.0 + got], color="tab:red", marker="D", ms=5, ls="none",
+                      label=f"measured in the air: PM {got:.1f} deg (predicted {want:.1f})")
     if math.isfinite(c.w_pc) and math.isfinite(m.gm):
         mag_pc = float(np.interp(np.log(c.w_pc), np.log(c.w), c.magnitude_db))
         ax_m.plot([c.w_pc, c.w_pc], [mag_pc, 0.0], color="tab:brown", lw=2.5, marker="o", ms=3,
