@@ -105,7 +105,6 @@ from mrft_gcs.link.firmware import Firmware, detect_firmware, torque_path_refusa
 from mrft_gcs.link.latency import CpuWakeLatency
 from mrft_gcs.link.modes import CustomMode, mode_matches
 from mrft_gcs.link.quality import LinkQuality
-from mrft_gcs.link.vehicle import MAV_CMD_SET_MESSAGE_INTERVAL
 from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.params import ParamChange, ParamClient
 from mrft_gcs.plant import PD, InnerModel
@@ -1132,13 +1131,7 @@ class _Run:
         """Ask for ATTITUDE_TARGET (the set point the vehicle tracks) at ``rate_hz``, or back
         to its default with 0; False where the vehicle refuses (the check then times the
         set points as sent)."""
-        try:
-            self.link.command(MAV_CMD_SET_MESSAGE_INTERVAL,
-                              (float(ATTITUDE_TARGET_ID), 1e6 / rate_hz if rate_hz > 0 else 0.0),
-                              timeout_s=0.5)
-        except LinkError:
-            return False
-        return True
+        return self.link.ask_message_interval(ATTITUDE_TARGET_ID, rate_hz)
 
     def _rewrite(self, client: ParamClient, gains: dict[Loop, PD]) -> None:
         values = params_in_range(self.prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in gains.items()},

@@ -43,7 +43,7 @@ from mrft_gcs.flight.controllers import FlightState, YawHold
 from mrft_gcs.flight.source import Setpoint
 from mrft_gcs.link.failsafe import rate_path_guard
 from mrft_gcs.link.firmware import Firmware
-from mrft_gcs.link.vehicle import MAV_CMD_SET_MESSAGE_INTERVAL, VehicleLink
+from mrft_gcs.link.vehicle import VehicleLink
 from mrft_gcs.params import (
     Param,
     ParamChange,
@@ -344,13 +344,7 @@ class RatePath:
         return rate_tick
 
     def _ask(self, message_id: int, rate_hz: float) -> bool:
-        try:
-            self.link.command(MAV_CMD_SET_MESSAGE_INTERVAL,
-                              (float(message_id), 1e6 / rate_hz if rate_hz > 0 else 0.0),
-                              timeout_s=0.5)
-        except LinkError:
-            return False
-        return True
+        return self.link.ask_message_interval(message_id, rate_hz)
 
     # -------------------------------------------------------------- engage
     def engage(self, client: ParamClient) -> None:

@@ -538,6 +538,20 @@ class VehicleLink:
         interval_us = -1.0 if rate_hz <= 0 else 1e6 / rate_hz
         self.command(MAV_CMD_SET_MESSAGE_INTERVAL, (msg_id, interval_us), timeout_s=timeout_s)
 
+    def ask_message_interval(self, message: str | int, rate_hz: float, *,
+                             timeout_s: float = 0.5) -> bool:
+        """Ask for ``message`` (name or id) at ``rate_hz``, or back to the vehicle's default
+        rate with 0; False where the vehicle refuses (no exception: a stream it will not
+        send is no fault)."""
+        msg_id = MESSAGE_IDS[message] if isinstance(message, str) else int(message)
+        try:
+            self.command(MAV_CMD_SET_MESSAGE_INTERVAL,
+                         (float(msg_id), 1e6 / rate_hz if rate_hz > 0 else 0.0),
+                         timeout_s=timeout_s)
+        except LinkError:
+            return False
+        return True
+
     def arm(self, *, timeout_s: float = 1.0) -> None:
         """Arm (MAV_CMD_COMPONENT_ARM_DISARM 1); raises LinkError if refused."""
         self.command(MAV_CMD_COMPONENT_ARM_DISARM, (1.0,), timeout_s=timeout_s)

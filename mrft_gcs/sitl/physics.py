@@ -35,6 +35,20 @@ def quat_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float
             cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
 
 
+def shaped_torques(roll: float, pitch: float, yaw: float, prev: tuple[float, ...],
+                   effects, dt: float) -> tuple[float, float, float]:
+    """Normalised torque commands as the motors deliver them: clipped to [-1, 1], through
+    the airframe's motor dead zone and torque rate limit (``prev``: last step's, ``dt`` s)."""
+    tq = [min(max(roll, -1.0), 1.0), min(max(pitch, -1.0), 1.0), min(max(yaw, -1.0), 1.0)]
+    if effects.motor_deadzone:
+        dz = effects.motor_deadzone
+        tq = [math.copysign(max(abs(u) - dz, 0.0), u) for u in tq]
+    if effects.torque_rate_limit:
+        lim = effects.torque_rate_limit * dt
+        tq = [p + min(max(u - p, -lim), lim) for u, p in zip(tq, prev, strict=True)]
+    return tq[0], tq[1], tq[2]
+
+
 def euler_from_quat(w: float, x: float, y: float, z: float) -> tuple[float, float, float]:
     """Unit quaternion to ZYX Euler angles ``(roll, pitch, yaw)`` in rad."""
     roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
@@ -217,15 +231,8 @@ class Multirotor:
     def step(self, roll: float, pitch: float, yaw: float, thrust: float) -> None:
         """Advance one step with normalised commands (held for ``dt_s``)."""
         af, eff, dt = self.af, self.af.effects, self.dt
-        tq = [min(max(roll, -1.0), 1.0), min(max(pitch, -1.0), 1.0), min(max(yaw, -1.0), 1.0)]
-        if eff.motor_deadzone:
-            dz = eff.motor_deadzone
-            tq = [math.copysign(max(abs(u) - dz, 0.0), u) for u in tq]
-        if eff.torque_rate_limit:
-            lim = eff.torque_rate_limit * dt
-            tq = [p + min(max(u - p, -lim), lim)
-                  for u, p in zip(tq, self._torque_prev, strict=True)]
-        self._torque_prev = tuple(tq)
+        tq = shaped_torques(roll, pitch, yaw, self._torque_prev, eff, dt)
+        self._torque_prev = tq
         b = self._bias
         tr, tp, ty = tq[0] + b[0], tq[1] + b[1], tq[2] + b[2]
         thrust = min(max(thrust, 0.0), 1.0)

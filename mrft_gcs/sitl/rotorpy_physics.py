@@ -41,7 +41,7 @@ import numpy as np
 
 from mrft_gcs.errors import MissingDependency, UsageError
 from mrft_gcs.sitl.airframe import Airframe, OnboardSpec
-from mrft_gcs.sitl.physics import Multirotor, _Delay, quat_from_euler
+from mrft_gcs.sitl.physics import Multirotor, _Delay, quat_from_euler, shaped_torques
 
 __all__ = ["ROTORPY_VEHICLES", "DEFAULT_ROTORPY_VEHICLE", "PHYSICS_BACKENDS", "RotorpySpec",
            "rotorpy_airframe", "rotorpy_params", "RotorpyMultirotor", "rotorpy_vehicle",
@@ -334,15 +334,8 @@ class RotorpyMultirotor(Multirotor):
     def step(self, roll: float, pitch: float, yaw: float, thrust: float) -> None:
         """Advance one step with normalised commands (held for ``dt_s``)."""
         eff, dt = self.af.effects, self.dt
-        tq = [min(max(roll, -1.0), 1.0), min(max(pitch, -1.0), 1.0), min(max(yaw, -1.0), 1.0)]
-        if eff.motor_deadzone:
-            dz = eff.motor_deadzone
-            tq = [math.copysign(max(abs(u) - dz, 0.0), u) for u in tq]
-        if eff.torque_rate_limit:
-            lim = eff.torque_rate_limit * dt
-            tq = [p + min(max(u - p, -lim), lim)
-                  for u, p in zip(tq, self._torque_prev, strict=True)]
-        self._torque_prev = tuple(tq)
+        tq = shaped_torques(roll, pitch, yaw, self._torque_prev, eff, dt)
+        self._torque_prev = tq
         b, mm = self._bias, self._moment_max
         cmd = (min(max(thrust, 0.0), 1.0) * self._thrust_max,
                (tq[0] + b[0]) * mm[0], (tq[1] + b[1]) * mm[1], (tq[2] + b[2]) * mm[2])
