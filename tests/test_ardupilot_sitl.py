@@ -289,8 +289,13 @@ def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path
                       f"{result.duration_s:.1f} s from take-off (load "
                       f"{os.getloadavg()[0]:.1f}); {result.hover_check}")
                 for lp, lr in result.loops.items():
-                    print(f"  {lp.value}: {lr.state} {lr.gains}")
+                    model = lr.identification.model if lr.identification else None
+                    print(f"  {lp.value}: {lr.state} at {lr.t_tuned_s:.2f} s {lr.gains} "
+                          f"{model}")
                 print("\n".join(f"  - {n}" for n in result.notes))
+                from mrft_gcs.flight.report import write_report
+
+                write_report(result, tmp_path / "report.json")  # kept for a failure's analysis
         assert result.status == "ok" and result.hover_check is not None
         assert result.hover_check.passed
         for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE, Loop.X, Loop.Y):

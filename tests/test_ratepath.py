@@ -20,10 +20,11 @@ from mrft_gcs.flight.ratepath import (
     check_feed_forward,
     rate_path_refusal,
 )
+from mrft_gcs.flight.sequence import quat_from_euler
 from mrft_gcs.link.firmware import Firmware
 from mrft_gcs.loops import Loop
 from mrft_gcs.profiles import PROFILE_DIR, Actuation, load_profile, parse_profile
-from mrft_gcs.telemetry import ActuatorTarget, AttitudeSetpoint, AutopilotFamily
+from mrft_gcs.telemetry import ActuatorTarget, AttitudeSetpoint, AttitudeTarget, AutopilotFamily
 
 AP = Firmware(AutopilotFamily.ARDUPILOT, 2, (4, 7, 0), "dev")
 
@@ -100,6 +101,12 @@ def test_channel_rotates_by_the_latest_target_and_zeroes_once_released():
     ch.released = True
     z = ch.step(out, _state())
     assert (z.roll_rate_rad_s, z.pitch_rate_rad_s, z.yaw_rate_rad_s, z.thrust) == (0, 0, 0, 0.4)
+    # the hand-over sets the onboard target onto the body: the body's attitude as the set
+    # point, with the thrust asked for
+    ch.hold_body = True
+    b = ch.step(out, _state(roll=0.1, pitch=-0.2, yaw=1.0))
+    assert isinstance(b, AttitudeTarget) and b.thrust == 0.4
+    assert b.q_wxyz == pytest.approx(quat_from_euler(0.1, -0.2, 1.0))
 
 
 def test_feed_forward_check_corrects_small_and_refuses_large_errors():

@@ -22,8 +22,9 @@ measured in flight:
 The test parameters are written only after arming (arming checks see the stock gains:
 none is switched off), backed up first. The hand-over back to onboard control is staged
 while the ground station flies: rate P first (its effect is inverted in the rates sent),
-then the feed-forward, then the rates go to zero and the written angle P and every other
-test parameter go in at once (:meth:`RatePath.hand_over`). On any abort the test
+then the feed-forward, then the rates go to zero, the onboard attitude target is set onto
+the body, and the written angle P and every other test parameter go in at once
+(:meth:`RatePath.hand_over`). On any abort the test
 parameters are restored *before* the landing command (a landing on zero gains would tumble).
 """
 
@@ -55,6 +56,7 @@ from mrft_gcs.profiles import AutopilotProfile, RatePathParams
 from mrft_gcs.telemetry import (
     ActuatorTarget,
     AttitudeSetpoint,
+    AttitudeTarget,
     AutopilotFamily,
     PidTuning,
     RateTarget,
@@ -62,7 +64,7 @@ from mrft_gcs.telemetry import (
 
 __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignment",
            "check_feed_forward", "rate_path_refusal", "body_rates", "LINK_LOSS_GUARD",
-           "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE"]
+           "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE", "TARGET_SET_PARAM"]
 
 #: relative error of the measured ``k`` above which the rates are scaled to it
 K_CORRECT = 0.02
@@ -85,6 +87,15 @@ STREAM_HZ = 50.0
 GROUND_ALIGNMENT_DEG = (5.0, 10.0)
 #: hold between the hand-over's stages (s): each stage's transient settles
 STAGE_HOLD_S = 0.3
+#: ArduCopter's switch of the rate feed-forward (the attitude target's own rate). Off, an
+#: attitude set point becomes the onboard target at once instead of being shaped towards
+#: it: the hand-over sets the target onto the body that way before angle P comes back (the
+#: target integrated the rates sent open loop and sat 4-12 deg off the body, up to 26;
+#: the angle loop snapped the vehicle there and disturbed the altitude relay in flight)
+TARGET_SET_PARAM = "ATC_RATE_FF_ENAB"
+#: how long the body's own attitude is sent as the target before angle P is written (s):
+#: a dozen set points at 250 Hz, so that one has surely been applied
+ALIGN_HOLD_S = 0.05
 #: factor on the identified roll/pitch PDs while the ground station flies them on this
 #: path (``SequenceConfig.gcs_attitude_pd_scale``; the written gains are not scaled). The
 #: designed PD keeps ~17 deg of phase margin at a ~70 rad/s crossover on ArduCopter SITL's
@@ -265,6 +276,7 @@ class RateChannel:
         self.rate_p = np.zeros(3)
         self.target: AttitudeSetpoint | None = None
         self.released = False  # True: zero rates (the onboard angle loop holds the target)
+        self.hold_body = False  # True: the body's attitude as the attitude set point
         self.last: Alignment | None = None
         self.worst_thrust_rad = 0.0
         self.worst_heading_rad = 0.0
@@ -273,9 +285,15 @@ class RateChannel:
     def see_target(self, sp: AttitudeSetpoint) -> None:
         self.target = sp
 
-    def step(self, out: ActuatorTarget, s: FlightState | None) -> RateTarget:
-        """The rate set point that makes the onboard loop put out ``out``'s torques."""
+    def step(self, out: ActuatorTarget, s: FlightState | None) -> RateTarget | AttitudeTarget:
+        """The rate set point that makes the onboard loop put out ``out``'s torques; once
+        :attr:`hold_body`, the body's attitude as an attitude set point instead (the
+        hand-over sets the onboard target onto it)."""
         self.last_thrust = out.thrust
+        if self.hold_body and s is not None:
+            q = _quat(s.roll_rad, s.pitch_rad, s.yaw_rad)
+            return AttitudeTarget(out.t_s, (float(q[0]), float(q[1]), float(q[2]),
+                                            float(q[3])), out.thrust)
         if self.released or s is None:
             return RateTarget(out.t_s, 0.0, 0.0, 0.0, out.thrust)
         tb = None
@@ -486,7 +504,10 @@ class RatePath:
 
         1. rate P (roll, pitch: the written Kd; yaw: its own) - the rates sent invert it;
         2. feed-forward back to the vehicle's own values - likewise;
-        3. rates to zero, then the written angle P and every other test parameter.
+        3. rates to zero; the onboard attitude target set onto the body (the rate
+           feed-forward switched off, :data:`TARGET_SET_PARAM`, and the body's attitude
+           sent as the set point, which then becomes the target unshaped); then the
+           written angle P, the feed-forward switch and every other test parameter.
 
         ``hold(s)`` keeps the stream checked in between. Returns the written gains among
         the test parameters as changes from their values before the tune. Done once: a
@@ -505,7 +526,16 @@ class RatePath:
         hold(STAGE_HOLD_S)
         self.channel.released = True
         hold(0.02)  # a zero-rate set point out before the angle loop comes back
+        off = self.channel.last
+        aligned = TARGET_SET_PARAM in p.test_params
+        if aligned:
+            # not recorded as restored: an abort from here puts the vehicle's own value back
+            client.write_known({TARGET_SET_PARAM: 0.0}, self.known)
+            self.channel.hold_body = True
+            hold(ALIGN_HOLD_S)
         rest = {n: final[n] for n in p.angle_p}
+        if aligned:  # the target shaped again from here, starting on the body
+            rest[TARGET_SET_PARAM] = final[TARGET_SET_PARAM]
         rest.update({n: v for n, v in final.items() if n not in rest})
         self._write(client, rest)
         t_done = time.monotonic()
@@ -517,7 +547,12 @@ class RatePath:
             f"{t_done - t0:.2f} s (rate P, feed-forward, then angle P and the rest); largest "
             f"target-to-body misalignment {math.degrees(self.channel.worst_thrust_rad):.1f} "
             f"deg thrust, {math.degrees(self.channel.worst_heading_rad):.1f} deg heading "
-            f"(compensated)")
+            f"(compensated)"
+            + ("" if off is None else
+               f"; {math.degrees(off.thrust_error_rad):.1f} deg thrust, "
+               f"{math.degrees(off.heading_error_rad):+.1f} deg heading at the hand-over, "
+               + ("the target set onto the body before angle P came back" if aligned else
+                  "left for angle P to close")))
         self.handed_over = True
         self.changes = tuple(ParamChange(n, self.originals.get(n, math.nan), v)
                              for n, v in self.staged.items())
@@ -549,6 +584,7 @@ class RatePath:
         """Before a landing command on any abort: zero rates, then the vehicle's own gains
         back (a landing on zero gains would tumble)."""
         self.channel.released = True
+        self.channel.hold_body = False
         self._checking = False
         self.restored -= set(self.staged)  # an abort puts the vehicle's own values back
         with contextlib.suppress(MrftError):
