@@ -370,3 +370,29 @@ def test_side_gains_take_the_optimum_under_the_robust_margin_not_only_a_shrunk_m
     assert new.share < 1.0 and new.pm_deg >= PM_ROBUST_DEG
     sc = _onboard_scores(af, {Loop.PITCH: rt.gains, Loop.X: new.gains}, [Loop.X])[Loop.X]
     assert sc.J_pct < 6.5 and sc.pm_deg >= PM_ROBUST_DEG
+
+
+def test_rate_path_gains_checked_on_arducopters_cascade():
+    """The written roll/pitch loop is ArduCopter's cascade: angle P's part goes through the
+    rate-target filter (20 Hz stock), which at these D-dominated crossovers lowers the
+    crossover more than it lags the phase. Identified gains keep their margin there;
+    gains 1.6 times hotter (a re-target for less delay) do not and are scaled down, angle
+    P kept, until they do, on the loop recomputed here."""
+    from mrft_gcs.flight.onboard import CASCADE_LOOP_HZ, cascade_gains
+
+    m = InnerModel(K=34.0, T_prop=0.0085, T1=0.095, tau=0.006)  # ArduCopter SITL roll
+    g = PD(6.4, 0.21)
+    stock = cascade_gains(m, g, 20.0)
+    assert stock.scale == 1.0 and stock.gains == g and stock.pm_deg > 20.0
+    hot = cascade_gains(m, PD(1.6 * g.Kc, 1.6 * g.Kd), 20.0)
+    assert hot.pm_identified_deg < PM_ROBUST_DEG and 0.7 < hot.scale < 1.0
+    assert hot.gains.Kc / hot.gains.Kd == pytest.approx(g.Kc / g.Kd)  # angle P kept
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    s = 1j * w
+    G = m.K * np.exp(-(m.tau + 0.5 / CASCADE_LOOP_HZ) * s) / (
+        s * (m.T_prop * s + 1) * (m.T1 * s + 1))
+    L = (hot.gains.Kc / (1 + s / (2 * np.pi * 20.0)) + hot.gains.Kd * s) * G
+    assert margins(L, w).pm_deg == pytest.approx(PM_ROBUST_DEG, abs=0.5)
+    assert "scaled by" in hot.note() and "20 Hz rate-target filter" in hot.note()
+    # the same gains as a plain PD (no filter) have less margin: the filter is not the risk
+    assert cascade_gains(m, g, 0.0).pm_deg < stock.pm_deg

@@ -61,6 +61,7 @@ from mrft_gcs.flight.inair import (
 )
 from mrft_gcs.flight.onboard import (
     Retarget,
+    cascade_gains,
     measure_gcs_delay,
     onboard_extra_delay_s,
     onboard_gains,
@@ -917,11 +918,15 @@ class _Run:
             t = seq.loops[lp]
             if lp not in self.requested or t.identification is None:
                 continue  # its own gains go back (the hand-over restores them)
-            # written as identified, not re-targeted: ArduCopter's cascade adds its rate-target
-            # filter (FLTT, 20 Hz by default: 25-35 deg of lag at these crossovers), which the
-            # GCS delay left in them only partly covers; re-targeted gains lost the altitude
-            # relay flown on them after the hand-over in most SITL runs
+            # not re-targeted: the identified gains, with the ground station's delay left in,
+            # checked on ArduCopter's cascade as it flies them (rate-target filter, loop rate)
+            # and scaled down where they fall short of the margin there
+            m = t.identification.model
             g = t.identification.gains
+            if isinstance(m, InnerModel):
+                cg = cascade_gains(m, g, rate.target_filter_hz(_ATTITUDE_LOOPS.index(lp)))
+                g = cg.gains
+                self.notes.append(f"rate path: {lp.value} written {cg.note()}")
             self.written[lp] = g
             gains[lp] = PDGains(g.Kc, g.Kd)
         ranged = params_in_range(self.prof, gains, self.hover) if gains else None
@@ -936,8 +941,8 @@ class _Run:
                                                "gains")
         self.notes.append(
             "rate path: roll and pitch gains written as soon as both were identified, as "
-            "identified (not re-targeted for the GCS delay: ArduCopter's rate-target filter "
-            "is not in the design); the side tests flew attitude set points on them")
+            "identified where they keep their margin on ArduCopter's cascade (not re-targeted "
+            "for the GCS delay); the side tests flew attitude set points on them")
 
     def _hold(self, seconds: float) -> None:
         end = time.monotonic() + seconds

@@ -77,7 +77,8 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "first_answers", "GcsDelay", "measure_gcs_delay", "Retarget",
            "robust_onboard_gains", "PM_ROBUST_DEG", "ROUND_TRIP_SLACK_S", "SideRetarget",
            "onboard_side_gains", "onboard_extra_delay_s", "CAP_SHARE",
-           "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ"]
+           "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ", "CascadeGains", "cascade_gains",
+           "CASCADE_LOOP_HZ"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -593,3 +594,98 @@ def onboard_extra_delay_s(loop: Loop) -> float:
     (0.01, 0.0)
     """
     return 0.0 if loop in (Loop.ROLL, Loop.PITCH) else 0.5 / POSITION_LOOP_MIN_HZ
+
+
+# ----------------------------------------------------------------------- ArduCopter's cascade
+#: the rate loop's rate on ArduCopter (Hz, SCHED_LOOP_RATE default): its sample-and-hold is
+#: half a period of delay in the written attitude loop
+CASCADE_LOOP_HZ = 400.0
+
+
+@dataclass(frozen=True)
+class CascadeGains:
+    """Roll or pitch gains for ArduCopter's attitude cascade, checked as it flies them.
+
+    The cascade closes ``u = Kd (F_T(s) Kc/Kd (x - y) - s y)`` (angle P ``Kc/Kd`` into a rate
+    target, low-passed by the rate loop's target filter ``F_T`` at ``target_filter_hz``,
+    ``ATC_RAT_*_FLTT``; rate P ``Kd``), so its feedback is ``Kc F_T + Kd s``, not the
+    ``Kc + Kd s`` the ground station flew, plus half a period of the loop's rate. Angle P's
+    square-root controller is linear within ``accel / P^2`` of error and softer beyond
+    (a lower crossover): the linear loop is its worst case.
+
+    Attributes
+    ----------
+    gains : PD
+        The gains to write: the identified ones times ``scale``.
+    scale : float
+        1 where the identified gains keep ``pm_min_deg`` on the cascade; below, the largest
+        factor on both that does.
+    pm_deg : float
+        Predicted phase margin of ``gains`` on the cascade (deg; -inf: unstable).
+    pm_identified_deg : float
+        ... of the identified gains (deg).
+    target_filter_hz : float
+        The rate-target filter modelled (Hz; 0: none).
+    wc_rad_s : float
+        Gain crossover of ``gains`` on the cascade (rad/s).
+    """
+
+    gains: PD
+    scale: float
+    pm_deg: float
+    pm_identified_deg: float
+    target_filter_hz: float
+    wc_rad_s: float
+
+    def note(self) -> str:
+        f = (f"{self.target_filter_hz:g} Hz rate-target filter" if self.target_filter_hz > 0
+             else "no rate-target filter")
+        out = (f"predicted PM {self.pm_deg:.0f} deg at {self.wc_rad_s:.0f} rad/s on ArduCopter's "
+               f"cascade ({f}, {CASCADE_LOOP_HZ:g} Hz loop, the identified delay kept)")
+        if self.scale < 1.0:
+            out += (f"; the identified gains (PM {self.pm_identified_deg:.0f} deg there) scaled "
+                    f"by {self.scale:.2f}")
+        return out
+
+
+def _cascade_pm(model: InnerModel, gains: PD, target_filter_hz: float,
+                w: np.ndarray) -> tuple[float, float]:
+    s = 1j * w
+    g = inner_response(model.K, model.T_prop, model.T1, model.tau + 0.5 / CASCADE_LOOP_HZ, w)[0]
+    f = 1.0 / (1.0 + s / (2 * np.pi * target_filter_hz)) if target_filter_hz > 0 else 1.0
+    m = margins((gains.Kc * f + gains.Kd * s) * g, w)
+    return (float(m.pm_deg) if m.stable else -math.inf), float(m.wc)
+
+
+def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
+                  pm_min_deg: float = PM_ROBUST_DEG) -> CascadeGains:
+    """The identified roll/pitch ``gains`` checked on ArduCopter's cascade (see
+    :class:`CascadeGains`), on ``model`` with its identified delay (the ground station's
+    delay left in: the onboard loop has less) plus half a loop period; scaled down together
+    until they keep ``pm_min_deg`` where they do not.
+
+    Examples
+    --------
+    >>> m = InnerModel(K=34.0, T_prop=0.0085, T1=0.095, tau=0.006)
+    >>> c = cascade_gains(m, PD(6.4, 0.21), 20.0)
+    >>> c.scale, c.pm_deg > 20.0
+    (1.0, True)
+    >>> c = cascade_gains(m, PD(6.4, 0.21), 20.0, pm_min_deg=40.0)
+    >>> c.scale < 1.0, round(c.pm_deg)
+    (True, 40)
+    """
+    w = frequency_grid(model.T_prop, model.T1, model.tau)
+    pm0, wc0 = _cascade_pm(model, gains, target_filter_hz, w)
+    if pm0 >= pm_min_deg:
+        return CascadeGains(gains, 1.0, pm0, pm0, target_filter_hz, wc0)
+    lo, hi = 0.0, 1.0  # the largest factor that keeps the margin, to 0.1 %
+    while hi - lo > 1e-3:
+        mid = 0.5 * (lo + hi)
+        pm_mid, _ = _cascade_pm(model, PD(gains.Kc * mid, gains.Kd * mid), target_filter_hz, w)
+        if pm_mid >= pm_min_deg:
+            lo = mid
+        else:
+            hi = mid
+    scaled = PD(gains.Kc * lo, gains.Kd * lo)
+    pm, wc = _cascade_pm(model, scaled, target_filter_hz, w)
+    return CascadeGains(scaled, round(lo, 3), pm, pm0, target_filter_hz, wc)

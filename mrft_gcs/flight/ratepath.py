@@ -558,6 +558,14 @@ class RatePath:
                              for n, v in self.staged.items())
         return self.changes
 
+    def target_filter_hz(self, axis: int) -> float:
+        """The rate-target filter (Hz; 0: none) the onboard ``axis`` (0 roll, 1 pitch) flies
+        after the hand-over: the vehicle's own ``<rate P name less P>FLTT``, which the test
+        parameters zero and the hand-over puts back."""
+        name = self.params.rate_p[axis].removesuffix("P") + "FLTT"
+        hz = self._final().get(name, 0.0)
+        return float(hz) if math.isfinite(hz) and hz > 0 else 0.0
+
     def inner_due(self, roll_pitch_tuned: bool) -> bool:
         """True once roll and pitch are identified and the hand-over has not run: the side
         tests then fly on the written gains onboard (as on the attitude path), and the
