@@ -40,6 +40,7 @@ import numpy as np
 
 from mrft_gcs.errors import LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState, YawHold
+from mrft_gcs.flight.inair import OnboardCascade
 from mrft_gcs.flight.source import Setpoint
 from mrft_gcs.link.firmware import Firmware
 from mrft_gcs.link.vehicle import MAV_CMD_SET_MESSAGE_INTERVAL, VehicleLink
@@ -526,6 +527,35 @@ class RatePath:
         self.changes = tuple(ParamChange(n, self.originals.get(n, math.nan), v)
                              for n, v in self.staged.items())
         return self.changes
+
+    def cascade(self, client: ParamClient, axis: int) -> OnboardCascade:
+        """The onboard attitude cascade of ``axis`` (0 roll, 1 pitch) after the hand-over,
+        for the in-air check: the rate loop's target filter and feed-forward as restored
+        (the vehicle's own), its error filter as read (not a test parameter; 0 if the
+        vehicle has none). Names are ArduCopter's (``<rate P less P>FLTT``/``FLTE``)."""
+        final = self._final()
+        prefix = self.params.rate_p[axis].removesuffix("P")
+        fltt = final.get(prefix + "FLTT", math.nan)
+        try:
+            flte = client.read(prefix + "FLTE").value
+        except MrftError:
+            flte = 0.0
+        return OnboardCascade(fltt if math.isfinite(fltt) else 0.0, flte,
+                              final.get(self.params.ff[axis], 0.0))
+
+    def rewritten(self, changes: tuple[ParamChange, ...]) -> tuple[ParamChange, ...]:
+        """Record gains re-written after the hand-over (the in-air check's re-design): those
+        among the test parameters become the staged values (their old value stays the one
+        from before the tune). Returns the other changes."""
+        rest = []
+        for c in changes:
+            if c.name in self.params.test_params and self.handed_over:
+                self.staged[c.name] = c.new
+            else:
+                rest.append(c)
+        self.changes = tuple(ParamChange(n, self.originals.get(n, math.nan), v)
+                             for n, v in self.staged.items())
+        return tuple(rest)
 
     def inner_due(self, roll_pitch_tuned: bool) -> bool:
         """True once roll and pitch are identified and the hand-over has not run: the side
