@@ -286,7 +286,8 @@ def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path
                       f"{result.duration_s:.1f} s from take-off (load "
                       f"{os.getloadavg()[0]:.1f}); {result.hover_check}")
                 for lp, lr in result.loops.items():
-                    print(f"  {lp.value}: {lr.state} {lr.gains}")
+                    print(f"  {lp.value}: {lr.state} {lr.gains} "
+                          f"{lr.verification.line() if lr.verification else ''}")
                 print("\n".join(f"  - {n}" for n in result.notes))
         assert result.status == "ok" and result.hover_check is not None
         assert result.hover_check.passed
@@ -298,6 +299,10 @@ def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path
         for n in ("ATC_ANG_RLL_P", "ATC_RAT_RLL_P", "ATC_ANG_PIT_P", "ATC_RAT_PIT_P"):
             assert written[n].old == pytest.approx(before[n]) and written[n].new > 0
         assert any("zero-gain window" in n for n in result.notes), result.notes
+        for lp in (Loop.ROLL, Loop.PITCH):  # the written gains measured in the air
+            v = result.loops[lp].verification
+            assert v is not None and v.passed and v.measured_pm_deg == v.measured_pm_deg, v
+            assert "ArduPilot cascade" in v.note, v.note
         assert result.backup is not None
         from mrft_gcs.params import read_params_file
 

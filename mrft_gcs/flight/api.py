@@ -22,6 +22,7 @@ A failed tune's exception carries what was done so far as ``err.partial_result``
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as _dt
 import gc
@@ -68,6 +69,7 @@ from mrft_gcs.flight.onboard import (
     onboard_side_gains,
     robust_onboard_gains,
 )
+from mrft_gcs.flight.ratepath import CHECK_SPAN_S as RATE_CHECK_SPAN_S
 from mrft_gcs.flight.ratepath import GCS_PD_SCALE as RATE_GCS_PD_SCALE
 from mrft_gcs.flight.ratepath import STREAM_HZ as RATE_STREAM_HZ
 from mrft_gcs.flight.ratepath import RatePath, rate_path_refusal
@@ -1042,6 +1044,13 @@ class _Run:
             if on_rate:  # ArduPilot's cascade with the written gains, as restored
                 assert self.rate is not None
                 cascades[lp] = self.rate.cascade(client, i)
+
+        def plan_for(lp: Loop, model: InnerModel, gains: PD) -> CheckPlan:
+            plan = plan_check(model, gains, CHECK_AMPLITUDE_RAD, cascade=cascades.get(lp))
+            if not on_rate:
+                return plan
+            return dataclasses.replace(plan, cycles=max(plan.cycles, math.ceil(
+                RATE_CHECK_SPAN_S / plan.period_s)))
         for lp in _ATTITUDE_LOOPS:
             ident = self.seq.loops[lp].identification if self.seq else None
             gains = self.written.get(lp)
@@ -1050,8 +1059,7 @@ class _Run:
             m = ident.model
             model = dataclasses.replace(m, tau=max(m.tau - self.delays.get(lp, 0.0), 1e-4))
             try:
-                plans[lp] = plan_check(model, gains, CHECK_AMPLITUDE_RAD,
-                                       cascade=cascades.get(lp))
+                plans[lp] = plan_for(lp, model, gains)
             except ValueError as err:
                 self.verification[lp] = Verification(_CHECK_METHOD, False, note=str(err))
         history: dict[Loop, list[tuple[CheckPlan, InAirCheck]]] = {lp: [] for lp in plans}
@@ -1074,7 +1082,7 @@ class _Run:
                     assert ident is not None and isinstance(ident.model, InnerModel)
                     model, new = ident.model, ident.gains
                 self.written[lp] = new
-                nxt[lp] = plan_check(model, new, CHECK_AMPLITUDE_RAD, cascade=cascades.get(lp))
+                nxt[lp] = plan_for(lp, model, new)
             if nxt:
                 self._rewrite(client, {lp: self.written[lp] for lp in nxt})
             plans = nxt
@@ -1108,7 +1116,9 @@ class _Run:
         # the heading held through the check: the one flown now (a fresh reader has none)
         s = self.vehicle.telemetry.latest() if self.vehicle is not None else None
         self.probe_yaw = s.yaw_rad if s is not None else (self.seq.yaw_ref if self.seq else 0.0)
-        with self.link.subscribe(AttitudeSetpoint) as tracked:
+        small = (self.rate.small_signal(ParamClient(self.link)) if self.rate is not None
+                 else contextlib.nullcontext())
+        with small, self.link.subscribe(AttitudeSetpoint) as tracked:
             asked = self._ask_setpoints(self.rate_hz)
             self.probe = probe
             try:
@@ -1129,8 +1139,18 @@ class _Run:
         points = probe.points(link_delay_s=_round_trip_s(self.quality))
         source = {lp: ("the set point the vehicle reported tracking (ATTITUDE_TARGET)" if used
                        else "the set point as sent") for lp, used in probe.used_tracked.items()}
-        return {lp: (plans[lp], dataclasses.replace(check_margin(plans[lp], *points[lp]),
-                                                    source=source[lp])) for lp in points}
+        out = {lp: (plans[lp], dataclasses.replace(check_margin(plans[lp], *points[lp]),
+                                                   source=source[lp])) for lp in points}
+        for lp, used in probe.used_tracked.items():
+            if self.rate is not None and not used:
+                # ArduPilot shapes the set point sent before it tracks it: only its own
+                # record is the loop's input; without one the loop is not measured
+                plan, chk = out[lp]
+                out[lp] = (plan, dataclasses.replace(
+                    chk, se=np.full_like(chk.se, np.inf),
+                    source="none: ATTITUDE_TARGET did not cover the cycles (the set point "
+                           "sent is shaped onboard before the loop)"))
+        return out
 
     def _ask_setpoints(self, rate_hz: float) -> bool:
         """Ask for ATTITUDE_TARGET (the set point the vehicle tracks) at ``rate_hz``, or back

@@ -109,6 +109,15 @@ class OnboardCascade:
         fwd = (gains.Kd * fe + self.ff) * ft
         return fwd * (pa + s), fwd * pa + gains.Kd * fe * s
 
+    def filters(self, w: np.ndarray) -> np.ndarray:
+        """The target and error filters in series at ``w`` (rad/s)."""
+        s = 1j * np.asarray(w, float)
+        out = np.ones_like(s)
+        for hz in (self.target_filter_hz, self.error_filter_hz):
+            if hz > 0:
+                out = out / (1.0 + s / (2 * np.pi * hz))
+        return out
+
     def describe(self) -> str:
         return (f"ArduPilot cascade: rate target = angle P x error + target rate, target filter "
                 f"{self.target_filter_hz:g} Hz, error filter {self.error_filter_hz:g} Hz, "
@@ -315,6 +324,10 @@ def redesigned_gains(plan: CheckPlan, check: InAirCheck) -> PD:
     m = check.corrected_model(plan)
     w = frequency_grid(m.T_prop, m.T1, m.tau)
     G = inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0]
+    if plan.cascade is not None:
+        # the cascade's filters lag angle P's part of the loop; designing the PD on the plant
+        # behind them (its D part lagged too) keeps the design's margin, conservatively
+        G = G * plan.cascade.filters(w)
     if not check.passed:
         return optimal_pd(G, w).pd
     new = optimal_pd(G, w, pm_min_deg=TIGHTEN_PM_DEG).pd
