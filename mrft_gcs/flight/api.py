@@ -975,7 +975,7 @@ class _Run:
                 side_notes.append(f"{lp.value} {side.note()}")
         moved = [lp for lp, g in identified.items() if self.written[lp] != g
                  and lp not in _SIDE_INNER]
-        self.delays = {lp: delay[lp] for lp in moved}
+        self.delays.update({lp: delay[lp] for lp in moved})  # the rate path's kept
         if moved:
             if self.gcs_delay_s is not None:
                 how = (f"{', '.join(f'{lp.value} {delay[lp] * 1e3:.1f} ms' for lp in moved)} "
@@ -1061,7 +1061,13 @@ class _Run:
             try:
                 plans[lp] = plan_for(lp, model, gains)
             except ValueError as err:
-                self.verification[lp] = Verification(_CHECK_METHOD, False, note=str(err))
+                self.verification[lp] = Verification(
+                    _CHECK_METHOD, False, note=f"{err} (Kc {gains.Kc:.3g}, Kd {gains.Kd:.3g}; "
+                    f"{cascades[lp].describe() if lp in cascades else 'plain PD'})")
+                if on_rate:  # the check's linear angle P would let it diverge: land now
+                    raise SafetyAbort(f"{lp.value}: the written gains are unstable on "
+                                      f"ArduPilot's cascade as predicted ({err}); landing "
+                                      f"commanded, the vehicle's own gains back") from err
         history: dict[Loop, list[tuple[CheckPlan, InAirCheck]]] = {lp: [] for lp in plans}
         started = time.monotonic()
         for n in range(CHECK_ROUNDS):
