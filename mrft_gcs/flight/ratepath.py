@@ -481,14 +481,6 @@ class RatePath:
         test = self.params.test_params
         if not self.handed_over:
             self.staged = {n: v for n, v in values.items() if n in test}
-            for name in self.params.rate_p[:2]:
-                # the rate target filter as flown in the tests (0: none) goes in with the
-                # gains: restored at 20 Hz it lags angle P's part of the loop, and at the
-                # written gains' 60-90 rad/s crossover that took the predicted margin of
-                # the written loop from ~20 deg to 8 deg or below zero
-                fltt = name.removesuffix("P") + "FLTT"
-                if name in self.staged and fltt in test:
-                    self.staged[fltt] = test[fltt]
         return {n: v for n, v in values.items() if n not in test}
 
     def _final(self, keep_written: bool = True) -> dict[str, float]:
