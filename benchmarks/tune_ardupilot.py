@@ -293,8 +293,12 @@ def main() -> int:
                       f"hover check {result.hover_check}; link "
                       f"{result.link.line() if result.link else '-'} {error}", flush=True)
                 for note in result.notes:  # k measured, alignment, zero-gain window
-                    if note.startswith("rate path:"):
+                    if note.startswith(("rate path:", "in-air check")):
                         print(f"run {run}: {note}", flush=True)
+                for lp, lr in result.loops.items():  # the in-air check of the written gains
+                    if lr.verification is not None and lp.value in ("roll", "pitch"):
+                        v = lr.verification
+                        print(f"run {run}: {lp.value} {v.line()}; {v.note}", flush=True)
                 obs.land_and_wait()
                 if not result.backup:
                     continue

@@ -22,6 +22,7 @@ import pytest
 from mrft_gcs.cli import main
 from mrft_gcs.errors import LinkError, MrftError, SafetyAbort
 from mrft_gcs.flight.api import tune
+from mrft_gcs.flight.ratepath import INAIR_CHECK
 from mrft_gcs.link import VehicleLink, measure_link, require_relay_capable
 from mrft_gcs.link.firmware import detect_firmware
 from mrft_gcs.link.quality import RTT_TIMESYNC, _param_read_rtts
@@ -291,7 +292,7 @@ def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path
                 for lp, lr in result.loops.items():
                     model = lr.identification.model if lr.identification else None
                     print(f"  {lp.value}: {lr.state} at {lr.t_tuned_s:.2f} s {lr.gains} "
-                          f"{model}")
+                          f"{model} {lr.verification.line() if lr.verification else ''}")
                 print("\n".join(f"  - {n}" for n in result.notes))
                 from mrft_gcs.flight.report import write_report
 
@@ -317,6 +318,11 @@ def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path
         assert any("zero-gain window" in n for n in result.notes), result.notes
         # scripting is on: the link-loss guard covered the zero-gain window
         assert any("link-loss guard mrftguard" in n for n in result.notes), result.notes
+        if INAIR_CHECK:  # the written gains measured in the air
+            for lp in (Loop.ROLL, Loop.PITCH):
+                v = result.loops[lp].verification
+                assert v is not None and v.passed and v.measured_pm_deg == v.measured_pm_deg, v
+                assert "ArduPilot cascade" in v.note, v.note
         assert result.backup is not None
         from mrft_gcs.params import read_params_file
 

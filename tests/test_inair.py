@@ -7,6 +7,7 @@ import pytest
 
 from mrft_gcs.flight.inair import (
     AGREE_DEG,
+    OnboardCascade,
     check_margin,
     harmonic_points,
     plan_check,
@@ -32,7 +33,8 @@ def _pm(m: InnerModel, g: PD) -> float:
 
 
 def _square_wave_test(true: InnerModel, gains: PD, period: float, amp: float, *,
-                      link_s: float = 0.0, noise: float = 0.002, seed: int = 0):
+                      link_s: float = 0.0, noise: float = 0.002, seed: int = 0,
+                      cascade: OnboardCascade | None = None):
     """Steady response of the written cascade on ``true`` to the square wave (Fourier
     series to the 399th harmonic), sampled at 250 Hz with white noise; the set point as
     held levels on a 250 Hz stream; ``link_s`` of delay between the two clocks."""
@@ -41,7 +43,12 @@ def _square_wave_test(true: InnerModel, gains: PD, period: float, amp: float, *,
     k = np.arange(1, 400, 2)
     w = k * w0
     G = inner_response(true.K, true.T_prop, true.T1, true.tau, w)[0]
-    T = gains.Kc * G / (1 + (gains.Kc + gains.Kd * 1j * w) * G) * np.exp(-1j * w * link_s)
+    if cascade is None:
+        T = gains.Kc * G / (1 + (gains.Kc + gains.Kd * 1j * w) * G)
+    else:
+        cr, cy = cascade.paths(gains, w)
+        T = cr * G / (1 + cy * G)
+    T = T * np.exp(-1j * w * link_s)
     U = 4 * amp / (np.pi * k) * -1j  # a square wave starting high is sum 4a/(pi k) sin
     y = np.real((T * U)[None, :] * np.exp(1j * np.outer(t, w))).sum(axis=1)
     y += np.random.default_rng(seed).normal(0.0, noise, t.size)
@@ -182,3 +189,48 @@ def test_the_vehicles_record_of_the_set_point_is_an_unbiased_input():
         probe.track(x, v, 0.0)
     probe.points()
     assert probe.used_tracked[Loop.ROLL]
+
+
+#: ArduCopter's roll cascade after the rate path's hand-over: the stock 20 Hz rate target
+#: filter, no error filter, no rate feed-forward
+ARDU = OnboardCascade(target_filter_hz=20.0)
+
+
+def _cascade_pm(m: InnerModel, g: PD, c: OnboardCascade) -> float:
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    G = inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0]
+    mm = margins(c.paths(g, w)[1] * G, w)
+    return float(mm.pm_deg) if mm.stable else -np.inf
+
+
+@pytest.mark.parametrize("extra_s, gain", [(0.0, 1.0), (0.006, 1.0), (0.0, 1.4)])
+def test_ardupilot_cascade_is_measured_on_its_own_structure(extra_s, gain):
+    """Angle P -> rate target (+ the target's own rate) -> 20 Hz target filter -> rate P:
+    the check inverts that structure and finds the true loop's margin; inverted as the
+    plain PD, the same points read as a different plant."""
+    gains = _optimal(MODEL)
+    plan = plan_check(MODEL, gains, 0.05, cascade=ARDU)
+    assert plan.predicted_pm_deg == pytest.approx(_cascade_pm(MODEL, gains, ARDU), abs=0.5)
+    true = InnerModel(MODEL.K * gain, MODEL.T_prop, MODEL.T1, MODEL.tau + extra_s)
+    pts = harmonic_points(*_square_wave_test(true, gains, plan.period_s, 0.05, cascade=ARDU),
+                          plan.period_s, plan.period_s, 3)
+    check = check_margin(plan, *pts)
+    assert abs(check.measured_pm_deg - _cascade_pm(true, gains, ARDU)) < AGREE_DEG
+    assert check.extra_delay_s == pytest.approx(extra_s, abs=1.5e-3)
+    assert check.k == pytest.approx(gain, rel=0.06)
+    plain = check_margin(plan_check(MODEL, gains, 0.05), *pts)
+    assert abs(plain.k - gain) > 0.1 or abs(plain.extra_delay_s - extra_s) > 3e-3
+
+
+def test_redesign_behind_the_cascade_filters_keeps_the_margin():
+    """Gains short of margin on ArduPilot's cascade (its 20 Hz target filter lags angle P's
+    part of the loop) are re-designed to hold the margin on that cascade."""
+    gains = _optimal(MODEL)
+    plan = plan_check(MODEL, gains, 0.05, cascade=ARDU)
+    true = InnerModel(MODEL.K * 1.3, MODEL.T_prop, MODEL.T1, MODEL.tau + 0.004)
+    check = check_margin(plan, *harmonic_points(
+        *_square_wave_test(true, gains, plan.period_s, 0.05, cascade=ARDU),
+        plan.period_s, plan.period_s, 3))
+    assert not check.passed
+    safer = redesigned_gains(plan, check)
+    assert _cascade_pm(true, safer, ARDU) >= 18.0

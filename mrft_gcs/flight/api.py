@@ -22,6 +22,7 @@ A failed tune's exception carries what was done so far as ``err.partial_result``
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as _dt
 import gc
@@ -53,6 +54,7 @@ from mrft_gcs.flight.inair import (
     PM_HIGH_DEG,
     CheckPlan,
     InAirCheck,
+    OnboardCascade,
     SquareWaveProbe,
     Verification,
     check_margin,
@@ -68,7 +70,10 @@ from mrft_gcs.flight.onboard import (
     onboard_side_gains,
     robust_onboard_gains,
 )
+from mrft_gcs.flight.ratepath import CHECK_SPAN_S as RATE_CHECK_SPAN_S
 from mrft_gcs.flight.ratepath import GCS_PD_SCALE as RATE_GCS_PD_SCALE
+from mrft_gcs.flight.ratepath import INAIR_CHECK as RATE_INAIR_CHECK
+from mrft_gcs.flight.ratepath import STREAM_HZ as RATE_STREAM_HZ
 from mrft_gcs.flight.ratepath import RatePath, rate_path_refusal
 from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
 from mrft_gcs.flight.sequence import (
@@ -343,7 +348,8 @@ def _round_trip_s(q: LinkQuality | None) -> float:
 def _check_note(plan: CheckPlan, check: InAirCheck) -> str:
     return (f"crossover predicted at {plan.wc_rad_s:.3g} rad/s; measured onboard plant "
             f"{check.k:.2f} x the model's gain, {check.extra_delay_s * 1e3:+.1f} ms of delay"
-            + (f"; input: {check.source}" if check.source else ""))
+            + (f"; input: {check.source}" if check.source else "")
+            + (f"; loop: {plan.cascade.describe()}" if plan.cascade is not None else ""))
 
 
 def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
@@ -804,9 +810,11 @@ class _Run:
                 return out
             assert s is not None and self.vehicle is not None
             probe = self.probe
-            if probe is not None and not probe.done and isinstance(out, ActuatorTarget):
-                # the written attitude loop flies the check's set points; altitude stays on
-                # the ground station's PD
+            if probe is not None and not probe.done and isinstance(out, (ActuatorTarget,
+                                                                         AttitudeTarget)):
+                # the written attitude loop flies the check's set points (on the rate path
+                # after its hand-over the sequence's own attitude set point is replaced);
+                # altitude stays on the ground station's PD
                 r, p = probe.step(time.monotonic(), s.t_att_s, s.roll_rad, s.pitch_rad)
                 out = AttitudeTarget(out.t_s, quat_from_euler(r, p, self.probe_yaw),
                                      out.thrust)
@@ -980,7 +988,7 @@ class _Run:
                 side_notes.append(f"{lp.value} {side.note()}")
         moved = [lp for lp, g in identified.items() if self.written[lp] != g
                  and lp not in _SIDE_INNER]
-        self.delays = {lp: delay[lp] for lp in moved}
+        self.delays.update({lp: delay[lp] for lp in moved})  # the rate path's kept
         if moved:
             if self.gcs_delay_s is not None:
                 how = (f"{', '.join(f'{lp.value} {delay[lp] * 1e3:.1f} ms' for lp in moved)} "
@@ -1040,9 +1048,22 @@ class _Run:
         gains back), written and checked again, up to :data:`CHECK_ROUNDS` checks in all.
         Then the gains whose check came nearest the design's 20 deg among those that passed
         stay written; where none passed, the vehicle lands."""
-        if self.act is not Actuation.TORQUE:
+        on_rate = self.rate is not None and self.rate.handed_over and RATE_INAIR_CHECK
+        if self.act is not Actuation.TORQUE and not on_rate:
             return  # the autopilot keeps its own attitude gains: nothing written to check
         plans: dict[Loop, CheckPlan] = {}
+        cascades: dict[Loop, OnboardCascade] = {}
+        for i, lp in enumerate(_ATTITUDE_LOOPS):
+            if on_rate:  # ArduPilot's cascade with the written gains, as restored
+                assert self.rate is not None
+                cascades[lp] = self.rate.cascade(client, i)
+
+        def plan_for(lp: Loop, model: InnerModel, gains: PD) -> CheckPlan:
+            plan = plan_check(model, gains, CHECK_AMPLITUDE_RAD, cascade=cascades.get(lp))
+            if not on_rate:
+                return plan
+            return dataclasses.replace(plan, cycles=max(plan.cycles, math.ceil(
+                RATE_CHECK_SPAN_S / plan.period_s)))
         for lp in _ATTITUDE_LOOPS:
             ident = self.seq.loops[lp].identification if self.seq else None
             gains = self.written.get(lp)
@@ -1051,9 +1072,15 @@ class _Run:
             m = ident.model
             model = dataclasses.replace(m, tau=max(m.tau - self.delays.get(lp, 0.0), 1e-4))
             try:
-                plans[lp] = plan_check(model, gains, CHECK_AMPLITUDE_RAD)
+                plans[lp] = plan_for(lp, model, gains)
             except ValueError as err:
-                self.verification[lp] = Verification(_CHECK_METHOD, False, note=str(err))
+                self.verification[lp] = Verification(
+                    _CHECK_METHOD, False, note=f"{err} (Kc {gains.Kc:.3g}, Kd {gains.Kd:.3g}; "
+                    f"{cascades[lp].describe() if lp in cascades else 'plain PD'})")
+                if on_rate:  # the check's linear angle P would let it diverge: land now
+                    raise SafetyAbort(f"{lp.value}: the written gains are unstable on "
+                                      f"ArduPilot's cascade as predicted ({err}); landing "
+                                      f"commanded, the vehicle's own gains back") from err
         history: dict[Loop, list[tuple[CheckPlan, InAirCheck]]] = {lp: [] for lp in plans}
         started = time.monotonic()
         for n in range(CHECK_ROUNDS):
@@ -1074,7 +1101,7 @@ class _Run:
                     assert ident is not None and isinstance(ident.model, InnerModel)
                     model, new = ident.model, ident.gains
                 self.written[lp] = new
-                nxt[lp] = plan_check(model, new, CHECK_AMPLITUDE_RAD)
+                nxt[lp] = plan_for(lp, model, new)
             if nxt:
                 self._rewrite(client, {lp: self.written[lp] for lp in nxt})
             plans = nxt
@@ -1108,7 +1135,9 @@ class _Run:
         # the heading held through the check: the one flown now (a fresh reader has none)
         s = self.vehicle.telemetry.latest() if self.vehicle is not None else None
         self.probe_yaw = s.yaw_rad if s is not None else (self.seq.yaw_ref if self.seq else 0.0)
-        with self.link.subscribe(AttitudeSetpoint) as tracked:
+        small = (self.rate.small_signal(ParamClient(self.link)) if self.rate is not None
+                 else contextlib.nullcontext())
+        with small, self.link.subscribe(AttitudeSetpoint) as tracked:
             asked = self._ask_setpoints(self.rate_hz)
             self.probe = probe
             try:
@@ -1124,13 +1153,23 @@ class _Run:
                     self._check_stream()
             finally:
                 self.probe = None
-                if asked:
-                    self._ask_setpoints(0.0)
+                if asked:  # the rate path keeps the stream it aligns its rates with
+                    self._ask_setpoints(RATE_STREAM_HZ if self.rate is not None else 0.0)
         points = probe.points(link_delay_s=_round_trip_s(self.quality))
         source = {lp: ("the set point the vehicle reported tracking (ATTITUDE_TARGET)" if used
                        else "the set point as sent") for lp, used in probe.used_tracked.items()}
-        return {lp: (plans[lp], dataclasses.replace(check_margin(plans[lp], *points[lp]),
-                                                    source=source[lp])) for lp in points}
+        out = {lp: (plans[lp], dataclasses.replace(check_margin(plans[lp], *points[lp]),
+                                                   source=source[lp])) for lp in points}
+        for lp, used in probe.used_tracked.items():
+            if self.rate is not None and not used:
+                # ArduPilot shapes the set point sent before it tracks it: only its own
+                # record is the loop's input; without one the loop is not measured
+                plan, chk = out[lp]
+                out[lp] = (plan, dataclasses.replace(
+                    chk, se=np.full_like(chk.se, np.inf),
+                    source="none: ATTITUDE_TARGET did not cover the cycles (the set point "
+                           "sent is shaped onboard before the loop)"))
+        return out
 
     def _ask_setpoints(self, rate_hz: float) -> bool:
         """Ask for ATTITUDE_TARGET (the set point the vehicle tracks) at ``rate_hz``, or back
@@ -1144,7 +1183,9 @@ class _Run:
         result = client.write(values, self.backup_dir, label="backup-recheck")
         first = {c.name: c for c in self.changes}
         merged = {c.name: c for c in self.changes}
-        for c in result.changes:  # the old value stays the one from before the tune
+        # after the rate path's hand-over its gains are its changes (added at the end)
+        done = self.rate.rewritten(result.changes) if self.rate is not None else result.changes
+        for c in done:  # the old value stays the one from before the tune
             merged[c.name] = ParamChange(c.name, first[c.name].old if c.name in first else c.old,
                                          c.new)
         self.changes = tuple(merged.values())

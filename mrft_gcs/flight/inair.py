@@ -20,6 +20,13 @@ The link's round trip lies outside the loop (the set point leaves the ground sta
 and the angle comes back over it): it is taken out of the measured points where it is
 measured; left in, it reads mostly as a lower ``k`` and moves the margin little (6 ms
 of round trip: 0.4 deg on a 20 deg loop crossing at 27 rad/s).
+
+ArduPilot's cascade (the rate path's hand-over writes angle P ``Kc/Kd`` and rate P ``Kd``)
+is not that PD: the rate target is angle P times the error *plus the target's own rate*
+(feed-forward, ``ATC_RATE_FF_ENAB``), low-passed by the rate loop's target filter
+(``FLTT``), the rate error by its error filter (``FLTE``), and the rate loop's
+feed-forward gain adds ``FF`` times the filtered rate target. :class:`OnboardCascade`
+carries those; with one, the points are inverted with its set-point and feedback paths.
 """
 
 from __future__ import annotations
@@ -38,7 +45,7 @@ __all__ = ["PM_MIN_DEG", "PASS_PM_DEG", "AGREE_DEG", "MAX_STEADY_SE", "CHECK_HAR
            "CHECK_AMPLITUDE_RAD",
            "CheckPlan", "InAirCheck", "Verification", "SquareWaveProbe", "plan_check",
            "square_wave", "harmonic_points", "check_margin", "redesigned_gains",
-           "PM_HIGH_DEG", "CHECK_ROUNDS"]
+           "PM_HIGH_DEG", "CHECK_ROUNDS", "OnboardCascade"]
 
 #: the least phase margin the written loop must keep (deg), and what its check must measure:
 #: that plus the measurement's own error (live, 1-2.5 deg from the onboard truth)
@@ -73,6 +80,61 @@ CHECK_AMPLITUDE_RAD = 0.035
 
 
 @dataclass(frozen=True)
+class OnboardCascade:
+    """ArduPilot's attitude cascade as it closes with angle P ``Kc/Kd`` and rate P ``Kd``.
+
+    ``u = (Kd F_E + ff) F_T r - Kd F_E s y`` with the rate target
+    ``r = (Kc/Kd) (x - y) + s x`` (``x`` the attitude target, ``y`` the angle): ``F_T``,
+    ``F_E`` first-order low-passes at ``target_filter_hz``, ``error_filter_hz`` (0: none),
+    ``ff`` the rate loop's feed-forward gain (normalised command per rad/s).
+    """
+
+    target_filter_hz: float = 0.0
+    error_filter_hz: float = 0.0
+    ff: float = 0.0
+
+    def paths(self, gains: PD, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(C_r, C_y)``: the command ``u = C_r x - C_y y`` at ``w`` (rad/s).
+
+        >>> c = OnboardCascade()
+        >>> cr, cy = c.paths(PD(2.0, 0.5), np.array([4.0]))
+        >>> bool(np.allclose(cr, 2 + 2j) and np.allclose(cy, 2 + 2j))
+        True
+        """
+        s = 1j * np.asarray(w, float)
+        def lp(hz: float) -> np.ndarray:
+            return 1.0 / (1.0 + s / (2 * np.pi * hz)) if hz > 0 else np.ones_like(s)
+        ft, fe = lp(self.target_filter_hz), lp(self.error_filter_hz)
+        pa = gains.Kc / gains.Kd
+        fwd = (gains.Kd * fe + self.ff) * ft
+        return fwd * (pa + s), fwd * pa + gains.Kd * fe * s
+
+    def filters(self, w: np.ndarray) -> np.ndarray:
+        """The target and error filters in series at ``w`` (rad/s)."""
+        s = 1j * np.asarray(w, float)
+        out = np.ones_like(s)
+        for hz in (self.target_filter_hz, self.error_filter_hz):
+            if hz > 0:
+                out = out / (1.0 + s / (2 * np.pi * hz))
+        return out
+
+    def describe(self) -> str:
+        return (f"ArduPilot cascade: rate target = angle P x error + target rate, target filter "
+                f"{self.target_filter_hz:g} Hz, error filter {self.error_filter_hz:g} Hz, "
+                f"rate FF {self.ff:g}")
+
+
+def _paths(gains: PD, w: np.ndarray, cascade: OnboardCascade | None
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Set-point and feedback paths of the written loop: the plain PD ``u = Kc (x - y) -
+    Kd dy/dt`` without a cascade."""
+    if cascade is not None:
+        return cascade.paths(gains, w)
+    s = 1j * np.asarray(w, float)
+    return gains.Kc + 0 * s, gains.Kc + gains.Kd * s
+
+
+@dataclass(frozen=True)
 class CheckPlan:
     """The square wave of one loop's check and what it should find.
 
@@ -87,6 +149,8 @@ class CheckPlan:
     cycles: int
     wc_rad_s: float
     predicted_pm_deg: float
+    #: the autopilot's cascade the gains close (None: the plain PD)
+    cascade: OnboardCascade | None = None
 
     @property
     def duration_s(self) -> float:
@@ -136,13 +200,14 @@ class InAirCheck:
         return abs(self.measured_pm_deg - self.predicted_pm_deg) <= AGREE_DEG
 
 
-def _open_loop(model: InnerModel, gains: PD, w: np.ndarray) -> np.ndarray:
+def _open_loop(model: InnerModel, gains: PD, w: np.ndarray,
+               cascade: OnboardCascade | None = None) -> np.ndarray:
     G = inner_response(model.K, model.T_prop, model.T1, model.tau, w)[0]
-    return (gains.Kc + gains.Kd * 1j * w) * G
+    return _paths(gains, w, cascade)[1] * G
 
 
 def plan_check(model: InnerModel, gains: PD, amplitude: float,
-               cycles: int = CHECK_CYCLES) -> CheckPlan:
+               cycles: int = CHECK_CYCLES, cascade: OnboardCascade | None = None) -> CheckPlan:
     """The check of ``gains`` on ``model``: fundamental at the predicted gain crossover.
 
     >>> p = plan_check(InnerModel(K=40.0, T_prop=0.03, T1=0.2, tau=0.01), PD(0.8, 0.1), 0.05)
@@ -150,11 +215,11 @@ def plan_check(model: InnerModel, gains: PD, amplitude: float,
     True
     """
     w = frequency_grid(model.T_prop, model.T1, model.tau)
-    m = margins(_open_loop(model, gains, w), w)
+    m = margins(_open_loop(model, gains, w, cascade), w)
     if not np.isfinite(m.wc) or not m.stable:
         raise ValueError("the written loop has no gain crossover on its model, or is unstable")
     return CheckPlan(model, gains, 2 * np.pi / m.wc, float(amplitude), int(cycles),
-                     float(m.wc), float(m.pm_deg))
+                     float(m.wc), float(m.pm_deg), cascade)
 
 
 def square_wave(t_s: float, period_s: float, amplitude: float) -> float:
@@ -217,21 +282,22 @@ def harmonic_points(t_u, u, t_y, y, period_s: float, t0_s: float, cycles: int,
 def check_margin(plan: CheckPlan, w, T, se) -> InAirCheck:
     """Measured phase margin of ``plan.gains`` from closed-loop points ``(w, T, se)``.
 
-    The onboard plant at each point, ``G = T / (Kc - T (Kc + Kd s))``, is compared with
-    the predicted model: ``ln k`` is the weighted mean of the log-magnitude ratios and
-    the extra delay the weighted fit of the phase differences ``-w d``.
+    The onboard plant at each point, ``G = T / (Kc - T (Kc + Kd s))`` (with a cascade
+    ``T / (C_r - T C_y)``), is compared with the predicted model: ``ln k`` is the weighted
+    mean of the log-magnitude ratios and the extra delay the weighted fit of the phase
+    differences ``-w d``.
     """
     w, T, se = np.asarray(w, float), np.asarray(T, complex), np.asarray(se, float)
     g = plan.gains
-    s = 1j * w
-    G = T / (g.Kc - T * (g.Kc + g.Kd * s))
+    cr, cy = _paths(g, w, plan.cascade)
+    G = T / (cr - T * cy)
     m = plan.model
     Gm = inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0]
     ratio = G / Gm
     # a point's relative error in G grows with |1 + L| / ... ; the relative error of T is
     # the measured one, carried through by the derivative of G(T): dG/G = dT/T * 1/(1 - T
-    # (Kc + Kd s)/Kc)
-    amp = np.abs(1.0 / (1.0 - T * (g.Kc + g.Kd * s) / g.Kc))
+    # C_y / C_r)
+    amp = np.abs(1.0 / (1.0 - T * cy / cr))
     sg = np.maximum(se * amp, 1e-3)
     wt = 1.0 / sg**2
     lnk = float(np.sum(wt * np.log(np.abs(ratio))) / np.sum(wt))
@@ -240,7 +306,7 @@ def check_margin(plan: CheckPlan, w, T, se) -> InAirCheck:
     fitted = np.exp(lnk - 1j * w * d)
     resid = np.abs(np.log(ratio / fitted)) / sg
     grid = frequency_grid(m.T_prop, m.T1, m.tau + max(d, 0.0))
-    L = np.exp(lnk - 1j * grid * d) * _open_loop(m, g, grid)
+    L = np.exp(lnk - 1j * grid * d) * _open_loop(m, g, grid, plan.cascade)
     mm = margins(L, grid)
     pm = float(mm.pm_deg) if mm.stable else float("-inf")
     return InAirCheck(plan.predicted_pm_deg, pm, float(np.exp(lnk)), d, w, T, se,
@@ -258,6 +324,10 @@ def redesigned_gains(plan: CheckPlan, check: InAirCheck) -> PD:
     m = check.corrected_model(plan)
     w = frequency_grid(m.T_prop, m.T1, m.tau)
     G = inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0]
+    if plan.cascade is not None:
+        # the cascade's filters lag angle P's part of the loop; designing the PD on the plant
+        # behind them (its D part lagged too) keeps the design's margin, conservatively
+        G = G * plan.cascade.filters(w)
     if not check.passed:
         return optimal_pd(G, w).pd
     new = optimal_pd(G, w, pm_min_deg=TIGHTEN_PM_DEG).pd

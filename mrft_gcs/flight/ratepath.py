@@ -33,7 +33,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,6 +41,7 @@ import numpy as np
 
 from mrft_gcs.errors import LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState, YawHold
+from mrft_gcs.flight.inair import OnboardCascade
 from mrft_gcs.flight.source import Setpoint
 from mrft_gcs.link.failsafe import rate_path_guard
 from mrft_gcs.link.firmware import Firmware
@@ -64,7 +65,8 @@ from mrft_gcs.telemetry import (
 
 __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignment",
            "check_feed_forward", "rate_path_refusal", "body_rates", "LINK_LOSS_GUARD",
-           "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE", "TARGET_SET_PARAM"]
+           "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE", "TARGET_SET_PARAM",
+           "CHECK_PARAMS", "CHECK_SPAN_S", "INAIR_CHECK"]
 
 #: relative error of the measured ``k`` above which the rates are scaled to it
 K_CORRECT = 0.02
@@ -105,6 +107,21 @@ ALIGN_HOLD_S = 0.05
 GCS_PD_SCALE = 0.5
 #: the yaw hold's output limit on this path (normalised yaw command)
 YAW_LIMIT = 0.5
+#: the in-air check of the written roll/pitch gains flies on this path (off: ArduCopter's
+#: ATTITUDE_TARGET came too unevenly at these crossovers to measure the loop, and a check
+#: that cannot measure lands the vehicle; the gains are checked on the cascade's model at
+#: the hand-over instead, :func:`mrft_gcs.flight.onboard.cascade_gains`)
+INAIR_CHECK = False
+#: set while the in-air check flies (restored after it): ArduCopter's angle P runs through a
+#: square-root controller that is linear only below (accel/2)/P^2 of error (0.2-0.5 deg at
+#: the written angle P 35-49), and the set point sent is shaped (ATC_INPUT_TC, the
+#: acceleration limit) before it becomes the target. With no acceleration limit the angle
+#: P is linear (the small-signal loop flown, exactly) and the shaping a 10 ms lag, so a
+#: 2 deg square wave measures the written loop; the input is ATTITUDE_TARGET either way.
+CHECK_PARAMS = {"ATC_ACCEL_R_MAX": 0.0, "ATC_ACCEL_P_MAX": 0.0, "ATC_INPUT_TC": 0.0}
+#: the in-air check's measured cycles span at least this on this path (s): crossovers of
+#: 60-90 rad/s give 3 cycles of 0.2-0.3 s, too few ATTITUDE_TARGET samples at 250 Hz
+CHECK_SPAN_S = 1.0
 _ATTITUDE_TARGET_ID = 83
 _PID_TUNING_ID = 194
 _AXES = ("roll", "pitch", "yaw")
@@ -565,6 +582,51 @@ class RatePath:
         name = self.params.rate_p[axis].removesuffix("P") + "FLTT"
         hz = self._final().get(name, 0.0)
         return float(hz) if math.isfinite(hz) and hz > 0 else 0.0
+
+    def cascade(self, client: ParamClient, axis: int) -> OnboardCascade:
+        """The onboard attitude cascade of ``axis`` (0 roll, 1 pitch) after the hand-over,
+        for the in-air check: the rate loop's target filter and feed-forward as restored
+        (the vehicle's own), its error filter as read (not a test parameter; 0 if the
+        vehicle has none). Names are ArduCopter's (``<rate P less P>FLTT``/``FLTE``)."""
+        final = self._final()
+        prefix = self.params.rate_p[axis].removesuffix("P")
+        fltt = final.get(prefix + "FLTT", math.nan)
+        try:
+            flte = client.read(prefix + "FLTE").value
+        except MrftError:
+            flte = 0.0
+        return OnboardCascade(fltt if math.isfinite(fltt) else 0.0, flte,
+                              final.get(self.params.ff[axis], 0.0))
+
+    @contextlib.contextmanager
+    def small_signal(self, client: ParamClient) -> Iterator[None]:
+        """:data:`CHECK_PARAMS` for the in-air check (backed up first), put back after it;
+        a failed put-back is noted (the backup named) rather than raised over the check's
+        own outcome."""
+        result = client.write(CHECK_PARAMS, self.backup_dir, label="check")
+        known = {e.param.name: e.param for e in read_params_file(result.backup_path)}
+        try:
+            yield
+        finally:
+            try:
+                client.write_known({c.name: c.old for c in result.changes}, known)
+            except MrftError as err:
+                self.notes.append(f"rate path: the in-air check's settings were not put back "
+                                  f"({err}): restore {result.backup_path} by hand")
+
+    def rewritten(self, changes: tuple[ParamChange, ...]) -> tuple[ParamChange, ...]:
+        """Record gains re-written after the hand-over (the in-air check's re-design): those
+        among the test parameters become the staged values (their old value stays the one
+        from before the tune). Returns the other changes."""
+        rest = []
+        for c in changes:
+            if c.name in self.params.test_params and self.handed_over:
+                self.staged[c.name] = c.new
+            else:
+                rest.append(c)
+        self.changes = tuple(ParamChange(n, self.originals.get(n, math.nan), v)
+                             for n, v in self.staged.items())
+        return tuple(rest)
 
     def inner_due(self, roll_pitch_tuned: bool) -> bool:
         """True once roll and pitch are identified and the hand-over has not run: the side
