@@ -13,7 +13,7 @@ import numpy as np
 from mrft_gcs.flight.controllers import PDLoop
 from mrft_gcs.flight.cycles import CycleRules, CycleWatcher
 from mrft_gcs.identify import CycleDetector, CycleStatus, Identification
-from mrft_gcs.loops import Loop
+from mrft_gcs.loops import SIDE_INNER, Loop
 from mrft_gcs.relay import MRFT
 
 __all__ = [
@@ -29,9 +29,7 @@ _NAN = float("nan")
 #: why roll and pitch are left alone on the attitude path (the report's note)
 AUTOPILOT_ATTITUDE = ("attitude path: the autopilot keeps its own attitude loop "
                       "(SET_ATTITUDE_TARGET), so roll and pitch are not tested or written")
-_TILT_SAMPLES = 30_000  # 30 s of ATTITUDE at 1 kHz: as long as the cycle detector keeps
-#: the attitude loop behind each side loop (x north: -pitch, y east: +roll)
-SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
+_TILT_SAMPLES = 30_000  # 30 s of ATTITUDE at 1 kHz: as long as the cycle detector keeps data
 
 
 class Phase(enum.Enum):
