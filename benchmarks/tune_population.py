@@ -69,13 +69,12 @@ from mrft_gcs.flight.source import VehicleMode
 from mrft_gcs.identify import relay_settings
 from mrft_gcs.identify.live import bundled_identifier
 from mrft_gcs.link.quality import LinkQuality, require_relay_capable
-from mrft_gcs.loops import Loop, LoopKind
+from mrft_gcs.loops import SIDE_INNER, Loop, LoopKind
 from mrft_gcs.profiles import PDGains, load_profile, params_in_range
 from mrft_gcs.sitl import SimVehicle, domain_check, random_airframe
 from mrft_gcs.sitl.lockstep import GcsLink, LockstepVehicle
 from mrft_gcs.sitl.onboard import ParamStore
 
-_SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 RATE_HZ = 250.0          # the tool's setpoint stream and the telemetry rate it asks
 MAX_RELAY_S = 30.0       # tune(max_relay_s=...) default
 HOVER_CHECK_S = 2.0      # tune(hover_check_s=...) default
@@ -164,7 +163,7 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
                                 sample_t_s=[t for t, _ in ta], round_trip_s=rtt * 1e-3)
         rts[lp] = robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp))
         delays[lp], written[lp] = rts[lp].delay_s, rts[lp].gains
-    for lp, inner_lp in _SIDE_INNER.items():
+    for lp, inner_lp in SIDE_INNER.items():
         if lp in identified and inner_lp in rts:
             written[lp] = onboard_side_gains(identified[lp], identified[inner_lp],
                                              rts[inner_lp]).gains
@@ -233,7 +232,7 @@ def run_live(seed: int) -> dict:
         params.update({c.name: c.new for c in r.parameters})
         rec["written"] = {c.name: c.new for c in r.parameters}
         loops = [lp for lp in identified if lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE)
-                 or lp in _SIDE_INNER]
+                 or lp in SIDE_INNER]
         _score(rec, af, params, {lp: i.gains for lp, i in identified.items()}, loops)
     return _end(rec, outcome, reason)
 
@@ -257,7 +256,7 @@ def _end(rec: dict, outcome: str, reason: str | None) -> dict:
 def _score(rec: dict, af, params: dict, identified_pd: dict, loops) -> None:
     """J and PM of every written loop on the onboard truth, GCS-side figures beside."""
     wanted = [lp for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE, Loop.X, Loop.Y)
-              if lp in loops and (lp not in _SIDE_INNER or _SIDE_INNER[lp] in identified_pd)]
+              if lp in loops and (lp not in SIDE_INNER or SIDE_INNER[lp] in identified_pd)]
     sc = score_written(af, params, wanted, identified=identified_pd,
                        gcs_delay_s=gcs_delay_s(af))
     rec["loops"] = {lp.value: {

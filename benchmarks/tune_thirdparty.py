@@ -56,9 +56,9 @@ def _num(x) -> float | None:
 def score(af, params: dict, identified: dict) -> dict:
     """J and PM of every written loop on the onboard truth, GCS-side figures beside."""
     from mrft_gcs.flight.scoring import score_written
+    from mrft_gcs.loops import SIDE_INNER as inner
     from mrft_gcs.loops import Loop
 
-    inner = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
     loops = [lp for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE, Loop.X, Loop.Y)
              if lp in identified and (lp not in inner or inner[lp] in identified)]
     sc = score_written(af, params, loops, identified=identified, gcs_delay_s=gcs_delay_s(af))

@@ -74,7 +74,7 @@ from mrft_gcs.identify import Identification, identify
 from mrft_gcs.logs import decode_log, log_truncation, read_csv_metadata, summarize_log
 from mrft_gcs.logs.describe import LogSummary
 from mrft_gcs.logs.replay import DecodedLog, to_telemetry_log
-from mrft_gcs.loops import Loop, LoopKind
+from mrft_gcs.loops import SIDE_INNER, Loop, LoopKind
 from mrft_gcs.plant import PD, InnerModel, SideModel
 from mrft_gcs.residual import RelayTest, ResidualReport, analyse_residual
 from mrft_gcs.residual.cycles import noise_std
@@ -96,8 +96,6 @@ _BACK = 64
 #: known to ~1e-4; a side output taken as 0 while it was the bounding relay's 0.05 rad
 #: would be 2e-3 off)
 _LEVEL_TOL = 5e-3
-#: the attitude loop behind each side loop (x north: -pitch, y east: +roll)
-_SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 
 
 @dataclass(frozen=True)
@@ -941,7 +939,7 @@ def _side_segments(log: TelemetryLog, order: dict[str, np.ndarray],
     for lp in (Loop.X, Loop.Y):
         if lp not in want:
             continue
-        name = f"tilt set point behind the {_SIDE_INNER[lp].value} PD"
+        name = f"tilt set point behind the {SIDE_INNER[lp].value} PD"
         best: tuple[int, str, np.ndarray, float] | None = None
         reason = "the torques do not follow a PD"
         for frame, cand, yaw_ref in readings:
@@ -984,7 +982,7 @@ def _side_segments(log: TelemetryLog, order: dict[str, np.ndarray],
         lo, hi = float(u[a:b].min()), float(u[a:b].max())
         t = pos[rows, 0]
         side = _segment(lp, "attitude PD", t[a:b], u[a:b] - 0.5 * (lo + hi), y[a:b], meta,
-                        pair.gcs_period_s, inner[_SIDE_INNER[lp]].identification)
+                        pair.gcs_period_s, inner[SIDE_INNER[lp]].identification)
         found[lp] = replace(
             side, tilt=_axis_tilt(att, lp, yaw_ref if frame else None, t[a:b]))
     return found, why
@@ -1274,7 +1272,7 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
     for seg in sorted(segs, key=lambda s: s.loop.kind is LoopKind.SIDE):
         inner = None
         if seg.loop.kind is LoopKind.SIDE:
-            att = by_loop.get(_SIDE_INNER[seg.loop])
+            att = by_loop.get(SIDE_INNER[seg.loop])
             inner = att.identification if att else None
             if inner is not None and "beta" not in info:
                 seg = _segment(seg.loop, seg.source, seg.t, seg.u, seg.y, info,
@@ -1292,7 +1290,7 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
         sides, reasons = _side_segments(log, order, attitude, todo, info)
         for lp, side in sides.items():
             why.pop(lp.value, None)
-            by_loop[lp] = analyse_segment(side, inner=attitude[_SIDE_INNER[lp]].identification,
+            by_loop[lp] = analyse_segment(side, inner=attitude[SIDE_INNER[lp]].identification,
                                           hover=hover_f)
         for k, reason in reasons.items():
             why[k] = f"{why.get(k, '')}; {reason}".lstrip("; ")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Loop", "LoopKind", "INNER_LOOPS", "SIDE_LOOPS"]
+__all__ = ["Loop", "LoopKind", "INNER_LOOPS", "SIDE_LOOPS", "SIDE_INNER"]
 
 
 class LoopKind(enum.Enum):
@@ -35,3 +35,5 @@ class Loop(enum.Enum):
 
 INNER_LOOPS = (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE)
 SIDE_LOOPS = (Loop.X, Loop.Y)
+#: the attitude loop behind each side loop (x north: -pitch, y east: +roll)
+SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}

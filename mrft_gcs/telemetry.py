@@ -26,6 +26,7 @@ __all__ = [
     "LocalPosition",
     "ActuatorTarget",
     "AttitudeTarget",
+    "quat_from_euler",
     "AttitudeSetpoint",
     "RateTarget",
     "PidTuning",
@@ -89,6 +90,15 @@ class AttitudeTarget:
     t_s: float
     q_wxyz: tuple[float, float, float, float]
     thrust: float
+
+
+def quat_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """ZYX Euler angles (rad) to a unit quaternion ``(w, x, y, z)``."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
 
 
 @dataclass(frozen=True, slots=True)

@@ -172,6 +172,24 @@ def test_runtime_never_imports_the_design_wing_or_torch():
     assert not bad, "runtime modules import the design wing: " + ", ".join(bad)
 
 
+#: the tuning sequence's rooms, one per phase (:mod:`mrft_gcs.flight.phases`)
+SEQUENCE = "mrft_gcs.flight.sequence"
+PHASES = "mrft_gcs.flight.phases"
+
+
+def test_the_sequence_is_split_by_phase_and_the_phases_stand_below_it():
+    """One module per phase; the sequence composes them; no phase reaches back up into the
+    sequence or the driver that runs it (they share state only through ``phases.shared``)."""
+    internal, _ = import_graph()
+    rooms = {m for m in internal if m.startswith(PHASES + ".")}
+    for name in ("state", "shared", "liftoff", "altitude", "attitude", "side"):
+        assert f"{PHASES}.{name}" in rooms, f"{PHASES}.{name} missing"
+        assert f"{PHASES}.{name}" in internal[SEQUENCE], f"the sequence skips {name}"
+    up = {SEQUENCE, "mrft_gcs.flight.driver", "mrft_gcs.flight.api", "mrft_gcs.flight"}
+    bad = [f"{m} -> {d}" for m in sorted(rooms) for d in sorted(internal[m] & up)]
+    assert not bad, "phases import the sequence or its drivers: " + ", ".join(bad)
+
+
 _PROBE = """
 import json, sys
 import numpy as np

@@ -12,6 +12,7 @@ import pytest
 
 from mrft_gcs.flight import config, cycles, sequence, takeoff
 from mrft_gcs.flight.config import SequenceConfig
+from mrft_gcs.flight.phases import altitude, attitude, liftoff, shared, side, state
 from mrft_gcs.sitl import available_vehicles
 
 
@@ -25,7 +26,8 @@ def test_settings_are_frozen_and_changed_only_by_replace():
     assert sequence.SequenceConfig is SequenceConfig  # still importable from the sequence
 
 
-@pytest.mark.parametrize("module", [config, cycles, sequence, takeoff], ids=lambda m: m.__name__)
+@pytest.mark.parametrize("module", [config, cycles, sequence, takeoff, state, shared, liftoff,
+                                    altitude, attitude, side], ids=lambda m: m.__name__)
 def test_comments_name_no_airframe_seed_or_run(module):
     """Evidence (airframes, seeds, figures of past runs) lives in docs/, not in comments."""
     text = Path(module.__file__).read_text()

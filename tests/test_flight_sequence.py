@@ -257,9 +257,9 @@ def test_restarted_attitude_relay_keeps_its_runaway_limit():
     assert not math.isfinite(t.status.amplitude)  # as right after a reset
     relay = MRFT(-0.5, t.h)
     relay.step(0.01)  # a positive output: pushes a negative error further out
-    seq._watch(t, relay, -0.15, float(relay.state[0]))
+    seq.shared.watch(t, relay, -0.15, float(relay.state[0]))
     assert t.catch is None and not seq.events
-    seq._watch(t, relay, -0.2, float(relay.state[0]))
+    seq.shared.watch(t, relay, -0.2, float(relay.state[0]))
     assert t.catch is not None and "caught the run-away" in seq.events[-1]
 
 
@@ -276,10 +276,10 @@ def test_attitude_relay_start_up_swing_and_first_run_away():
     t.h = 0.12
     relay = MRFT(-0.5, t.h)
     relay.step(0.01)  # a positive output: pushes a negative error further out
-    seq._watch(t, relay, -0.2, float(relay.state[0]))
+    seq.shared.watch(t, relay, -0.2, float(relay.state[0]))
     assert t.catch is None and not seq.events  # start-up swing, nothing known yet
     t.status = CycleStatus(1, False, 0.21, 0.05, math.inf)  # one complete cycle seen
-    seq._watch(t, relay, -0.2, float(relay.state[0]))
+    seq.shared.watch(t, relay, -0.2, float(relay.state[0]))
     assert t.catch is not None and "caught the run-away" in seq.events[-1]
     assert t.cycle == (0.21, 0.05)
 
@@ -339,7 +339,7 @@ def test_lopsided_altitude_cycles_are_seen_after_two_cycles():
             ph = 2 * np.pi * ts / 0.9
             u = 0.3 + 0.1 * np.sign(np.sin(ph) + 1e-12)
             t.status = t.detector.update(ts, u, center - 0.06 * np.cos(ph))
-        return seq._lopsided(t)
+        return seq.altitude.lopsided(t)
 
     assert feed(0.8) and feed(1.2)
     assert not feed(1.0)
@@ -363,12 +363,12 @@ def test_attitude_swing_still_growing_against_the_relay_is_caught():
     relay.step(-0.01)
     relay.step(0.3)  # a positive output: pushes a positive error back
     assert float(relay.state[0]) > 0
-    seq._watch(t, relay, 0.3, float(relay.state[0]), e_rate=2.0)  # just (re)started
+    seq.shared.watch(t, relay, 0.3, float(relay.state[0]), e_rate=2.0)  # just (re)started
     assert t.catch is None and not seq.events
     t.status = CycleStatus(2, False, 0.25, 0.06, math.inf)  # cycles measured since
-    seq._watch(t, relay, 0.3, float(relay.state[0]), e_rate=-2.0)  # coming back
+    seq.shared.watch(t, relay, 0.3, float(relay.state[0]), e_rate=-2.0)  # coming back
     assert t.catch is None and not seq.events
-    seq._watch(t, relay, 0.3, float(relay.state[0]), e_rate=2.0)  # still swinging out
+    seq.shared.watch(t, relay, 0.3, float(relay.state[0]), e_rate=2.0)  # still swinging out
     assert t.catch is not None and "caught the run-away" in seq.events[-1]
 
 
@@ -388,10 +388,10 @@ def test_a_swing_is_caught_where_it_will_stop_and_held_with_more_than_h():
     relay = MRFT(-0.5, t.h)
     relay.step(-0.01)
     relay.step(0.12)
-    seq._watch(t, relay, 0.12, float(relay.state[0]), e_rate=0.5)  # stops at 0.124 rad
+    seq.shared.watch(t, relay, 0.12, float(relay.state[0]), e_rate=0.5)  # stops at 0.124 rad
     assert t.catch is None
-    seq._watch(t, relay, 0.12, float(relay.state[0]), e_rate=3.0)  # would stop at 0.27 rad
+    seq.shared.watch(t, relay, 0.12, float(relay.state[0]), e_rate=3.0)  # would stop at 0.27 rad
     assert t.catch is not None and "caught the run-away" in seq.events[-1]
     t.state, t.relay = LoopState.RELAY, relay
-    u = seq._attitude(Loop.PITCH, 0.0, -0.2, -3.0, 1.0, True, True)
+    u = seq.attitude.step(Loop.PITCH, 0.0, -0.2, -3.0, 1.0, True, True)
     assert t.h < u <= seq.config.catch_torque_factor * t.h

@@ -20,11 +20,16 @@ from mrft_gcs.flight.ratepath import (
     check_feed_forward,
     rate_path_refusal,
 )
-from mrft_gcs.flight.sequence import quat_from_euler
 from mrft_gcs.link.firmware import Firmware
 from mrft_gcs.loops import Loop
 from mrft_gcs.profiles import PROFILE_DIR, Actuation, load_profile, parse_profile
-from mrft_gcs.telemetry import ActuatorTarget, AttitudeSetpoint, AttitudeTarget, AutopilotFamily
+from mrft_gcs.telemetry import (
+    ActuatorTarget,
+    AttitudeSetpoint,
+    AttitudeTarget,
+    AutopilotFamily,
+    quat_from_euler,
+)
 
 AP = Firmware(AutopilotFamily.ARDUPILOT, 2, (4, 7, 0), "dev")
 

@@ -22,7 +22,7 @@ from mrft_gcs.flight.scoring import (
     score_written,
     true_response,
 )
-from mrft_gcs.loops import Loop
+from mrft_gcs.loops import SIDE_INNER, Loop
 from mrft_gcs.pd_design import ise, margins, optimal_pd
 from mrft_gcs.plant import PD, inner_response
 from mrft_gcs.profiles import PDGains, gains_to_params, load_profile
@@ -30,7 +30,7 @@ from mrft_gcs.sitl import OnboardSpec, SimVehicle, load_airframe, random_airfram
 from mrft_gcs.sitl.onboard import FlightMode, ParamStore
 
 PROFILE = load_profile("sitl")
-_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
+_INNER = SIDE_INNER
 
 
 def _written(af, gains: dict[Loop, PD]) -> dict[str, float]:

@@ -111,7 +111,7 @@ from mrft_gcs.link.firmware import Firmware, detect_firmware, torque_path_refusa
 from mrft_gcs.link.latency import CpuWakeLatency
 from mrft_gcs.link.modes import CustomMode, mode_matches
 from mrft_gcs.link.quality import LinkQuality
-from mrft_gcs.loops import Loop, LoopKind
+from mrft_gcs.loops import SIDE_INNER, Loop, LoopKind
 from mrft_gcs.params import ParamChange, ParamClient
 from mrft_gcs.plant import PD, InnerModel
 from mrft_gcs.profiles import (
@@ -138,7 +138,6 @@ SCHEMA = "mrft-gcs/tune-report/1"
 YAW_NOTE = ("yaw is not tuned: it is held by a conservative GCS-side PD during the tests "
             "(Kc 0.2 /rad, Kd 0.08 s/rad on normalised yaw torque) and keeps the autopilot's "
             "own yaw gains afterwards")
-_SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 NOT_REQUESTED = "not requested"
 _ATTITUDE_LOOPS = (Loop.ROLL, Loop.PITCH)
 #: seconds the identification worker may take to load (else the tune identifies in its own
@@ -650,7 +649,7 @@ class _Run:
             attitude_loop=lambda snap: self._offload("attitude_loop", measured_attitude_loop,
                                                      snap),
             relay=self.relay, limits=self.lim, max_relay_s=self.max_relay_s, notes=self.notes)
-        for lp in _SIDE_INNER:
+        for lp in SIDE_INNER:
             if lp not in self.requested:
                 self.seq.leave_alone(lp, f"{NOT_REQUESTED}: not relay-tested; held where it "
                                          f"was and its parameters left as they were")
@@ -978,7 +977,7 @@ class _Run:
             self.written[lp] = rt.gains
             self.retargets[lp] = rt
         side_notes = []
-        for lp, inner_lp in _SIDE_INNER.items():
+        for lp, inner_lp in SIDE_INNER.items():
             # flown behind the written attitude gains, not the GCS's PD it was identified behind
             inner, ident = seq.loops[inner_lp].identification, seq.loops[lp].identification
             if (lp in self.written and inner_lp in retargets and inner is not None
@@ -987,7 +986,7 @@ class _Run:
                 self.written[lp] = side.gains
                 side_notes.append(f"{lp.value} {side.note()}")
         moved = [lp for lp, g in identified.items() if self.written[lp] != g
-                 and lp not in _SIDE_INNER]
+                 and lp not in SIDE_INNER]
         self.delays.update({lp: delay[lp] for lp in moved})  # the rate path's kept
         if moved:
             if self.gcs_delay_s is not None:
@@ -1003,7 +1002,7 @@ class _Run:
                 f"written ones")
         if side_notes:
             self.notes.append("written side gains: " + "; ".join(side_notes))
-        for lp, inner_lp in _SIDE_INNER.items():
+        for lp, inner_lp in SIDE_INNER.items():
             if (lp in self.written and inner_lp not in self.requested
                     and seq.loops[inner_lp].state is LoopState.TUNED):
                 self.notes.append(

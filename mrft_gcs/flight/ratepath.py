@@ -61,6 +61,7 @@ from mrft_gcs.telemetry import (
     AutopilotFamily,
     PidTuning,
     RateTarget,
+    quat_from_euler,
 )
 
 __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignment",
@@ -152,15 +153,6 @@ def rate_path_refusal(profile: AutopilotProfile, fw: Firmware) -> str | None:
 
 
 # ---------------------------------------------------------------------- rotation numerics
-def _quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """ZYX Euler angles (rad) -> unit quaternion (w, x, y, z), body to NED."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return np.array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
-
-
 def _rotation(q: np.ndarray) -> np.ndarray:
     """3x3 matrix of the unit quaternion ``q`` (w, x, y, z)."""
     w, x, y, z = q
@@ -199,7 +191,8 @@ def alignment(target_rpy: tuple[float, float, float],
     >>> (a.target_to_body @ [1.0, 0.0, 0.0]).round(3).tolist()  # target x, seen by the body
     [0.955, 0.296, 0.0]
     """
-    rt, rb = _rotation(_quat(*target_rpy)), _rotation(_quat(*body_rpy))
+    rt, rb = (_rotation(np.array(quat_from_euler(*target_rpy))),
+              _rotation(np.array(quat_from_euler(*body_rpy))))
     tb = rb.T @ rt
     cos_thrust = float(np.clip(rt[:, 2] @ rb[:, 2], -1.0, 1.0))
     heading = (target_rpy[2] - body_rpy[2] + math.pi) % (2 * math.pi) - math.pi
@@ -308,9 +301,8 @@ class RateChannel:
         hand-over sets the onboard target onto it)."""
         self.last_thrust = out.thrust
         if self.hold_body and s is not None:
-            q = _quat(s.roll_rad, s.pitch_rad, s.yaw_rad)
-            return AttitudeTarget(out.t_s, (float(q[0]), float(q[1]), float(q[2]),
-                                            float(q[3])), out.thrust)
+            return AttitudeTarget(out.t_s, quat_from_euler(s.roll_rad, s.pitch_rad, s.yaw_rad),
+                                  out.thrust)
         if self.released or s is None:
             return RateTarget(out.t_s, 0.0, 0.0, 0.0, out.thrust)
         tb = None

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mrft_gcs.loops import Loop
+from mrft_gcs.loops import SIDE_INNER, Loop
 from mrft_gcs.pd_design import deterioration, frequency_grid, margins, optimal_pd
 from mrft_gcs.plant import PD, closed_inner_response, inner_response, side_response
 
@@ -36,8 +36,6 @@ if TYPE_CHECKING:
 __all__ = ["LoopScore", "StepFigures", "true_response", "score_gains", "step_figures",
            "onboard_attitude_response", "WrittenScore", "score_written", "onboard_process",
            "onboard_controller", "general_ise"]
-
-_SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 
 
 @dataclass(frozen=True)
@@ -89,13 +87,13 @@ def true_response(models: Mapping[str, Mapping[str, float]], loop: Loop,
     attitude axis, torque path) or ``attitude_params`` (the autopilot's own ``MC_*``
     parameters, attitude path: :func:`onboard_attitude_response`).
     """
-    if loop in _SIDE_INNER:
-        mi = models[_SIDE_INNER[loop].value]
+    if loop in SIDE_INNER:
+        mi = models[SIDE_INNER[loop].value]
         ms = models[loop.value]
         w = frequency_grid(mi["T_prop"], mi["T1"], mi["tau"], extra_T=(ms["T2"], ms["tau"]))
         if attitude_params is not None:
             t_att = onboard_attitude_response(mi, attitude_params,
-                                              _SIDE_INNER[loop].value.upper(), w)
+                                              SIDE_INNER[loop].value.upper(), w)
         elif inner_gains is not None:
             gi = inner_response(mi["K"], mi["T_prop"], mi["T1"], mi["tau"], w)
             t_att = closed_inner_response(inner_gains.Kc, inner_gains.Kd, gi, w)[0]
@@ -122,8 +120,8 @@ def score_gains(models: Mapping[str, Mapping[str, float]],
     for loop, pd in gains.items():
         if pd is None:
             continue
-        inner = gains.get(_SIDE_INNER.get(loop, loop)) if loop in _SIDE_INNER else None
-        if loop in _SIDE_INNER and inner is None and attitude_params is None:
+        inner = gains.get(SIDE_INNER.get(loop, loop)) if loop in SIDE_INNER else None
+        if loop in SIDE_INNER and inner is None and attitude_params is None:
             continue
         G, w = true_response(models, loop, inner, attitude_params)
         best = optimal_pd(G, w)
@@ -260,12 +258,12 @@ def onboard_process(airframe: Airframe, loop: Loop, params: Mapping[str, float]
     """
     models = _true_models(airframe)
     spec = airframe.onboard
-    if loop in _SIDE_INNER:
-        mi, ms = models[_SIDE_INNER[loop].value], models[loop.value]
+    if loop in SIDE_INNER:
+        mi, ms = models[SIDE_INNER[loop].value], models[loop.value]
         w = frequency_grid(mi["T_prop"], mi["T1"], mi["tau"], extra_T=(ms["T2"], ms["tau"]))
         s = 1j * w
-        gi = _inner(airframe, models, _SIDE_INNER[loop], w) * _hold(s, 1.0 / spec.loop_hz)
-        Cr, Cy = onboard_controller(airframe, _SIDE_INNER[loop], params, w)
+        gi = _inner(airframe, models, SIDE_INNER[loop], w) * _hold(s, 1.0 / spec.loop_hz)
+        Cr, Cy = onboard_controller(airframe, SIDE_INNER[loop], params, w)
         t_att = gi * Cr / (1.0 + gi * Cy)
         G = t_att * side_response(ms["K"], ms["T2"], ms["tau"], w)[0]
         return G * _hold(s, 1.0 / spec.position_loop_hz), w
@@ -300,14 +298,14 @@ def _gcs_score(airframe: Airframe, loop: Loop, pd: PD, identified: Mapping[Loop,
                delay_s: float) -> LoopScore | None:
     # the GCS sees angle and position equally late: the side part keeps its relative delay
     models = _true_models(airframe)
-    if loop in _SIDE_INNER:
-        inner = identified.get(_SIDE_INNER[loop])
+    if loop in SIDE_INNER:
+        inner = identified.get(SIDE_INNER[loop])
         if inner is None:
             return None
-        mi, ms = models[_SIDE_INNER[loop].value], models[loop.value]
+        mi, ms = models[SIDE_INNER[loop].value], models[loop.value]
         w = frequency_grid(mi["T_prop"], mi["T1"], mi["tau"] + delay_s,
                            extra_T=(ms["T2"], ms["tau"]))
-        gi = _inner(airframe, models, _SIDE_INNER[loop], w, delay_s)
+        gi = _inner(airframe, models, SIDE_INNER[loop], w, delay_s)
         G = closed_inner_response(inner.Kc, inner.Kd, gi, w)[0] \
             * side_response(ms["K"], ms["T2"], ms["tau"], w)[0]
     else:

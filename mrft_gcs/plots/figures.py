@@ -17,14 +17,13 @@ from typing import Any
 import numpy as np
 
 from mrft_gcs.errors import MissingDependency
-from mrft_gcs.loops import Loop, LoopKind
+from mrft_gcs.loops import SIDE_INNER, Loop, LoopKind
 from mrft_gcs.plant import PD, InnerModel
 from mrft_gcs.plots.curves import LoopCurves, loop_curves
 
 __all__ = ["LoopPanel", "plot_tune", "plot_dry_run", "render_panels", "panels_figure",
            "tune_panels", "dry_run_panels"]
 
-_SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
 _Y_LABEL = {Loop.ROLL: "roll angle (rad)", Loop.PITCH: "pitch angle (rad)",
             Loop.ALTITUDE: "altitude (m)", Loop.X: "x, north (m)", Loop.Y: "y, east (m)"}
 _U_LABEL = {Loop.ROLL: "torque command (normalised)", Loop.PITCH: "torque command (normalised)",
@@ -67,7 +66,7 @@ def _pyplot() -> Any:
 
 def _inner_of(loops: dict, loop: Loop) -> tuple[InnerModel, PD] | None:
     """The attitude loop behind x or y: its model and the gains its side design assumed."""
-    att = loops.get(_SIDE_INNER.get(loop)) if loop in _SIDE_INNER else None
+    att = loops.get(SIDE_INNER.get(loop)) if loop in SIDE_INNER else None
     ident = getattr(att, "identification", None) if att is not None else None
     if ident is None or not isinstance(ident.model, InnerModel):
         return None

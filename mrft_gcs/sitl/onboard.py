@@ -45,6 +45,7 @@ import math
 from dataclasses import dataclass
 
 from mrft_gcs.sitl.airframe import GRAVITY_M_S2, OnboardSpec
+from mrft_gcs.telemetry import quat_from_euler
 
 __all__ = [
     "FlightMode",
@@ -303,14 +304,6 @@ def _quat_mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float,
             aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
 
 
-def _quat_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
-
-
 class Autopilot:
     """Modes, arming, setpoints, failsafes and the control cascades.
 
@@ -484,7 +477,7 @@ class Autopilot:
                   att: tuple[float, ...]) -> tuple[float, float, float]:
         prm = self.params
         self.attitude_sp = tuple(q_sp)  # what ATTITUDE_TARGET reports
-        q = _quat_euler(att[0], att[1], att[2])
+        q = quat_from_euler(att[0], att[1], att[2])
         qe = _quat_mul((q[0], -q[1], -q[2], -q[3]), q_sp)
         # rotation vector of the error (exactly the angle error for a single-axis error)
         vn = math.sqrt(qe[1] * qe[1] + qe[2] * qe[2] + qe[3] * qe[3])
@@ -526,7 +519,7 @@ class Autopilot:
             self._pos_count = 0
             self._pos_out = self._velocity(mode, att, posv, vup_sp)
         roll_sp, pitch_sp, thrust = self._pos_out
-        q_sp = _quat_euler(roll_sp, pitch_sp, self._hold_yaw)
+        q_sp = quat_from_euler(roll_sp, pitch_sp, self._hold_yaw)
         return (*self._attitude(q_sp, att), thrust)
 
     def _velocity(self, mode: FlightMode, att: tuple[float, ...], posv: tuple[float, ...],

@@ -20,19 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from mrft_gcs.sitl.airframe import GRAVITY_M_S2, Airframe
+from mrft_gcs.telemetry import quat_from_euler
 
 __all__ = ["Multirotor", "Measurement", "quat_from_euler", "euler_from_quat", "DT_S"]
 
 DT_S = 0.001
-
-
-def quat_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
-    """ZYX Euler angles (rad) to a unit quaternion ``(w, x, y, z)``."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
 
 
 def shaped_torques(roll: float, pitch: float, yaw: float, prev: tuple[float, ...],

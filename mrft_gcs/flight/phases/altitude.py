@@ -1,0 +1,97 @@
+"""The altitude relay: the climb, then MRFT on altitude about the height the climb held.
+
+The take-off controller (:mod:`mrft_gcs.flight.takeoff`, eq. 21) flies the climb and runs the
+altitude relay once the vehicle holds its set point; this phase feeds the relay's cycles to
+the watcher, starts a lopsided relay over, and flies the identified PD afterwards.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mrft_gcs.features import crosses_setpoint, rising_switches
+from mrft_gcs.flight.controllers import FlightState
+from mrft_gcs.flight.phases.shared import Shared
+from mrft_gcs.flight.phases.state import LoopState, LoopTest
+from mrft_gcs.identify import RelaySettings
+from mrft_gcs.loops import Loop
+
+__all__ = ["AltitudeRelay"]
+
+
+class AltitudeRelay:
+    """The altitude loop from the take-off command on.
+
+    Parameters
+    ----------
+    shared : Shared
+        The sequence's shared state (its take-off controller runs the relay).
+    settings : RelaySettings
+        MRFT beta and h for altitude (normalised thrust).
+    """
+
+    def __init__(self, shared: Shared, settings: RelaySettings) -> None:
+        self.sh = shared
+        alt = shared.loops[Loop.ALTITUDE]
+        alt.beta, alt.h = settings.beta, settings.h
+
+    def start(self, t_s: float) -> None:
+        """Take-off command at ``t_s``: the relay (inside the climb) counts from now."""
+        alt = self.sh.loops[Loop.ALTITUDE]
+        alt.state, alt.t_relay_start_s = LoopState.RELAY, t_s
+        alt.band = self.sh.takeoff.band_m = self.sh.noise_band(Loop.ALTITUDE)
+
+    def step(self, s: FlightState, z: float, new: bool) -> float:
+        """Normalised thrust for this tick (``z``: height over take-off, m; ``new``: a new
+        position sample)."""
+        sh = self.sh
+        t = sh.loops[Loop.ALTITUDE]
+        if t.pd is not None:
+            # where its relay oscillated (the climb may have come to rest under z_ref_m): a
+            # step would disturb the x/y tests that start now
+            u = t.pd.step(sh.takeoff.z_relay_m, z, s.vz_up_m_s)
+        else:
+            relay = sh.takeoff.relay
+            before = float(relay.state[0]) if relay is not None else 0.0
+            zf = sh.z_f - sh.origin[2]  # smoothed with the climb rate, as x and y
+            sh.takeoff.no_brake = sh.config.brake_after_attitude and not sh.inner_done
+            u = sh.takeoff.step(s.t_pos_s, zf, s.vz_up_m_s)
+            if sh.takeoff.switched:
+                t.bias = sh.takeoff.u_z0
+                if relay is not None:
+                    sh.watch(t, relay, sh.takeoff.z_relay_m - zf, before)
+                cycles = t.status.cycles
+                sh.feed(t, s.t_pos_s, u, zf, new)
+                if t.status.cycles > cycles and self.lopsided(t):
+                    sh.takeoff.resettle(hover=float(np.mean(t.watch.last_cycles(2)[1])))
+                    sh.events.append(
+                        "altitude: two relay cycles in a row did not cross the set point (a "
+                        "lopsided cycle); the relay starts again once the climb controller "
+                        "holds the set point")
+                    t.restart_detection()
+        t.u = u
+        return u
+
+    def lopsided(self, t: LoopTest) -> bool:
+        """The altitude relay's last two cycles both miss the set point in a half-cycle.
+
+        Identification would refuse them (:func:`~mrft_gcs.features.cycle_features`); seen
+        at once, the relay is started over from the set point instead of waiting for three
+        steady cycles of a slow (0.9 s) lopsided mode first.
+        """
+        if t.state is not LoopState.RELAY or t.status.cycles < 2:
+            return False
+        _, u, y = t.watch.last_cycles(2)
+        if u.size < 8:
+            return False
+        high = u > 0.5 * (u.max() + u.min())
+        rises = np.concatenate([[0], rising_switches(u)])  # the window opens on a rise
+        falls = np.flatnonzero(high[:-1] & ~high[1:]) + 1
+        e = self.sh.takeoff.z_relay_m - y
+        if len(rises) != 3:
+            return False
+        for a, b in zip(rises[:-1], rises[1:], strict=True):
+            f = falls[(falls > a) & (falls < b)]
+            if f.size != 1 or crosses_setpoint(e, a, f[0], b):
+                return False
+        return True

@@ -1,0 +1,292 @@
+"""The roll and pitch relays (torque path), from lift-off to their identified PDs.
+
+Each relay starts at lift-off at ``h_att_start`` and is sized on its first period (or at once
+on a first swing that tilts too far): h so that the axis swings about ``att_amp_max_rad``,
+the bias at the torque that holds the axis. Later periods resize a relay whose swing grew
+too large or whose mean torque moved off its bias. A relay that pushes the axis away before
+it is sized is turned round; a run-away is held by a damping PD until the axis is back inside
+its cycle (:meth:`~mrft_gcs.flight.phases.shared.Shared.watch`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mrft_gcs.flight.controllers import catch_pd
+from mrft_gcs.flight.phases.liftoff import LiftoffDetector
+from mrft_gcs.flight.phases.shared import Shared
+from mrft_gcs.flight.phases.state import AUTOPILOT_ATTITUDE, LoopState, LoopTest
+from mrft_gcs.identify import RelaySettings
+from mrft_gcs.loops import Loop
+from mrft_gcs.profiles import Actuation
+from mrft_gcs.relay import MRFT
+
+__all__ = ["AttitudeRelays"]
+
+
+class AttitudeRelays:
+    """Roll and pitch: relay, sizing, run-away catch, then the identified PD.
+
+    Parameters
+    ----------
+    shared : Shared
+        The sequence's shared state.
+    settings : RelaySettings
+        MRFT beta and the h to size towards (normalised torque).
+    liftoff : LiftoffDetector
+        Its rate thresholds tell a turn of the axis from gyro noise.
+    """
+
+    def __init__(self, shared: Shared, settings: RelaySettings,
+                 liftoff: LiftoffDetector) -> None:
+        self.sh = shared
+        self.liftoff = liftoff
+        cfg = shared.config
+        for lp in (Loop.ROLL, Loop.PITCH):
+            t = shared.loops[lp]
+            t.beta = settings.beta
+            t.h_goal = max(settings.h, cfg.h_att_min)
+            t.h, t.sized = min(t.h_goal, cfg.h_att_start), False
+            if cfg.actuation is Actuation.ATTITUDE:
+                t.state = LoopState.LEFT_ALONE
+                t.note = AUTOPILOT_ATTITUDE
+
+    def step(self, loop: Loop, ref: float, y: float, rate: float, t_s: float, new: bool,
+             airborne: bool) -> float:
+        """Normalised torque of ``loop`` for this tick.
+
+        Parameters
+        ----------
+        ref, y : float
+            Angle set point and measured angle (rad).
+        rate : float
+            Measured body rate (rad/s).
+        t_s : float
+            Time of the attitude sample (s); ``new``: it is a new sample.
+        airborne : bool
+            Lift-off seen: the relay may start.
+        """
+        t = self.sh.loops[loop]
+        if t.pd is not None:
+            u = t.pd.step(ref, y, rate)
+        elif not airborne:
+            u = 0.0
+        else:
+            if t.state is LoopState.WAITING:
+                t.band = self.sh.noise_band(loop)
+                t.relay = MRFT(t.beta, t.h, band=t.band)
+                t.state, t.t_relay_start_s = LoopState.RELAY, t_s
+            assert t.relay is not None
+            if t.catch is not None:
+                # back to the relay once inside its own cycle's envelope (angle and rate)
+                period, amp = t.cycle
+                if t_s - t.t_catch_s < 3 * period:  # a resized relay: at rest first
+                    amp *= t.catch_release
+                e = ref - y
+                if abs(e) < amp and abs(rate) < 2 * math.pi * amp / period:
+                    t.from_rest = t.catch_release < 1.0
+                    t.catch, t.catch_release = None, 1.0
+                else:
+                    kc, kd = t.catch
+                    lim = self.sh.config.catch_torque_factor * t.h
+                    # about the relay's bias: the torque that holds the axis (a CoM offset)
+                    u = t.bias + min(lim, max(-lim, kc * e - kd * rate))
+                    t.u = u
+                    return u
+            before = float(t.relay.state[0])
+            u = float(t.relay.step(ref - y)[0])
+            self.sh.watch(t, t.relay, ref - y, before, -rate)
+            if t.relay is not None and self._drives_away(t, ref - y, -rate):
+                # the MRFT's lead braked a return swing short of its set point (too little
+                # swing to arm the switch: a torque bias, an agile vehicle at its first h)
+                # and now pushes the axis away from it, which tilts a light vehicle far
+                # over. The relay is turned round at once, this point its new extreme
+                e = ref - y
+                r = t.relay
+                r.state[:] = 1.0 if e >= 0 else -1.0
+                r.ext[:] = r.entry[:] = e
+                r.first[:] = False
+                r.switches += 1
+                u = float(r.bias[0] + r.h[0] * r.state[0])
+                t.pushed_away += 1
+            self.sh.feed(t, t_s, u, y, new)
+            if new and t.relay is not None:
+                self._size(t, t_s, u, y, ref - y, -rate)
+            st = t.status
+            if (st.cycles >= 2 and st.spread < 0.15 and math.isfinite(st.period_s)
+                    and st.amplitude > 0):
+                t.cycle = (st.period_s, st.amplitude)
+        t.u = u
+        return u
+
+    def _drives_away(self, t: LoopTest, e: float, e_rate: float) -> bool:
+        """Roll/pitch in its first cycles (until sized and two detector cycles): the relay
+        pushes the axis away from its set point while it moves away, beyond twice the noise
+        band. In a proper MRFT cycle the relay pushes away only to brake a swing that still
+        moves towards the set point."""
+        if t.sized and t.status.cycles >= 2 or t.catch is not None or t.relay is None:
+            return False
+        st = float(t.relay.state[0])
+        band = t.band if math.isfinite(t.band) else 0.0
+        return (st * e < 0 and e * e_rate > 0 and abs(e) > 2 * band
+                and abs(e_rate) > self.liftoff.turn_rate(t.loop))
+
+    # ------------------------------------------------------------------ sizing
+    def _size(self, t: LoopTest, t_s: float, u: float, y: float, e: float,
+              e_rate: float) -> None:
+        """Roll/pitch relay sizing, on each new attitude sample while the relay runs.
+
+        The first period (``h_att_start``) sets h and the bias; later periods resize a relay
+        whose swing passes 1.25 x ``att_amp_max_rad`` (a first period from rest can fall
+        short of the steady cycle) or whose mean torque moved off its bias by
+        ``att_bias_min`` of h. A period runs from one turn of the axis (rate through zero)
+        to the next turn the same way: the rate is zero at both ends, so the mean relay
+        output over it is the torque that holds the axis (the plant integrates); from
+        switch to switch it is not while the cycle still grows. Before the first period, a
+        relay that cannot turn the axis back (a torque bias over h: pushed back, yet
+        speeding away beyond ``att_amp_max_rad``) is doubled at once.
+        """
+        cfg, relay = self.sh.config, t.relay
+        assert relay is not None
+        st = float(relay.state[0])
+        if not t.sized:
+            t.probe_rate.append((t_s, st, e_rate))
+            # pushed back for long enough to have acted, yet still speeding outward (a normal
+            # swing slows down once the push-back acts)
+            back = [r for r in t.probe_rate if r[0] >= t_s - cfg.att_bias_window_s]
+            if (len(back) >= 3 and back[0][0] <= t_s - 0.9 * cfg.att_bias_window_s
+                    and all(r[1] == st for r in back)
+                    and abs(e) > cfg.att_amp_max_rad and st * e > 0 and e * e_rate > 0
+                    and abs(e_rate) > abs(back[0][2]) and t.h < t.h_goal):
+                h = min(t.h_goal, 2.0 * t.h)
+                self.sh.events.append(
+                    f"{t.loop.value}: relay amplitude raised from {t.h:.3g} to "
+                    f"{h:.3g} (it could not turn the axis back: a torque bias)")
+                t.h = h
+                relay.h[:] = h
+                t.probe, t.turns, t.turn_sign = [], [], 0.0
+                t.probe_rate.clear()
+                return
+        n = int(relay.switches[0])
+        if n < t.probe_switches:  # the relay was restarted (a run-away): periods from here
+            t.probe, t.turns, t.turn_sign = [], [], 0.0
+        t.probe_switches = n
+        if n == 0:
+            return  # from the relay's first switch on
+        rate = -e_rate
+        t.probe.append((t_s, u, y, rate))
+        thr = self.liftoff.turn_rate(t.loop)
+        if t.turn_sign == 0.0:
+            t.turn_sign = math.copysign(1.0, rate) if abs(rate) > thr else 0.0
+        elif rate * t.turn_sign < -thr:  # a turn, with hysteresis against gyro noise
+            t.turn_sign = -t.turn_sign
+            t.turns.append(len(t.probe) - 1)
+            if len(t.turns) >= 3:
+                self._period_done(t)
+            elif not t.sized and len(t.turns) == 2:
+                self._first_swing(t)
+
+    def _first_swing(self, t: LoopTest) -> None:
+        """Size at once on the first swing from turn to turn if it passed twice
+        ``att_amp_max_rad``: a full first period of a light, agile vehicle at
+        ``h_att_start`` would tilt it far over (its bias is measured on later periods)."""
+        i, j = t.turns
+        seg = np.array(t.probe[i:j + 1])
+        amp = 0.5 * float(np.ptp(seg[:, 2]))
+        if amp > 2.0 * self.sh.config.att_amp_max_rad:
+            t.sized = True
+            t.probe_rate.clear()
+            t0, t1 = float(seg[0, 0]), float(seg[-1, 0])
+            self._resize(t, np.array([t0, t0 + 2.0 * (t1 - t0)]), amp, t.bias,
+                         "its first swing")
+
+    def _period_done(self, t: LoopTest) -> None:
+        """A period from turn to turn is complete: size the relay on it if due."""
+        cfg = self.sh.config
+        i, j = t.turns[-3], t.turns[-1]
+        rec = np.array(t.probe[i:j + 1])
+        # keep what the next period needs: from the turn before the last on
+        k = t.turns[-2]
+        t.probe = t.probe[k:]
+        t.turns = [0, j - k]
+        if rec.shape[0] < 4:
+            return
+        ts, us, ys = rec[:, 0], rec[:, 1], rec[:, 2]
+        dt = np.diff(ts)
+        mean_u = float(np.sum(us[:-1] * dt) / np.sum(dt))
+        amp = 0.5 * float(np.ptp(ys))
+        if not t.sized:
+            t.sized = True
+            t.probe_rate.clear()
+            self._resize(t, ts, amp, mean_u, "its first period")
+            return
+        if t.resizes >= cfg.att_max_resizes or not amp > 0:
+            return
+        if abs(ys[-1] - ys[0]) > 0.25 * amp:
+            t.bias_votes.clear()
+            return  # not yet periodic (growing or shrinking): its mean torque is no bias
+        t.bias_votes.append(mean_u)
+        # a new bias only on two periods in a row that agree (a ground-station stall holds
+        # the torque the vehicle gets, not the one recorded: one period can be far off)
+        tol = cfg.att_bias_min * t.h
+        m = t.bias_votes[-2:]
+        off = (len(m) == 2 and abs(m[0] - m[1]) < tol
+               and all(abs(x - t.bias) > tol for x in m))
+        if amp > 1.25 * cfg.att_amp_max_rad or off:
+            self._resize(t, ts, amp, float(np.mean(m)) if off else t.bias, "a period")
+
+    def _resize(self, t: LoopTest, ts: np.ndarray, amp: float, mean_u: float,
+                what: str) -> None:
+        """Set roll/pitch's h and bias from one period (its times, swing ``amp`` in rad, mean
+        torque): h no larger than swings the axis ``att_amp_max_rad`` (the swing is
+        proportional to h), the bias at the mean torque; the relay restarts at rest."""
+        cfg, relay = self.sh.config, t.relay
+        assert relay is not None
+        h0 = t.h
+        h = t.h_goal if what.startswith("its first") else h0
+        if amp > 0:
+            t.amp_per_h = amp / h0
+            if t.amp_per_h * h > 1.25 * cfg.att_amp_max_rad:
+                # (with a margin: the first period after lift-off is no steady cycle yet and
+                # can swing twice as far as the steady one)
+                h = cfg.att_amp_max_rad / t.amp_per_h
+            # no smaller than the noise needs (the amplitude ``ready`` raises to), within reason
+            sigma = t.band / cfg.noise_band_sigmas if math.isfinite(t.band) else 0.0
+            h_noise = sigma / (0.7 * cfg.max_noise_ratio * t.amp_per_h)
+            h = max(h, min(h_noise, t.h_goal, 1.5 * cfg.att_amp_max_rad / t.amp_per_h))
+        h = max(h, cfg.h_att_floor)
+        bias = mean_u if (cfg.att_bias_min * min(h, h0) < abs(mean_u - t.bias)
+                          and abs(mean_u) <= cfg.att_bias_max) else t.bias
+        notes = []
+        if abs(h - h0) > 0.01 * h0:
+            notes.append(f"amplitude {h0:.3g} -> {h:.3g}")
+        if bias != t.bias:
+            notes.append(f"bias {t.bias:+.3g} -> {bias:+.3g} (the mean torque)")
+        if not notes:
+            return
+        self.sh.events.append(f"{t.loop.value}: relay sized on {what} ({amp:.3g} rad at h "
+                              f"{h0:.3g}): " + ", ".join(notes))
+        t.resizes += 1
+        t.h, t.bias = h, bias
+        relay.h[:] = h
+        relay.bias[:] = bias
+        t.probe, t.turns, t.turn_sign = [], [], 0.0
+        t.bias_votes.clear()
+        t.unarmed = t.switches = 0
+        t.ext = 0.0
+        t.restart_detection()
+        if amp > 0:  # the cycle to expect at the new h (sizes the run-away catch)
+            t.cycle = (float(ts[-1] - ts[0]), t.amp_per_h * h)
+        if amp > 0:
+            relay.reset()
+            # the relay restarts from rest at its set point: an MRFT (beta -0.7) switched to a
+            # smaller h or a new bias mid-swing swung out further or locked into a lopsided
+            # cycle that never crossed its set point, a sign relay restarted off its set point
+            # swung out to twice the cycle, and a larger h taken mid-swing under stalls
+            # tilted the vehicle twice as far as with the restart. A damping PD sized on that
+            # cycle brings the axis there first
+            t.catch = catch_pd(h, *t.cycle)
+            t.catch_release = cfg.att_restart_envelope
+            t.t_catch_s = float(ts[-1])
