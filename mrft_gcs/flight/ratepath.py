@@ -93,8 +93,8 @@ STAGE_HOLD_S = 0.3
 #: ArduCopter's switch of the rate feed-forward (the attitude target's own rate). Off, an
 #: attitude set point becomes the onboard target at once instead of being shaped towards
 #: it: the hand-over sets the target onto the body that way before angle P comes back (the
-#: target integrated the rates sent open loop and sat 4-12 deg off the body, up to 26;
-#: the angle loop snapped the vehicle there and disturbed the altitude relay in flight)
+#: target integrated the rates sent open loop and drifted off the body; angle P would snap
+#: the vehicle there under the altitude relay: docs/ardupilot.md)
 TARGET_SET_PARAM = "ATC_RATE_FF_ENAB"
 #: how long the body's own attitude is sent as the target before angle P is written (s):
 #: a dozen set points at 250 Hz, so that one has surely been applied
