@@ -15,7 +15,7 @@ from mrft_gcs.flight.onboard import (
     onboard_side_gains,
     robust_onboard_gains,
 )
-from mrft_gcs.flight.scoring import score_written
+from mrft_gcs.flight.scoring import general_ise, score_written
 from mrft_gcs.flight.structure import (
     OnboardStructure,
     read_structure,
@@ -103,6 +103,9 @@ def test_both_margins_are_honoured():
     assert free.pm_deg < 25.0  # the constraint is active: the ISE pulls towards less margin
     assert held.pm_worst_deg >= PM_ROBUST_DEG - 0.05 and held.pm_deg >= 20.0 - 0.05
     assert held.ise >= free.ise  # the extra constraint costs, never helps
+    plain = optimal_pd(G, w).pd  # the PD design, written through the same structure
+    Cr, Cy = structure_controller(plain, st, w)
+    assert free.ise < general_ise(Cr, Cy, G, w) * 0.99
 
 
 def test_structure_read_from_the_sitl_over_its_parameter_names():

@@ -188,7 +188,7 @@ def structured_pd(G: np.ndarray, w: np.ndarray, st: OnboardStructure, *,
     def cost(x: np.ndarray) -> float:
         g = PD(float(np.exp(x[0])), float(np.exp(x[1])))
         pm, pmw = pm_all(g)
-        if not (math.isfinite(pm) and math.isfinite(pmw)):
+        if pm == -math.inf or pmw == -math.inf:  # unstable (no worst case: pmw is +inf)
             return 1e12
         Cr, Cy = structure_controller(g, st, w)
         q = general_ise(Cr, Cy, G, w)
