@@ -66,6 +66,7 @@ from mrft_gcs.flight.safety import LimitExceeded
 from mrft_gcs.flight.scoring import score_written
 from mrft_gcs.flight.sequence import LoopState, Phase, SequenceConfig, TuningSequence
 from mrft_gcs.flight.source import VehicleMode
+from mrft_gcs.flight.structure import TARGET_FILTER_PARAMS, read_structure, structured_retarget
 from mrft_gcs.identify import relay_settings
 from mrft_gcs.identify.live import bundled_identifier
 from mrft_gcs.link.quality import LinkQuality, require_relay_capable
@@ -154,6 +155,9 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
     # link's round trip (what TIMESYNC times here), robustly; side loops behind the written
     # attitude gains; clamp
     written, delays, rts = {}, {}, {}
+    # the structure's filters as the tool reads them: the names the vehicle has
+    read = {n: ap.params[n] for n in TARGET_FILTER_PARAMS.values() if n in ap.params}
+    structure = {lp: read_structure(lp, read, prof.family.value) for lp in identified}
     for lp, ident in identified.items():
         snap = seq.loops[lp].snapshot
         t0, t1 = (float(snap.t_s[0]), float(snap.t_s[-1])) if snap is not None and len(
@@ -161,12 +165,14 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
         ta = [(t, age) for t, age in ages[lp is Loop.ALTITUDE] if t0 <= t <= t1]
         gcs = measure_gcs_delay([a for _, a in ta], 1.0 / RATE_HZ,
                                 sample_t_s=[t for t, _ in ta], round_trip_s=rtt * 1e-3)
-        rts[lp] = robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp))
+        rts[lp] = structured_retarget(ident, robust_onboard_gains(
+            ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp)), structure[lp])
         delays[lp], written[lp] = rts[lp].delay_s, rts[lp].gains
     for lp, inner_lp in SIDE_INNER.items():
         if lp in identified and inner_lp in rts:
             written[lp] = onboard_side_gains(identified[lp], identified[inner_lp],
-                                             rts[inner_lp]).gains
+                                             rts[inner_lp],
+                                             target_hz=structure[inner_lp].target_hz).gains
     rec["retarget_delay_ms"] = {lp.value: d * 1e3 for lp, d in delays.items()}
     ranged = params_in_range(prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in written.items()}, hover)
     rec["notes"] += list(ranged.notes)
@@ -228,7 +234,7 @@ def run_live(seed: int) -> dict:
                                     "Kc": i.gains.Kc, "Kd": i.gains.Kd}
                          for lp, i in identified.items()}
     if r.parameters:
-        params = dict(ParamStore(af.hover_thrust * af.hover_estimate_factor).values)
+        params = dict(ParamStore(af.hover_thrust * af.hover_estimate_factor, af.onboard).values)
         params.update({c.name: c.new for c in r.parameters})
         rec["written"] = {c.name: c.new for c in r.parameters}
         loops = [lp for lp in identified if lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE)

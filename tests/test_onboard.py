@@ -315,7 +315,8 @@ def test_a_slow_link_on_a_short_onboard_delay_is_taken_out_up_to_the_cap():
     ident = _identified(af, Loop.ROLL, 0.022)
     gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.020)
     out = {share: _onboard_scores(af, {Loop.ROLL: robust_onboard_gains(
-        ident, gcs, cap_share=share).gains}, [Loop.ROLL])[Loop.ROLL] for share in (0.5, CAP_SHARE)}
+        ident, gcs, cap_share=share, certain_share=0.0).gains}, [Loop.ROLL])[Loop.ROLL]
+        for share in (0.5, CAP_SHARE)}
     assert out[0.5].J_pct > 10.0
     assert out[CAP_SHARE].J_pct <= 10.0 and out[CAP_SHARE].pm_deg >= PM_ROBUST_DEG
 

@@ -85,6 +85,7 @@ from mrft_gcs.flight.sequence import (
     quat_from_euler,
 )
 from mrft_gcs.flight.source import LinkTelemetry, LiveVehicle, Setpoint, VehicleMode
+from mrft_gcs.flight.structure import OnboardStructure, structured_retarget, vehicle_structure
 from mrft_gcs.identify import (
     Identification,
     RelaySettings,
@@ -344,6 +345,19 @@ def _round_trip_s(q: LinkQuality | None) -> float:
     return 1e-3 * q.rtt_p50_ms
 
 
+def _optional_reader(link: VehicleLink) -> Callable[[str], float | None]:
+    """A parameter's value, or None where the vehicle does not answer for it (briefly: a
+    missing name costs one unanswered read before take-off)."""
+    probe = ParamClient(link, timeout_s=0.3, retries=1)
+
+    def read(name: str) -> float | None:
+        try:
+            return probe.read(name).value
+        except ParameterError:
+            return None
+    return read
+
+
 def _check_note(plan: CheckPlan, check: InAirCheck) -> str:
     return (f"crossover predicted at {plan.wc_rad_s:.3g} rad/s; measured onboard plant "
             f"{check.k:.2f} x the model's gain, {check.extra_delay_s * 1e3:+.1f} ms of delay"
@@ -513,6 +527,8 @@ class _Run:
         self.clock = _ReceiveClock(link)  # ages are counted on it
         self.delays: dict[Loop, float] = {}  # re-targeted out of the written gains (s)
         self.retargets: dict[Loop, Retarget] = {}
+        #: the autopilot's attitude-loop structure, read before take-off (flight/structure)
+        self.structure: dict[Loop, OnboardStructure] = {}
         self.config = SequenceConfig()
         self.written: dict[Loop, PD] = {}
         self.residuals = True
@@ -617,6 +633,7 @@ class _Run:
         client = ParamClient(link)
         current = client.read_many(self.prof.parameter_names())
         self.hover = current[self.prof.altitude.hover_thrust].value
+        self.structure = vehicle_structure(_optional_reader(link), self.prof.family.value)
         if dry_link:
             try:
                 relay_settings(LoopKind.ATTITUDE)
@@ -982,7 +999,9 @@ class _Run:
             inner, ident = seq.loops[inner_lp].identification, seq.loops[lp].identification
             if (lp in self.written and inner_lp in retargets and inner is not None
                     and ident is not None and self.gcs_delay_s is None):
-                side = onboard_side_gains(ident, inner, retargets[inner_lp])
+                st = self.structure.get(inner_lp)
+                side = onboard_side_gains(ident, inner, retargets[inner_lp],
+                                          target_hz=st.target_hz if st else None)
                 self.written[lp] = side.gains
                 side_notes.append(f"{lp.value} {side.note()}")
         moved = [lp for lp, g in identified.items() if self.written[lp] != g
@@ -1210,7 +1229,8 @@ class _Run:
         spread = 1e-3 * (q.rtt_p90_ms - q.rtt_p50_ms) if rtt > 0 and q is not None else 0.0
         gcs = measure_gcs_delay(ages, period, sample_t_s=t, clock=clock, latency_s=0.5 * rtt,
                                 round_trip_s=rtt, round_trip_spread_s=spread)
-        return robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp))
+        rt = robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp))
+        return structured_retarget(ident, rt, self.structure.get(lp, OnboardStructure()))
 
     def _hand_over(self) -> None:
         """Switch to the autopilot's position mode, stop streaming, check it hovers."""

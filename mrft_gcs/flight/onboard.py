@@ -76,7 +76,7 @@ from mrft_gcs.plant import (
 __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s",
            "first_answers", "GcsDelay", "measure_gcs_delay", "Retarget",
            "robust_onboard_gains", "PM_ROBUST_DEG", "ROUND_TRIP_SLACK_S", "SideRetarget",
-           "onboard_side_gains", "onboard_extra_delay_s", "CAP_SHARE",
+           "onboard_side_gains", "onboard_extra_delay_s", "CAP_SHARE", "CERTAIN_CAP_SHARE",
            "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ", "CascadeGains", "cascade_gains",
            "CASCADE_LOOP_HZ"]
 
@@ -107,6 +107,9 @@ PM_ROBUST_DEG = 15.0
 #: the most of the identified delay a re-target may take out: an identification may put
 #: some of the delay into the lags, which no margin check on the model can see
 CAP_SHARE = 0.75
+#: the most of the identified delay the least plausible GCS delay (measured: the link's
+#: round trip, the ages) may take out where that is more than :data:`CAP_SHARE`
+CERTAIN_CAP_SHARE = 0.95
 #: the slowest onboard position loop allowed for (Hz): its sample-and-hold is delay the
 #: altitude and side loops have onboard and did not have during the GCS-side tests
 POSITION_LOOP_MIN_HZ = 50.0
@@ -324,6 +327,9 @@ class Retarget:
         The most that may be re-targeted: :data:`CAP_SHARE` of the identified delay (s).
     extra_s : float
         Delay the onboard loop may add unseen by the ground station, allowed for (s).
+    structure : str
+        The onboard controller structure the gains were designed on, where it is not the
+        plain PD ("": the PD; :func:`mrft_gcs.flight.structure.structured_retarget`).
     """
 
     gains: PD
@@ -332,6 +338,7 @@ class Retarget:
     gcs: GcsDelay
     cap_s: float = math.inf
     extra_s: float = 0.0
+    structure: str = ""
 
     @property
     def aimed_s(self) -> float:
@@ -360,6 +367,9 @@ class Retarget:
             out += (f", held back from {self.aimed_s * 1e3:.1f} ms to keep PM "
                     f"{self.pm_deg:.0f} deg at {g.lo_s * 1e3:.1f} ms"
                     + (" and that" if self.extra_s > 0 else ""))
+        if self.structure:
+            out += (f"; designed on the autopilot's structure ({self.structure}), PM "
+                    f"{self.pm_deg:.0f} deg at {g.lo_s * 1e3:.1f} ms")
         return out
 
 
@@ -372,7 +382,8 @@ def _pm_deg(gains: PD, m: InnerModel, tau: float) -> float:
 
 def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
                          pm_min_deg: float = PM_ROBUST_DEG, *, onboard_extra_s: float = 0.0,
-                         cap_share: float = CAP_SHARE) -> Retarget:
+                         cap_share: float = CAP_SHARE,
+                         certain_share: float = CERTAIN_CAP_SHARE) -> Retarget:
     """:func:`onboard_gains` re-targeted by as much of ``gcs.estimate_s`` as keeps a phase
     margin of ``pm_min_deg`` on the identified model with ``tau - gcs.lo_s`` (the least
     GCS delay that is plausible, hence the most onboard delay); bisected towards the
@@ -382,7 +393,9 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     have and the ground station cannot see (s; the position loop's sample-and-hold, see
     :func:`onboard_extra_delay_s`): the margin check takes all of it (more delay onboard,
     held back further; below 0, the gains of a loop with more delay than identified). The
-    re-target is never more than ``cap_share`` of the identified delay.
+    re-target is never more than ``cap_share`` of the identified delay, or the least
+    plausible GCS delay (``gcs.lo_s``: measured, so certain) up to ``certain_share`` of it
+    where that is more: a slow link's measured latency does not stay in the written gains.
 
     Examples
     --------
@@ -406,7 +419,9 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     extra = max(float(onboard_extra_s), 0.0)
     if not isinstance(m, InnerModel) or not (gcs.estimate_s > 0 or extra > 0):
         return Retarget(ident.gains, 0.0, math.nan, gcs)
-    cap = cap_share * m.tau
+    # the least plausible GCS delay is measured (the link's timed round trip, the ages): it
+    # goes out up to certain_share of the identified delay whatever cap_share says
+    cap = max(cap_share * m.tau, min(gcs.lo_s, certain_share * m.tau))
     lo_d = min(gcs.lo_s, cap) - extra  # the most onboard delay: tau - lo_d
     tau_on = max(m.tau - lo_d, 1e-6)
     d = min(gcs.estimate_s, cap)
@@ -488,7 +503,8 @@ def _side_process(inner: InnerModel, inner_pd: PD, tau: float, side: SideModel,
 
 def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Retarget,
                        pm_min_deg: float = PM_ROBUST_DEG, *,
-                       onboard_extra_s: float = 0.5 / POSITION_LOOP_MIN_HZ) -> SideRetarget:
+                       onboard_extra_s: float = 0.5 / POSITION_LOOP_MIN_HZ,
+                       target_hz: float | None = None) -> SideRetarget:
     """Side gains for the autopilot's cascade: behind the attitude gains it is written.
 
     A side loop is identified behind the ground station's attitude PD (``inner.gains``)
@@ -504,6 +520,11 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
     onboard position loop may add (s, :func:`onboard_extra_delay_s`), half of it designed
     for, all of it checked. Where the margin holds the move back, the ISE-optimal PD of the
     nominal cascade under that margin is taken instead when it is better.
+
+    ``target_hz``: the attitude loop's rate-target low-pass where the vehicle said what it
+    is (Hz, 0: none; :func:`mrft_gcs.flight.structure.read_structure`): the nominal cascade
+    and every check then have that filter instead of the unseen :data:`RATE_TARGET_MIN_HZ`
+    one.
 
     Examples
     --------
@@ -524,11 +545,14 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
     s = 1j * w
     extra = max(float(onboard_extra_s), 0.0)
     g_gcs = _side_process(mi, inner.gains, mi.tau, ms, w)
-    g_on = _side_process(mi, inner_rt.gains, mi.tau - inner_rt.delay_s, ms, w)
+    known = target_hz is not None and math.isfinite(target_hz) and target_hz >= 0
+    f_on = float(target_hz) if known else 0.0  # type: ignore[arg-type]
+    g_on = _side_process(mi, inner_rt.gains, mi.tau - inner_rt.delay_s, ms, w, f_on)
     lo = min(inner_rt.gcs.lo_s, inner_rt.delay_s)
-    worst = [g_on if lo >= inner_rt.delay_s else
-             _side_process(mi, inner_rt.gains, mi.tau - lo, ms, w), g_on,
-             _side_process(mi, inner_rt.gains, mi.tau - lo, ms, w, RATE_TARGET_MIN_HZ)]
+    g_lo = g_on if lo >= inner_rt.delay_s else _side_process(
+        mi, inner_rt.gains, mi.tau - lo, ms, w, f_on)
+    worst = [g_lo, g_on] if known else [
+        g_lo, g_on, _side_process(mi, inner_rt.gains, mi.tau - lo, ms, w, RATE_TARGET_MIN_HZ)]
     worst = [G * np.exp(-extra * s) for G in worst]
     p0, p1 = optimal_pd(g_gcs, w).pd, optimal_pd(g_on * np.exp(-0.5 * extra * s), w).pd
 

@@ -13,7 +13,15 @@ Attitude (roll shown; pitch and yaw alike)::
     I_int     += MC_ROLLRATE_I * (rate_sp - rate) dt            (|I_int| <= MC_RR_INT_LIM)
 
 The angle error is the body-frame rotation vector of ``q_meas^-1 q_sp`` (equal to the Euler
-angle differences for small angles); ``d(rate)/dt`` is low-passed at 30 Hz (``IMU_DGYRO_CUTOFF``).
+angle differences for small angles); ``d(rate)/dt`` is low-passed at ``IMU_DGYRO_CUTOFF``.
+
+The structure's own filters and rates are parameters under the firmware's names
+(:func:`structure_specs`), as a ground station reads them from real firmware: PX4-like
+vehicles ``IMU_DGYRO_CUTOFF`` (Hz) and ``IMU_GYRO_RATEMAX`` (the rate loop's rate, Hz);
+ArduPilot-like ones ``ATC_RAT_RLL_FLTT`` / ``ATC_RAT_PIT_FLTT`` (rate target low-pass, Hz),
+``ATC_RAT_RLL_FLTD`` / ``ATC_RAT_PIT_FLTD`` (D low-pass, Hz) and ``SCHED_LOOP_RATE`` (Hz).
+A filter written takes effect at once; a loop rate, as on the firmware, only after a reboot
+(never, in the simulator).
 
 Position (north/east; altitude alike with the MPC_Z_* names, up positive)::
 
@@ -56,6 +64,7 @@ __all__ = [
     "Autopilot",
     "StatusEvent",
     "sqrt_controller",
+    "structure_specs",
 ]
 
 
@@ -160,12 +169,35 @@ PARAM_SPECS: dict[str, ParamSpec] = {
 }
 
 
-class ParamStore:
-    """The vehicle's float parameters, in a stable order (the MAVLink param_index)."""
+def structure_specs(spec: OnboardSpec | None = None) -> dict[str, ParamSpec]:
+    """The onboard structure's filter and loop-rate parameters, under the firmware's names,
+    with ``spec``'s values as defaults (ranges as the firmware's).
 
-    def __init__(self, hover_thrust: float | None = None) -> None:
-        self.names: tuple[str, ...] = tuple(PARAM_SPECS)
-        self.values: dict[str, float] = {n: s.default for n, s in PARAM_SPECS.items()}
+    >>> sorted(structure_specs(OnboardSpec()))
+    ['IMU_DGYRO_CUTOFF', 'IMU_GYRO_RATEMAX']
+    >>> structure_specs(OnboardSpec(style="ardupilot", target_cutoff_hz=15.0))["ATC_RAT_RLL_FLTT"]
+    ParamSpec(default=15.0, low=0.0, high=500.0, unit='Hz')
+    """
+    sp = spec or OnboardSpec()
+    if sp.style == "ardupilot":
+        return {"ATC_RAT_RLL_FLTT": ParamSpec(sp.target_cutoff_hz, 0.0, 500.0, "Hz"),
+                "ATC_RAT_PIT_FLTT": ParamSpec(sp.target_cutoff_hz, 0.0, 500.0, "Hz"),
+                "ATC_RAT_RLL_FLTD": ParamSpec(sp.dgyro_cutoff_hz, 0.0, 500.0, "Hz"),
+                "ATC_RAT_PIT_FLTD": ParamSpec(sp.dgyro_cutoff_hz, 0.0, 500.0, "Hz"),
+                "SCHED_LOOP_RATE": ParamSpec(sp.loop_hz, 50.0, 2000.0, "Hz")}
+    return {"IMU_DGYRO_CUTOFF": ParamSpec(sp.dgyro_cutoff_hz, 0.0, 1000.0, "Hz"),
+            "IMU_GYRO_RATEMAX": ParamSpec(sp.loop_hz, 100.0, 2000.0, "Hz")}
+
+
+class ParamStore:
+    """The vehicle's float parameters, in a stable order (the MAVLink param_index):
+    :data:`PARAM_SPECS`, then the structure's (:func:`structure_specs` of ``spec``)."""
+
+    def __init__(self, hover_thrust: float | None = None,
+                 spec: OnboardSpec | None = None) -> None:
+        self.specs: dict[str, ParamSpec] = {**PARAM_SPECS, **structure_specs(spec)}
+        self.names: tuple[str, ...] = tuple(self.specs)
+        self.values: dict[str, float] = {n: s.default for n, s in self.specs.items()}
         if hover_thrust is not None:
             # as if PX4's hover-thrust estimator (MPC_USE_HTE) had converged
             self.values["MPC_THR_HOVER"] = round(_clip(hover_thrust, 0.1, 0.8), 2)
@@ -181,7 +213,7 @@ class ParamStore:
 
     def set(self, name: str, value: float) -> bool:
         """Set ``name``; False (and no change) for unknown names, NaN/inf or out of range."""
-        spec = PARAM_SPECS.get(name)
+        spec = self.specs.get(name)
         if spec is None or not math.isfinite(value) or not spec.low <= value <= spec.high:
             return False
         self.values[name] = float(value)
@@ -200,16 +232,40 @@ class _RateAxis:
     on the error, low-passed (FLTD); ``MC_*RATE_K`` is not used (ArduPilot has none).
     """
 
+    #: the firmware's filter parameters of each axis: (D low-pass, target low-pass)
+    _FILTERS: dict[tuple[str, str], tuple[str | None, str | None]] = {
+                ("px4", "MC_ROLLRATE"): ("IMU_DGYRO_CUTOFF", None),
+                ("px4", "MC_PITCHRATE"): ("IMU_DGYRO_CUTOFF", None),
+                ("px4", "MC_YAWRATE"): ("IMU_DGYRO_CUTOFF", None),
+                ("ardupilot", "MC_ROLLRATE"): ("ATC_RAT_RLL_FLTD", "ATC_RAT_RLL_FLTT"),
+                ("ardupilot", "MC_PITCHRATE"): ("ATC_RAT_PIT_FLTD", "ATC_RAT_PIT_FLTT")}
+
     def __init__(self, prefix: str, dt: float, spec: OnboardSpec | None = None) -> None:
         spec = spec or OnboardSpec()
         self.p, self.i, self.d = f"{prefix}_P", f"{prefix}_I", f"{prefix}_D"
         self.k, self.ff = f"{prefix}_K", f"{prefix}_FF"
         self.dt = dt
         self.ardupilot = spec.style == "ardupilot"
-        self.alpha = 1.0 - math.exp(-2 * math.pi * spec.dgyro_cutoff_hz * dt)
-        self.alpha_t = (1.0 - math.exp(-2 * math.pi * spec.target_cutoff_hz * dt)
-                        if spec.target_cutoff_hz > 0 else 1.0)
+        self.fd_name, self.ft_name = self._FILTERS.get((spec.style, prefix), (None, None))
+        self._names = tuple(n for n in (self.fd_name, self.ft_name) if n)
+        self._cutoffs = (spec.dgyro_cutoff_hz, spec.target_cutoff_hz)
+        self._set_filters(*self._cutoffs)
         self.reset()
+
+    def _set_filters(self, d_hz: float, target_hz: float) -> None:
+        self._cutoffs = (d_hz, target_hz)
+        self.alpha = 1.0 - math.exp(-2 * math.pi * d_hz * self.dt) if d_hz > 0 else 1.0
+        self.alpha_t = (1.0 - math.exp(-2 * math.pi * target_hz * self.dt)
+                        if target_hz > 0 else 1.0)
+
+    def _follow_params(self, prm: ParamStore) -> None:
+        """A filter parameter written takes effect at once (as on the firmware)."""
+        if not self._names:
+            return
+        d_hz = prm.values.get(self.fd_name or "", self._cutoffs[0])
+        t_hz = prm.values.get(self.ft_name or "", self._cutoffs[1])
+        if (d_hz, t_hz) != self._cutoffs:
+            self._set_filters(d_hz, t_hz)
 
     def reset(self) -> None:
         self.integral = 0.0
@@ -218,6 +274,7 @@ class _RateAxis:
         self.target: float | None = None
 
     def update(self, prm: ParamStore, rate_sp: float, rate: float, integrate: bool) -> float:
+        self._follow_params(prm)
         if self.ardupilot:
             return self._update_ardupilot(prm, rate_sp, rate, integrate)
         if self.prev_rate is not None:
@@ -317,7 +374,7 @@ class Autopilot:
         self.spec = spec or OnboardSpec()
         #: the position loop runs on every ``position_every``-th update (its set points held)
         self.position_every = max(1, int(position_every))
-        self.params = ParamStore(hover_thrust)
+        self.params = ParamStore(hover_thrust, self.spec)
         sp = self.spec
         self._rate = [_RateAxis("MC_ROLLRATE", dt_s, sp), _RateAxis("MC_PITCHRATE", dt_s, sp),
                       _RateAxis("MC_YAWRATE", dt_s, sp)]

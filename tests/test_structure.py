@@ -1,0 +1,178 @@
+"""Written gains designed on the autopilot's own structure (mrft_gcs.flight.structure)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from mrft_gcs.flight.onboard import (
+    CAP_SHARE,
+    PM_ROBUST_DEG,
+    measure_gcs_delay,
+    onboard_side_gains,
+    robust_onboard_gains,
+)
+from mrft_gcs.flight.scoring import general_ise, score_written
+from mrft_gcs.flight.structure import (
+    OnboardStructure,
+    read_structure,
+    structure_controller,
+    structured_pd,
+    structured_retarget,
+    vehicle_structure,
+)
+from mrft_gcs.identify import Identification
+from mrft_gcs.loops import Loop, LoopKind
+from mrft_gcs.pd_design import frequency_grid, margins, optimal_pd
+from mrft_gcs.plant import PD, InnerModel, SideModel, inner_response
+from mrft_gcs.profiles import PDGains, gains_to_params, load_profile
+from mrft_gcs.sitl import load_airframe
+from mrft_gcs.sitl.onboard import ParamStore
+
+P = 0.004  # the setpoint period (s)
+
+
+def _ardupilot_like(name: str, target_hz: float, link_s: float = 0.002):
+    af = load_airframe(name)
+    return dataclasses.replace(af, link_delay_s=link_s, onboard=dataclasses.replace(
+        af.onboard, style="ardupilot", target_cutoff_hz=target_hz, dgyro_cutoff_hz=20.0))
+
+
+def _identified(af, loop: Loop, gcs_delay_s: float) -> Identification:
+    m = af.linear_models()[loop.value]
+    im = InnerModel(m["K"], m["T_prop"], m["T1"], m["tau"] + gcs_delay_s)
+    w = frequency_grid(im.T_prop, im.T1, im.tau)
+    pd = optimal_pd(inner_response(im.K, im.T_prop, im.T1, im.tau, w)[0], w).pd
+    return Identification(LoopKind.ATTITUDE, im, 0, 1.0, -0.8, 0.1, 0.25, 0.03, pd)
+
+
+def _written(af, gains: dict[Loop, PD]):
+    prm = dict(ParamStore(af.hover_thrust, af.onboard).values)
+    prm.update(gains_to_params(load_profile("sitl"), {lp: PDGains(g.Kc, g.Kd)
+                                                      for lp, g in gains.items()},
+                               prm["MPC_THR_HOVER"]))
+    return {lp: s.onboard for lp, s in score_written(af, prm, list(gains)).items()}
+
+
+# f550 is slow: a 15 Hz filter costs its loop little, the design must still not lose
+@pytest.mark.parametrize("name,target_hz,gain_pct", [("qdrone", 12.0, 1.0),
+                                                     ("racer250", 20.0, 1.0),
+                                                     ("f550", 15.0, 0.0)])
+def test_the_structured_design_beats_the_pd_design_on_a_rate_target_filter(name, target_hz,
+                                                                           gain_pct):
+    # the same identification, the same re-targeted delay; one design ignores the filter the
+    # autopilot closes the loop through, the other is made on it: scored on the true loop
+    af = _ardupilot_like(name, target_hz)
+    ident = _identified(af, Loop.ROLL, 0.008)
+    gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.004)
+    rt = robust_onboard_gains(ident, gcs)
+    st = read_structure(Loop.ROLL, ParamStore(af.hover_thrust, af.onboard).values, "px4")
+    assert st.target_hz == target_hz and not st.plain
+    new = structured_retarget(ident, rt, st)
+    old_sc, new_sc = (_written(af, {Loop.ROLL: g})[Loop.ROLL] for g in (rt.gains, new.gains))
+    assert new_sc.J_pct < old_sc.J_pct - gain_pct, (old_sc, new_sc)
+    assert new_sc.pm_deg >= PM_ROBUST_DEG and new.pm_deg >= PM_ROBUST_DEG
+    assert "rate target low-pass" in new.note()
+
+
+def test_a_plain_structure_keeps_the_pd_retarget():
+    af = load_airframe("qdrone")
+    ident = _identified(af, Loop.PITCH, 0.006)
+    rt = robust_onboard_gains(ident, measure_gcs_delay([0.002] * 30, P))
+    st = read_structure(Loop.PITCH, ParamStore(af.hover_thrust, af.onboard).values, "px4")
+    assert st.plain and structured_retarget(ident, rt, st) is rt
+
+
+def test_both_margins_are_honoured():
+    m = InnerModel(K=150.0, T_prop=0.03, T1=0.6, tau=0.006)
+    w = frequency_grid(m.T_prop, m.T1, 0.02)
+    G = inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0]
+    worst = inner_response(m.K, m.T_prop, m.T1, 0.016, w)[0]  # 10 ms more onboard
+    st = OnboardStructure(12.0)
+    free = structured_pd(G, w, st)
+    held = structured_pd(G, w, st, worst=(worst,), pm_worst_deg=PM_ROBUST_DEG)
+    for d, G_chk in ((free, G), (held, G), (held, worst)):
+        Cy = structure_controller(d.gains, st, w)[1]
+        mg = margins(Cy * G_chk, w)
+        assert mg.stable
+    assert free.pm_deg >= 20.0 - 0.05
+    assert free.pm_worst_deg == math.inf
+    assert free.pm_deg < 25.0  # the constraint is active: the ISE pulls towards less margin
+    assert held.pm_worst_deg >= PM_ROBUST_DEG - 0.05 and held.pm_deg >= 20.0 - 0.05
+    assert held.ise >= free.ise  # the extra constraint costs, never helps
+    plain = optimal_pd(G, w).pd  # the PD design, written through the same structure
+    Cr, Cy = structure_controller(plain, st, w)
+    assert free.ise < general_ise(Cr, Cy, G, w) * 0.99
+
+
+def test_structure_read_from_the_sitl_over_its_parameter_names():
+    ap_like = ParamStore(0.4, _ardupilot_like("qdrone", 17.5).onboard)
+    px4_like = ParamStore(0.4, load_airframe("qdrone").onboard)
+    st = vehicle_structure(lambda n: ap_like.values.get(n), "px4")
+    assert st[Loop.ROLL].target_hz == st[Loop.PITCH].target_hz == 17.5
+    asked: list[str] = []
+
+    def px4_read(name: str):
+        asked.append(name)
+        return px4_like.values.get(name)
+
+    st = vehicle_structure(px4_read, "px4")
+    assert all(s.plain for s in st.values()) and asked == ["ATC_RAT_RLL_FLTT"]
+    assert "IMU_DGYRO_CUTOFF" in px4_like and "IMU_GYRO_RATEMAX" in px4_like
+    st = vehicle_structure(lambda n: None, "ardupilot")  # the family's default
+    assert st[Loop.ROLL].target_hz == 20.0 and "default" in st[Loop.ROLL].source
+
+
+def test_a_written_target_filter_takes_effect_in_the_sitl():
+    # the rate target's step response: a lower FLTT written, a slower target
+    from mrft_gcs.sitl.onboard import _RateAxis
+
+    spec = _ardupilot_like("qdrone", 40.0).onboard
+    prm = ParamStore(0.4, spec)
+    for name, value in (("MC_ROLLRATE_P", 1.0), ("MC_ROLLRATE_I", 0.0),
+                        ("MC_ROLLRATE_D", 0.0), ("MC_ROLLRATE_FF", 0.0)):
+        assert prm.set(name, value)
+
+    def first_outputs() -> list[float]:
+        ax = _RateAxis("MC_ROLLRATE", 0.001, spec)
+        return [ax.update(prm, sp, 0.0, False) for sp in (0.0, 1.0, 1.0, 1.0, 1.0)]
+
+    fast = first_outputs()
+    assert prm.set("ATC_RAT_RLL_FLTT", 5.0)
+    slow = first_outputs()
+    assert slow[-1] < fast[-1]
+    assert not prm.set("ATC_RAT_RLL_FLTT", -1.0)  # out of the firmware's range
+
+
+def test_the_measured_link_goes_out_beyond_the_share_cap():
+    # 12 ms of link each way on 3 ms onboard: the least plausible GCS delay (measured) is over
+    # CAP_SHARE of the identified delay; it is re-targeted, the margin check still applies
+    m = InnerModel(K=300.0, T_prop=0.02, T1=1.1, tau=0.030)
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    pd = optimal_pd(inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0], w).pd
+    ident = Identification(LoopKind.ATTITUDE, m, 0, 1.0, -0.8, 0.1, 0.25, 0.03, pd)
+    gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.024)
+    assert gcs.lo_s > CAP_SHARE * m.tau
+    old = robust_onboard_gains(ident, gcs, certain_share=0.0)
+    new = robust_onboard_gains(ident, gcs)
+    assert old.delay_s == pytest.approx(CAP_SHARE * m.tau)
+    assert new.delay_s == pytest.approx(gcs.lo_s) and new.pm_deg >= PM_ROBUST_DEG
+    assert new.gains.Kc > old.gains.Kc
+
+
+def test_side_gains_behind_a_known_filter_need_not_allow_for_an_unseen_one():
+    mi = InnerModel(K=40.0, T_prop=0.02, T1=0.3, tau=0.03)
+    ii = Identification(LoopKind.ATTITUDE, mi, 0, 1.0, -0.8, 0.1, 0.25, 0.03, PD(2.0, 0.2))
+    si = Identification(LoopKind.SIDE, SideModel(K=9.8, T2=1.5, tau=0.01), 0, 1.0, -0.8, 0.1,
+                        1.0, 0.1, PD(0.3, 0.25))
+    rt = robust_onboard_gains(ii, measure_gcs_delay([0.002] * 30, P, round_trip_s=0.010))
+    unseen = onboard_side_gains(si, ii, rt)
+    none = onboard_side_gains(si, ii, rt, target_hz=0.0)
+    slow = onboard_side_gains(si, ii, rt, target_hz=8.0)
+    assert min(unseen.pm_deg, none.pm_deg, slow.pm_deg) >= PM_ROBUST_DEG
+    assert none.gains.Kc >= unseen.gains.Kc  # no filter to allow for: no less gain
+    assert slow.gains.Kc <= none.gains.Kc  # a slower attitude loop: no more gain
+    assert np.isfinite(slow.pm_deg)
