@@ -395,3 +395,38 @@ def test_a_swing_is_caught_where_it_will_stop_and_held_with_more_than_h():
     t.state, t.relay = LoopState.RELAY, relay
     u = seq.attitude.step(Loop.PITCH, 0.0, -0.2, -3.0, 1.0, True, True)
     assert t.h < u <= seq.config.catch_torque_factor * t.h
+
+
+def test_a_catch_sized_on_too_small_a_cycle_is_softened_until_it_hands_back():
+    """A first period that understates the plant's gain sizes a catch PD several times too
+    stiff for the loop's delay (ArduCopter SITL, rate path: a 0.0055 rad first period where
+    every other run measured 0.014-0.016 rad): it chatters at its limits and never hands
+    the axis back to the relay. Halved each time it chatters, it settles and hands back;
+    left as sized, it is still chattering 5 s later."""
+    from collections import deque
+
+    from mrft_gcs.flight.controllers import catch_pd
+    from mrft_gcs.relay import MRFT
+
+    def hand_back_s(stiffness: float, chatter_flips: int) -> float | None:
+        cfg = SequenceConfig(hover_thrust_guess=0.5, catch_chatter_flips=chatter_flips)
+        seq = TuningSequence(cfg, ATT_RELAY, ALT_RELAY)
+        t = seq.loops[Loop.PITCH]
+        t.h, t.cycle = 0.12, (0.25, 0.03)
+        t.state, t.relay = LoopState.RELAY, MRFT(-0.5, t.h)
+        kc, kd = catch_pd(t.h, *t.cycle)
+        t.catch, t.t_catch_s = (stiffness * kc, stiffness * kd), 0.0
+        dt, y, rate = 0.004, 0.05, 0.0
+        pipe = deque([0.0] * 10)  # 40 ms from command to torque
+        for i in range(int(5.0 / dt)):  # a double integrator, 60 rad/s^2 per unit torque
+            pipe.append(seq.attitude.step(Loop.PITCH, 0.0, y, rate, i * dt, True, True))
+            rate += 60.0 * pipe.popleft() * dt
+            y += rate * dt
+            if t.catch is None:
+                return i * dt
+        return None
+
+    assert hand_back_s(1.0, 4) is not None  # as sized on the true cycle: hands back at once
+    assert hand_back_s(5.0, 10**6) is None  # too stiff and left so: chatters throughout
+    softened = hand_back_s(5.0, SequenceConfig().catch_chatter_flips)
+    assert softened is not None and softened < 2.0

@@ -81,6 +81,10 @@ class SequenceConfig:
     #: the relay amplitude: h alone (what the relay pushes back with) stops a stalled swing
     #: too late
     catch_torque_factor: float = 3.0
+    #: the catch's PD is halved each time its output swings this many times from one limit
+    #: to the other: it was sized on a first period that understated the plant's gain (too
+    #: stiff for the loop's delay, it chatters at its limits and never hands back)
+    catch_chatter_flips: int = 4
     #: factor on the identified attitude PDs while they run on the GCS (during the side
     #: tests and the hover); the written gains are never scaled
     gcs_attitude_pd_scale: float = 1.0

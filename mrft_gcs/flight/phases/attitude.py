@@ -88,11 +88,15 @@ class AttitudeRelays:
                 if abs(e) < amp and abs(rate) < 2 * math.pi * amp / period:
                     t.from_rest = t.catch_release < 1.0
                     t.catch, t.catch_release = None, 1.0
+                    t.catch_flips, t.catch_sign = 0, 0.0
                 else:
                     kc, kd = t.catch
                     lim = self.sh.config.catch_torque_factor * t.h
+                    raw = kc * e - kd * rate
+                    if abs(raw) >= lim:
+                        self._count_chatter(t, math.copysign(1.0, raw))
                     # about the relay's bias: the torque that holds the axis (a CoM offset)
-                    u = t.bias + min(lim, max(-lim, kc * e - kd * rate))
+                    u = t.bias + min(lim, max(-lim, raw))
                     t.u = u
                     return u
             before = float(t.relay.state[0])
@@ -120,6 +124,19 @@ class AttitudeRelays:
                 t.cycle = (st.period_s, st.amplitude)
         t.u = u
         return u
+
+    def _count_chatter(self, t: LoopTest, side: float) -> None:
+        """The catch's output sits at its limit on ``side``: count swings from one limit to
+        the other and halve a catch that chatters (``catch_chatter_flips``)."""
+        if t.catch_sign and side != t.catch_sign:
+            t.catch_flips += 1
+        t.catch_sign = side
+        if t.catch is not None and t.catch_flips >= self.sh.config.catch_chatter_flips:
+            kc, kd = t.catch
+            t.catch = (0.5 * kc, 0.5 * kd)
+            t.catch_flips, t.catch_sign = 0, 0.0
+            self.sh.events.append(f"{t.loop.value}: the catch chattered at its limits "
+                                  f"(sized on too small a cycle): its gains halved")
 
     def _drives_away(self, t: LoopTest, e: float, e_rate: float) -> bool:
         """Roll/pitch in its first cycles (until sized and two detector cycles): the relay

@@ -127,6 +127,8 @@ class LoopTest:
     resizes: int = 0
     catch_release: float = 1.0
     t_catch_s: float = _NAN
+    catch_flips: int = 0  # roll/pitch: the catch's swings from one limit to the other
+    catch_sign: float = 0.0  # and the side of the last limit it sat at
     bias_votes: list = field(default_factory=list)  # mean torque of the last periods
     #: roll/pitch before the first period: (t, relay state, de/dt)
     probe_rate: deque = field(default_factory=lambda: deque(maxlen=400))
