@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import json
 import math
 import os
@@ -66,13 +67,14 @@ from mrft_gcs.flight.safety import LimitExceeded
 from mrft_gcs.flight.scoring import score_written
 from mrft_gcs.flight.sequence import LoopState, Phase, SequenceConfig, TuningSequence
 from mrft_gcs.flight.source import VehicleMode
+from mrft_gcs.flight.timeliness import HostTooSlow, TimelinessMonitor
 from mrft_gcs.identify import relay_settings
 from mrft_gcs.identify.live import bundled_identifier
 from mrft_gcs.link.quality import LinkQuality, require_relay_capable
 from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.profiles import PDGains, load_profile, params_in_range
 from mrft_gcs.sitl import SimVehicle, domain_check, random_airframe
-from mrft_gcs.sitl.lockstep import GcsLink, LockstepVehicle
+from mrft_gcs.sitl.lockstep import GcsLink, LockstepVehicle, PeriodicStalls
 from mrft_gcs.sitl.onboard import ParamStore
 
 _SIDE_INNER = {Loop.X: Loop.PITCH, Loop.Y: Loop.ROLL}
@@ -92,8 +94,12 @@ def gcs_delay_s(af) -> float:
     return 2 * af.link_delay_s + 0.5 / tel + 0.5 / RATE_HZ + 0.5 / af.onboard.loop_hz
 
 
-def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
-    """One tune of the random vehicle of ``seed`` in simulated time; a JSON-able record."""
+def run_lockstep(seed: int, max_s: float = 70.0,
+                 stalls: tuple[float, float] | None = None) -> dict:
+    """One tune of the random vehicle of ``seed`` in simulated time; a JSON-able record.
+
+    ``stalls``: (ms, every_s) of :class:`~mrft_gcs.sitl.lockstep.PeriodicStalls` (the
+    ground station misses ticks now and then; the vehicle keeps the last set point)."""
     af = random_airframe(seed)
     rec = _head(af, seed, "lockstep")
     prof = load_profile("sitl")
@@ -108,14 +114,17 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
     rng = np.random.default_rng([7, seed])
     phase = float(rng.uniform(0.0, 1.0 / RATE_HZ))  # the session's phase
     v = SimVehicle(af, seed=seed)
-    src = LockstepVehicle(v, RATE_HZ, link=GcsLink(af.link_delay_s, tel, phase))
+    stall = (PeriodicStalls(stalls[0], stalls[1], np.random.default_rng([11, seed]))
+             if stalls else None)
+    src = LockstepVehicle(v, RATE_HZ, link=GcsLink(af.link_delay_s, tel, phase), stalls=stall)
     ap = v.autopilot
     hover = ap.params["MPC_THR_HOVER"]  # what the tool reads: the autopilot's estimate
     cfg = SequenceConfig(actuation=prof.actuation, z_ref_m=1.0, hover_thrust_guess=hover,
                          max_tilt_cmd_rad=0.6 * math.radians(lim.max_tilt_deg))
     seq = TuningSequence(cfg, relay_settings(LoopKind.ATTITUDE),
                          relay_settings(LoopKind.ALTITUDE))
-    drv = SequenceDriver(seq, bundled_identifier, limits=lim, max_relay_s=MAX_RELAY_S)
+    drv = SequenceDriver(seq, bundled_identifier, limits=lim, max_relay_s=MAX_RELAY_S,
+                         timeliness=TimelinessMonitor())
     src.send(drv.idle)  # as the tool does: set points first, then offboard, then arm
     src.set_mode(VehicleMode.OFFBOARD)
     src.arm()
@@ -135,7 +144,7 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
             outcome, reason = "aborted", f"not done after {max_s:.0f} s of simulated time"
     except LimitExceeded as err:
         outcome, reason = "aborted", str(err)
-    except IdentificationError as err:
+    except (IdentificationError, HostTooSlow) as err:
         outcome, reason = "refused", str(err)
     monitor = drv.monitor
     notes = drv.notes
@@ -218,6 +227,7 @@ def run_live(seed: int) -> dict:
     rec["max_tilt_deg"] = _num(r.max_tilt_deg)
     rec["max_tilt_by_phase"] = {k: _num(x) for k, x in r.max_tilt_by_phase.items()}
     rec["notes"] = list(r.notes)
+    rec["stream"] = r.stream.line() if r.stream is not None else None
     rec["hover_error_m"] = _num(r.hover_error_m)
     rec["verification"] = {
         lp.value: {"passed": v.passed, "predicted_pm_deg": _num(v.predicted_pm_deg),
@@ -375,6 +385,9 @@ def main() -> None:
                     help="niceness of the hog (10: a build started with nice; 0: equal share)")
     ap.add_argument("--in-domain-only", action="store_true",
                     help="tune only the seeds whose vehicle is in Table I's domain")
+    ap.add_argument("--stalls", default=None, metavar="MS,EVERY_S",
+                    help="lockstep: ground-station stalls of up to MS ms about every EVERY_S s "
+                         "(PeriodicStalls; the vehicle keeps the last set point)")
     ap.add_argument("--json", type=Path, default=DEFAULT_JSON)
     args = ap.parse_args()
     if args.seeds < 1 or args.first_seed < 0 or args.hog_procs < 1:
@@ -387,7 +400,11 @@ def main() -> None:
           f"{f'{args.hog_procs} processes at nice {args.hog_nice}' if args.with_hog else 'none'}; "
           f"{platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}",
           flush=True)
-    run = run_lockstep if args.mode == "lockstep" else run_live
+    stalls = tuple(float(x) for x in args.stalls.split(",")) if args.stalls else None
+    if stalls is not None and (args.mode != "lockstep" or len(stalls) != 2):
+        ap.error("--stalls MS,EVERY_S is for --mode lockstep")
+    run = (functools.partial(run_lockstep, stalls=stalls) if args.mode == "lockstep"
+           else run_live)
     recs = []
     wall0 = time.monotonic()
     hog = (CpuHog(args.hog_procs, limit_s=120.0 * args.seeds, nice=args.hog_nice)
@@ -415,7 +432,8 @@ def main() -> None:
     args.json.write_text(json.dumps({"mode": args.mode, "hog": args.with_hog,
                                      "hog_nice": args.hog_nice if args.with_hog else None,
                                      "seeds": [args.first_seed, args.seeds],
-                                     "in_domain_only": args.in_domain_only, "runs": recs},
+                                     "in_domain_only": args.in_domain_only,
+                                     "stalls": args.stalls, "runs": recs},
                                     indent=1))
     print(f"records: {args.json}")
 

@@ -1,0 +1,171 @@
+"""Whether the ground station keeps its loop on time: telemetry gaps and late set points.
+
+A relay test closes its loop through the ground station. Where telemetry stops coming (the
+link drops out; the vehicle's process, or this computer's link reader, is starved of CPU) or
+set points stop going out (this computer's stream is starved), the vehicle flies on its last
+set point: a relay's torque held for a relay half-cycle or more tilts a small vehicle tens of
+degrees within a tenth of a second, and the samples that show it arrive only after the fact
+(docs/link-and-stream.md, "A busy host"). No limit on the samples can catch that in time; what
+can be seen in time is that the loop has started to stall.
+
+:class:`TimelinessMonitor` is fed the receive time of every telemetry sample
+(:meth:`~TimelinessMonitor.sample`) and the send time of every set point
+(:meth:`~TimelinessMonitor.tick`), both on the ground station's monotonic clock. Each gap of
+``minor_s`` or more between consecutive samples, or between consecutive set points, is a
+*stall*; :meth:`~TimelinessMonitor.trouble` gives a one-line reason once a stall reached
+``major_s`` (also one still going on) or ``minor_count`` stalls fell within ``window_s``.
+:class:`~mrft_gcs.flight.driver.SequenceDriver` then stops the tests with
+:class:`HostTooSlow` (the vehicle lands), and the live tune checks the same before arming.
+
+Examples
+--------
+>>> m = TimelinessMonitor()
+>>> for k in range(100):
+...     m.sample(0.004 * k)
+>>> m.trouble(0.4) is None
+True
+>>> m.sample(0.52)  # a 124 ms gap in telemetry
+>>> m.trouble(0.52)
+'telemetry stopped for 124 ms (the rule: none over 100 ms)'
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+from mrft_gcs.errors import LinkError
+
+__all__ = ["HostTooSlow", "Stall", "TimelinessMonitor", "TimelinessRules", "host_advice"]
+
+
+class HostTooSlow(LinkError):
+    """The ground station could not keep its loop on time (telemetry or set points stalled)."""
+
+
+@dataclass(frozen=True)
+class TimelinessRules:
+    """When stalls stop a relay test (seconds on the ground station's clock).
+
+    On a quiet two-core machine, live tunes against the bundled SITL see telemetry gaps of
+    20-57 ms at most (one over 50 ms a tune at most) and set-point gaps under 10 ms; a vehicle
+    starved beside busy processes showed gaps of 50-460 ms, and a relay ran away in the
+    third of three stalls (65, 79, 214 ms) within 0.3 s.
+    """
+
+    #: a gap this long (s) is a stall
+    minor_s: float = 0.05
+    #: one stall this long (s) stops the tests at once
+    major_s: float = 0.10
+    #: this many stalls within ``window_s`` stop the tests
+    minor_count: int = 2
+    window_s: float = 3.0
+
+
+@dataclass(frozen=True)
+class Stall:
+    """A gap in telemetry or in set points: when it ended (s) and how long it was (s)."""
+
+    t_s: float
+    length_s: float
+    kind: str  # "telemetry" or "set points"
+
+
+def host_advice() -> str:
+    """What to do about a stalled loop (the end of :class:`HostTooSlow`'s message)."""
+    return ("close other busy programs (or run them with nice), check the link, and fly "
+            "again")
+
+
+class TimelinessMonitor:
+    """Stalls of the ground station's loop (module docstring). Thread-safe: samples come
+    from the link's reader thread, set points and the checks from the stream's."""
+
+    def __init__(self, rules: TimelinessRules | None = None) -> None:
+        self.rules = rules or TimelinessRules()
+        self._lock = threading.Lock()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything (a new session)."""
+        with self._lock:
+            self._last: dict[str, float] = {}
+            self._recent: deque[Stall] = deque()
+            self.stalls: list[Stall] = []  # every stall since the last forget()
+
+    def forget(self) -> None:
+        """Forget the stalls so far, keep the last times (the stalls counted start now)."""
+        with self._lock:
+            self._recent.clear()
+            self.stalls = []
+
+    def sample(self, rx_s: float) -> None:
+        """A telemetry sample was received at ``rx_s``."""
+        self._event("telemetry", rx_s)
+
+    def tick(self, now_s: float) -> None:
+        """A set point was sent (or is about to be) at ``now_s``."""
+        self._event("set points", now_s)
+
+    def _event(self, kind: str, t_s: float) -> None:
+        with self._lock:
+            last = self._last.get(kind)
+            self._last[kind] = t_s if last is None else max(last, t_s)
+            if last is None or t_s - last < self.rules.minor_s:
+                return
+            st = Stall(t_s, t_s - last, kind)
+            prev = self.stalls[-1] if self.stalls else None
+            if prev is not None and prev.t_s > last:
+                # the same stall seen on the other side too (a starved process holds both
+                # its reader and its stream): one stall, as long as the longer of the two
+                if st.length_s <= prev.length_s:
+                    return
+                self.stalls.pop()
+                if self._recent and self._recent[-1] is prev:
+                    self._recent.pop()
+            self._recent.append(st)
+            self.stalls.append(st)
+
+    def longest_s(self) -> float:
+        """The longest stall since the last :meth:`forget` (s; 0 with none)."""
+        with self._lock:
+            return max((st.length_s for st in self.stalls), default=0.0)
+
+    def trouble(self, now_s: float | None = None) -> str | None:
+        """A one-line reason where the loop stalled by the rules, else None.
+
+        ``now_s``: the current time, to see a telemetry gap still going on (None: only the
+        stalls that ended).
+        """
+        r = self.rules
+        with self._lock:
+            last_rx = self._last.get("telemetry")
+            if now_s is not None and last_rx is not None and now_s - last_rx >= r.major_s:
+                return (f"telemetry stopped {1e3 * (now_s - last_rx):.0f} ms ago (the rule: "
+                        f"no gap over {1e3 * r.major_s:.0f} ms)")
+            recent = self._recent
+            end = max([st.t_s for st in recent] + ([now_s] if now_s is not None else []),
+                      default=0.0)
+            while recent and recent[0].t_s < end - r.window_s:
+                recent.popleft()
+            for st in recent:
+                if st.length_s >= r.major_s:
+                    return (f"{st.kind} stopped for {1e3 * st.length_s:.0f} ms (the rule: none "
+                            f"over {1e3 * r.major_s:.0f} ms)")
+            if len(recent) >= r.minor_count:
+                each = ", ".join(f"{st.kind} {1e3 * st.length_s:.0f} ms" for st in recent)
+                return (f"{len(recent)} stalls of {1e3 * r.minor_s:.0f} ms or more within "
+                        f"{r.window_s:g} s ({each})")
+        return None
+
+    def summary(self) -> str | None:
+        """One line on the stalls since the last :meth:`forget` (None: there were none)."""
+        with self._lock:
+            if not self.stalls:
+                return None
+            n = len(self.stalls)
+            longest = max(self.stalls, key=lambda st: st.length_s)
+        return (f"ground-station loop: {n} stall{'s' if n > 1 else ''} of "
+                f"{1e3 * self.rules.minor_s:.0f} ms or more in flight (longest: "
+                f"{longest.kind}, {1e3 * longest.length_s:.0f} ms)")
