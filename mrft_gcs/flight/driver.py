@@ -152,7 +152,7 @@ class SequenceDriver:
             if seq.phase in _RELAYS:
                 self.monitor.relay_guard(s, f"{seq.phase.value} relay test")
         if self.timeliness is not None and seq.phase in _FLOWN:
-            why = self.timeliness.trouble()
+            why = self.timeliness.trouble(relays=seq.phase in _RELAYS)
             if why is not None:
                 raise HostTooSlow(f"the ground station could not keep the {seq.phase.value} "
                                   f"loop on time: {why}; tests stopped early, landing "
