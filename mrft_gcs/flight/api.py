@@ -872,10 +872,15 @@ class _Run:
         """Stream on the ground for :data:`PREARM_S` and refuse to arm where the loop
         already stalls by the relay tests' rules (:mod:`mrft_gcs.flight.timeliness`)."""
         end = time.monotonic() + PREARM_S
-        while time.monotonic() < end:
+        why = None
+        while time.monotonic() < end and why is None:
             time.sleep(0.02)
+            assert self.streamer is not None
+            if self.limit_hit is None and self.streamer.abort_reason is not None:
+                why = self.streamer.abort_reason  # the watchdog, on the ground: no flight
+                break
             self._check_stream()
-        why = self.timeliness.trouble(time.monotonic())
+        why = why or self.timeliness.trouble(time.monotonic())
         if why is not None:
             raise HostTooSlow(f"before arming, the ground station could not keep a relay "
                               f"test's loop on time: {why}; nothing was armed or written; "
