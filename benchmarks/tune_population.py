@@ -95,11 +95,13 @@ def gcs_delay_s(af) -> float:
 
 
 def run_lockstep(seed: int, max_s: float = 70.0,
-                 stalls: tuple[float, float] | None = None) -> dict:
+                 stalls: tuple[float, float] | None = None, timeliness: bool = True) -> dict:
     """One tune of the random vehicle of ``seed`` in simulated time; a JSON-able record.
 
     ``stalls``: (ms, every_s) of :class:`~mrft_gcs.sitl.lockstep.PeriodicStalls` (the
-    ground station misses ticks now and then; the vehicle keeps the last set point)."""
+    ground station misses ticks now and then; the vehicle keeps the last set point).
+    ``timeliness``: stalls stop the tests as in a live tune (False: the tool without that
+    check, for comparison)."""
     af = random_airframe(seed)
     rec = _head(af, seed, "lockstep")
     prof = load_profile("sitl")
@@ -124,7 +126,7 @@ def run_lockstep(seed: int, max_s: float = 70.0,
     seq = TuningSequence(cfg, relay_settings(LoopKind.ATTITUDE),
                          relay_settings(LoopKind.ALTITUDE))
     drv = SequenceDriver(seq, bundled_identifier, limits=lim, max_relay_s=MAX_RELAY_S,
-                         timeliness=TimelinessMonitor())
+                         timeliness=TimelinessMonitor() if timeliness else None)
     src.send(drv.idle)  # as the tool does: set points first, then offboard, then arm
     src.set_mode(VehicleMode.OFFBOARD)
     src.arm()
