@@ -22,7 +22,9 @@ Two ways to run it (the output says which):
   ``link_delay_s`` each way, commands every 4 ms; the link check is the tool's own
   (``require_relay_capable``) on those figures, not a measurement. Not run: the tool's
   in-air check of written gains and anything that depends on host timing (a CPU hog then
-  changes only the wall time).
+  changes only the wall time); ``--stalls MS,EVERY_S`` models the ground station missing
+  ticks (:class:`~mrft_gcs.sitl.lockstep.PeriodicStalls`), which the tool's timeliness check
+  (:mod:`mrft_gcs.flight.timeliness`) sees as in a live tune.
 * ``--mode live``: the real ``tune()`` over loopback UDP against ``python -m mrft_gcs.sitl
   --random SEED`` in real time (about a minute a vehicle; host load matters).
 
@@ -34,7 +36,7 @@ setpoint period + half an onboard loop period).
 
     .venv/bin/python benchmarks/tune_population.py [--seeds 40] [--first-seed 0] \
         [--mode lockstep|live] [--with-hog] [--hog-procs 2] [--hog-nice 10] \
-        [--in-domain-only] \
+        [--in-domain-only] [--stalls MS,EVERY_S] \
         [--json benchmarks/results/population.json]
 """
 
@@ -394,17 +396,18 @@ def main() -> None:
     args = ap.parse_args()
     if args.seeds < 1 or args.first_seed < 0 or args.hog_procs < 1:
         ap.error("--seeds and --hog-procs must be >= 1, --first-seed >= 0")
+    stalls = tuple(float(x) for x in args.stalls.split(",")) if args.stalls else None
+    if stalls is not None and (args.mode != "lockstep" or len(stalls) != 2):
+        ap.error("--stalls MS,EVERY_S is for --mode lockstep")
     how = ("lockstep: the tool's sequence, classifiers and write-back on the in-process "
            "vehicle in simulated time" if args.mode == "lockstep" else
            "live: the real tune() over loopback UDP against the SITL process, real time")
     print(f"population of {args.seeds} random vehicles (seeds {args.first_seed}-"
           f"{args.first_seed + args.seeds - 1}), {how}; CPU hog: "
           f"{f'{args.hog_procs} processes at nice {args.hog_nice}' if args.with_hog else 'none'}; "
+          f"{f'stalls up to {stalls[0]:g} ms about every {stalls[1]:g} s; ' if stalls else ''}"
           f"{platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}",
           flush=True)
-    stalls = tuple(float(x) for x in args.stalls.split(",")) if args.stalls else None
-    if stalls is not None and (args.mode != "lockstep" or len(stalls) != 2):
-        ap.error("--stalls MS,EVERY_S is for --mode lockstep")
     run = (functools.partial(run_lockstep, stalls=stalls) if args.mode == "lockstep"
            else run_live)
     recs = []
