@@ -49,7 +49,7 @@ def test_one_long_stall_is_trouble_at_once_and_named():
     t = _steady(m, 0.0, 1.0)
     m.sample(t + 0.124)
     why = m.trouble(t + 0.124)
-    assert why == "telemetry stopped for 124 ms (the rule: none over 100 ms)"
+    assert why == "telemetry stopped for 124 ms (the rule: none of 100 ms or more)"
 
 
 def test_a_gap_still_going_on_is_trouble():

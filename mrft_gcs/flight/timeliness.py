@@ -26,7 +26,7 @@ Examples
 True
 >>> m.sample(0.52)  # a 124 ms gap in telemetry
 >>> m.trouble(0.52)
-'telemetry stopped for 124 ms (the rule: none over 100 ms)'
+'telemetry stopped for 124 ms (the rule: none of 100 ms or more)'
 """
 
 from __future__ import annotations
@@ -147,7 +147,7 @@ class TimelinessMonitor:
             last_rx = self._last.get("telemetry")
             if now_s is not None and last_rx is not None and now_s - last_rx >= r.major_s:
                 return (f"telemetry stopped {1e3 * (now_s - last_rx):.0f} ms ago (the rule: "
-                        f"no gap over {1e3 * r.major_s:.0f} ms)")
+                        f"no gap of {1e3 * r.major_s:.0f} ms or more)")
             recent = self._recent
             end = max([st.t_s for st in recent] + ([now_s] if now_s is not None else []),
                       default=0.0)
@@ -156,7 +156,7 @@ class TimelinessMonitor:
             for st in recent:
                 if st.length_s >= r.major_s:
                     return (f"{st.kind} stopped for {1e3 * st.length_s:.0f} ms (the rule: none "
-                            f"over {1e3 * r.major_s:.0f} ms)")
+                            f"of {1e3 * r.major_s:.0f} ms or more)")
             if len(recent) >= count:
                 each = ", ".join(f"{st.kind} {1e3 * st.length_s:.0f} ms" for st in recent)
                 return (f"{len(recent)} stalls of {1e3 * r.minor_s:.0f} ms or more within "
