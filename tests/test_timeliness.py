@@ -163,3 +163,26 @@ def test_a_vehicle_process_stalled_mid_test_stops_the_tune_and_lands(tmp_path):
     assert "stopped for" in msg and "landing commanded" in msg
     partial = err.value.partial_result
     assert partial.parameters == () and partial.max_tilt_deg < 35.0
+
+
+def test_the_relay_guard_stops_a_live_relay_short_of_the_limit_and_lands(tmp_path):
+    """A tilt limit of 3 deg, below what the attitude relays swing: the guard stops the test
+    at 90 % of it, before the limit, with exit code 6, and the vehicle is told to land."""
+    from mrft_gcs.flight import tune
+    from mrft_gcs.link import VehicleLink
+    from mrft_gcs.profiles import load_profile
+
+    ti = truth_identifier("qdrone")
+    limits = load_profile("sitl").safety.with_overrides(max_tilt_deg=3.0)
+    with SitlProcess(vehicle="qdrone", port=None, seed=5) as sitl:
+        with pytest.raises(RelayTooLarge, match="past 90% of the 3 deg limit") as err:
+            tune(sitl.connection_string, "sitl", backup_dir=tmp_path, relay=RELAY,
+                 identifier=lambda lp, snap, inner: ti(lp, snap, inner), limits=limits)
+        with VehicleLink.connect(sitl.connection_string) as link:
+            deadline = time.monotonic() + 2.0
+            while (link.heartbeat.custom_mode >> 16) & 0xFF != 4 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert (link.heartbeat.custom_mode >> 16) & 0xFF == 4  # AUTO (LAND)
+    assert err.value.exit_code == 6
+    partial = err.value.partial_result
+    assert partial.parameters == () and partial.max_tilt_deg < 3.0
