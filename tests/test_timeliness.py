@@ -84,6 +84,34 @@ def test_a_stall_seen_by_the_reader_and_the_stream_counts_once():
     assert m.stalls[0].length_s == pytest.approx(0.072)
 
 
+def test_a_gap_counts_as_long_as_the_vehicle_flew_through_it():
+    """A vehicle that flew on through a 120 ms gap sends that flight in a burst at its end (a
+    held set point): a stall. One whose clock stood still (a simulator stopped whole) goes on
+    from where it stopped: no stall, however long the gap."""
+    m = TimelinessMonitor()
+    rx = vt = 0.0
+    for _ in range(250):
+        rx += 0.004
+        vt += 0.004
+        m.sample(rx, vt)
+    rx += 0.3  # stood still for 0.3 s: the vehicle's clock slips
+    for _ in range(20):
+        vt += 0.004
+        m.sample(rx, vt)
+        rx += 0.004
+    assert m.trouble(rx) is None and m.stalls == []
+    rx += 0.12  # flew on for 0.12 s: all of it arrives at once
+    for _ in range(30):
+        vt += 0.004
+        m.sample(rx, vt)
+    assert m.trouble(rx) is None  # still reading what follows the gap
+    for _ in range(10):
+        rx += 0.004
+        vt += 0.004
+        m.sample(rx, vt)
+    assert m.trouble() == "telemetry stopped for 124 ms (the rule: none of 100 ms or more)"
+
+
 def test_the_relay_guard_stops_short_of_the_tilt_limit():
     mon = SafetyMonitor(SafetyLimits(max_tilt_deg=35.0), (0.0, 0.0, 0.0), 0.0)
 

@@ -303,7 +303,7 @@ class _ReceiveClock:
             rx = time.monotonic() if rx is None else rx
             self.model.update(rx, event.t_s)
             if self._timeliness is not None:
-                self._timeliness.sample(rx)
+                self._timeliness.sample(rx, event.t_s)
 
 
 _CHECK_METHOD = ("square wave on the attitude set point at the predicted crossover of the "

@@ -352,7 +352,7 @@ class SequenceDriver:
             if self.timeliness is not None:  # on the source's clock
                 if s is not None and state_time_s(s) > seen:
                     seen = state_time_s(s)
-                    self.timeliness.sample(source.time_s)
+                    self.timeliness.sample(source.time_s, seen)
                 self.timeliness.tick(source.time_s)
             return s
 

@@ -37,7 +37,12 @@ from dataclasses import dataclass
 
 from mrft_gcs.errors import LinkError
 
-__all__ = ["HostTooSlow", "Stall", "TimelinessMonitor", "TimelinessRules", "host_advice"]
+__all__ = ["HostTooSlow", "Stall", "TimelinessMonitor", "TimelinessRules", "host_advice",
+           "SETTLE_S"]
+
+#: how long after a telemetry gap the samples that follow are read (s) to tell a vehicle that
+#: flew on through the gap from one whose clock stood still
+SETTLE_S = 0.02
 
 
 class HostTooSlow(LinkError):
@@ -94,6 +99,10 @@ class TimelinessMonitor:
         """Forget everything (a new session)."""
         with self._lock:
             self._last: dict[str, float] = {}
+            self._vt: float | None = None  # the newest sample's vehicle time
+            #: a telemetry gap being read: [rx at its end, its length, vehicle time before
+            #: it, newest vehicle time since]
+            self._pending: list[float] | None = None
             self._recent: deque[Stall] = deque()
             self.stalls: list[Stall] = []  # every stall since the last forget()
 
@@ -103,32 +112,61 @@ class TimelinessMonitor:
             self._recent.clear()
             self.stalls = []
 
-    def sample(self, rx_s: float) -> None:
-        """A telemetry sample was received at ``rx_s``."""
-        self._event("telemetry", rx_s)
+    def sample(self, rx_s: float, vt_s: float | None = None) -> None:
+        """A telemetry sample was received at ``rx_s``; ``vt_s``: its vehicle time.
+
+        With vehicle times a gap counts for as long as the vehicle flew through it: the
+        vehicle time the samples of the next :data:`SETTLE_S` reach past the last one before
+        the gap (a vehicle flying on a held set point comes back with that much flight at
+        once; one whose clock stood still, a simulator stopped whole, with none).
+        """
+        with self._lock:
+            self._settle(rx_s)
+            last = self._last.get("telemetry")
+            self._last["telemetry"] = rx_s if last is None else max(last, rx_s)
+            prev_vt = self._vt
+            if vt_s is not None:
+                self._vt = vt_s if prev_vt is None else max(prev_vt, vt_s)
+                if self._pending is not None:
+                    self._pending[3] = max(self._pending[3], vt_s)
+            if last is None or rx_s - last < self.rules.minor_s:
+                return
+            if vt_s is None or prev_vt is None:
+                self._add(Stall(rx_s, rx_s - last, "telemetry"), last)
+            else:
+                self._pending = [rx_s, rx_s - last, prev_vt, vt_s]
+
+    def _settle(self, now_s: float) -> None:
+        """Count the gap being read once :data:`SETTLE_S` passed after it (lock held)."""
+        p = self._pending
+        if p is None or now_s <= p[0] + SETTLE_S:
+            return
+        self._pending = None
+        flown = min(p[1], p[3] - p[2])
+        if flown >= self.rules.minor_s:
+            self._add(Stall(p[0], flown, "telemetry"), p[0] - p[1])
 
     def tick(self, now_s: float) -> None:
         """A set point was sent (or is about to be) at ``now_s``."""
-        self._event("set points", now_s)
-
-    def _event(self, kind: str, t_s: float) -> None:
         with self._lock:
-            last = self._last.get(kind)
-            self._last[kind] = t_s if last is None else max(last, t_s)
-            if last is None or t_s - last < self.rules.minor_s:
+            last = self._last.get("set points")
+            self._last["set points"] = now_s if last is None else max(last, now_s)
+            if last is not None and now_s - last >= self.rules.minor_s:
+                self._add(Stall(now_s, now_s - last, "set points"), last)
+
+    def _add(self, st: Stall, start_s: float) -> None:
+        """Count ``st``, which began at ``start_s`` (lock held)."""
+        prev = self.stalls[-1] if self.stalls else None
+        if prev is not None and prev.t_s > start_s:
+            # the same stall seen on the other side too (a starved process holds both its
+            # reader and its stream): one stall, as long as the longer of the two
+            if st.length_s <= prev.length_s:
                 return
-            st = Stall(t_s, t_s - last, kind)
-            prev = self.stalls[-1] if self.stalls else None
-            if prev is not None and prev.t_s > last:
-                # the same stall seen on the other side too (a starved process holds both
-                # its reader and its stream): one stall, as long as the longer of the two
-                if st.length_s <= prev.length_s:
-                    return
-                self.stalls.pop()
-                if self._recent and self._recent[-1] is prev:
-                    self._recent.pop()
-            self._recent.append(st)
-            self.stalls.append(st)
+            self.stalls.pop()
+            if self._recent and self._recent[-1] is prev:
+                self._recent.pop()
+        self._recent.append(st)
+        self.stalls.append(st)
 
     def longest_s(self) -> float:
         """The longest stall since the last :meth:`forget` (s; 0 with none)."""
@@ -144,6 +182,8 @@ class TimelinessMonitor:
         r = self.rules
         count = r.minor_count if relays else r.hover_minor_count
         with self._lock:
+            if now_s is not None:
+                self._settle(now_s)
             last_rx = self._last.get("telemetry")
             if now_s is not None and last_rx is not None and now_s - last_rx >= r.major_s:
                 return (f"telemetry stopped {1e3 * (now_s - last_rx):.0f} ms ago (the rule: "
