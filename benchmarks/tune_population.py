@@ -22,7 +22,9 @@ Two ways to run it (the output says which):
   ``link_delay_s`` each way, commands every 4 ms; the link check is the tool's own
   (``require_relay_capable``) on those figures, not a measurement. Not run: the tool's
   in-air check of written gains and anything that depends on host timing (a CPU hog then
-  changes only the wall time).
+  changes only the wall time); ``--stalls MS,EVERY_S`` models the ground station missing
+  ticks (:class:`~mrft_gcs.sitl.lockstep.PeriodicStalls`), which the tool's timeliness check
+  (:mod:`mrft_gcs.flight.timeliness`) sees as in a live tune.
 * ``--mode live``: the real ``tune()`` over loopback UDP against ``python -m mrft_gcs.sitl
   --random SEED`` in real time (about a minute a vehicle; host load matters).
 
@@ -34,7 +36,7 @@ setpoint period + half an onboard loop period).
 
     .venv/bin/python benchmarks/tune_population.py [--seeds 40] [--first-seed 0] \
         [--mode lockstep|live] [--with-hog] [--hog-procs 2] [--hog-nice 10] \
-        [--in-domain-only] \
+        [--in-domain-only] [--stalls MS,EVERY_S] \
         [--json benchmarks/results/population.json]
 """
 
@@ -42,6 +44,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import json
 import math
 import os
@@ -67,13 +70,14 @@ from mrft_gcs.flight.scoring import score_written
 from mrft_gcs.flight.sequence import LoopState, Phase, SequenceConfig, TuningSequence
 from mrft_gcs.flight.source import VehicleMode
 from mrft_gcs.flight.structure import TARGET_FILTER_PARAMS, read_structure, structured_retarget
+from mrft_gcs.flight.timeliness import HostTooSlow, TimelinessMonitor
 from mrft_gcs.identify import relay_settings
 from mrft_gcs.identify.live import bundled_identifier
 from mrft_gcs.link.quality import LinkQuality, require_relay_capable
 from mrft_gcs.loops import SIDE_INNER, Loop, LoopKind
 from mrft_gcs.profiles import PDGains, load_profile, params_in_range
 from mrft_gcs.sitl import SimVehicle, domain_check, random_airframe
-from mrft_gcs.sitl.lockstep import GcsLink, LockstepVehicle
+from mrft_gcs.sitl.lockstep import GcsLink, LockstepVehicle, PeriodicStalls
 from mrft_gcs.sitl.onboard import ParamStore
 
 RATE_HZ = 250.0          # the tool's setpoint stream and the telemetry rate it asks
@@ -92,8 +96,14 @@ def gcs_delay_s(af) -> float:
     return 2 * af.link_delay_s + 0.5 / tel + 0.5 / RATE_HZ + 0.5 / af.onboard.loop_hz
 
 
-def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
-    """One tune of the random vehicle of ``seed`` in simulated time; a JSON-able record."""
+def run_lockstep(seed: int, max_s: float = 70.0,
+                 stalls: tuple[float, float] | None = None, timeliness: bool = True) -> dict:
+    """One tune of the random vehicle of ``seed`` in simulated time; a JSON-able record.
+
+    ``stalls``: (ms, every_s) of :class:`~mrft_gcs.sitl.lockstep.PeriodicStalls` (the
+    ground station misses ticks now and then; the vehicle keeps the last set point).
+    ``timeliness``: stalls stop the tests as in a live tune (False: the tool without that
+    check, for comparison)."""
     af = random_airframe(seed)
     rec = _head(af, seed, "lockstep")
     prof = load_profile("sitl")
@@ -108,14 +118,17 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
     rng = np.random.default_rng([7, seed])
     phase = float(rng.uniform(0.0, 1.0 / RATE_HZ))  # the session's phase
     v = SimVehicle(af, seed=seed)
-    src = LockstepVehicle(v, RATE_HZ, link=GcsLink(af.link_delay_s, tel, phase))
+    stall = (PeriodicStalls(stalls[0], stalls[1], np.random.default_rng([11, seed]))
+             if stalls else None)
+    src = LockstepVehicle(v, RATE_HZ, link=GcsLink(af.link_delay_s, tel, phase), stalls=stall)
     ap = v.autopilot
     hover = ap.params["MPC_THR_HOVER"]  # what the tool reads: the autopilot's estimate
     cfg = SequenceConfig(actuation=prof.actuation, z_ref_m=1.0, hover_thrust_guess=hover,
                          max_tilt_cmd_rad=0.6 * math.radians(lim.max_tilt_deg))
     seq = TuningSequence(cfg, relay_settings(LoopKind.ATTITUDE),
                          relay_settings(LoopKind.ALTITUDE))
-    drv = SequenceDriver(seq, bundled_identifier, limits=lim, max_relay_s=MAX_RELAY_S)
+    drv = SequenceDriver(seq, bundled_identifier, limits=lim, max_relay_s=MAX_RELAY_S,
+                         timeliness=TimelinessMonitor() if timeliness else None)
     src.send(drv.idle)  # as the tool does: set points first, then offboard, then arm
     src.set_mode(VehicleMode.OFFBOARD)
     src.arm()
@@ -135,7 +148,7 @@ def run_lockstep(seed: int, max_s: float = 70.0) -> dict:
             outcome, reason = "aborted", f"not done after {max_s:.0f} s of simulated time"
     except LimitExceeded as err:
         outcome, reason = "aborted", str(err)
-    except IdentificationError as err:
+    except (IdentificationError, HostTooSlow) as err:
         outcome, reason = "refused", str(err)
     monitor = drv.monitor
     notes = drv.notes
@@ -223,6 +236,7 @@ def run_live(seed: int) -> dict:
     rec["max_tilt_deg"] = _num(r.max_tilt_deg)
     rec["max_tilt_by_phase"] = {k: _num(x) for k, x in r.max_tilt_by_phase.items()}
     rec["notes"] = list(r.notes)
+    rec["stream"] = r.stream.line() if r.stream is not None else None
     rec["hover_error_m"] = _num(r.hover_error_m)
     rec["verification"] = {
         lp.value: {"passed": v.passed, "predicted_pm_deg": _num(v.predicted_pm_deg),
@@ -380,19 +394,27 @@ def main() -> None:
                     help="niceness of the hog (10: a build started with nice; 0: equal share)")
     ap.add_argument("--in-domain-only", action="store_true",
                     help="tune only the seeds whose vehicle is in Table I's domain")
+    ap.add_argument("--stalls", default=None, metavar="MS,EVERY_S",
+                    help="lockstep: ground-station stalls of up to MS ms about every EVERY_S s "
+                         "(PeriodicStalls; the vehicle keeps the last set point)")
     ap.add_argument("--json", type=Path, default=DEFAULT_JSON)
     args = ap.parse_args()
     if args.seeds < 1 or args.first_seed < 0 or args.hog_procs < 1:
         ap.error("--seeds and --hog-procs must be >= 1, --first-seed >= 0")
+    stalls = tuple(float(x) for x in args.stalls.split(",")) if args.stalls else None
+    if stalls is not None and (args.mode != "lockstep" or len(stalls) != 2):
+        ap.error("--stalls MS,EVERY_S is for --mode lockstep")
     how = ("lockstep: the tool's sequence, classifiers and write-back on the in-process "
            "vehicle in simulated time" if args.mode == "lockstep" else
            "live: the real tune() over loopback UDP against the SITL process, real time")
     print(f"population of {args.seeds} random vehicles (seeds {args.first_seed}-"
           f"{args.first_seed + args.seeds - 1}), {how}; CPU hog: "
           f"{f'{args.hog_procs} processes at nice {args.hog_nice}' if args.with_hog else 'none'}; "
+          f"{f'stalls up to {stalls[0]:g} ms about every {stalls[1]:g} s; ' if stalls else ''}"
           f"{platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}",
           flush=True)
-    run = run_lockstep if args.mode == "lockstep" else run_live
+    run = (functools.partial(run_lockstep, stalls=stalls) if args.mode == "lockstep"
+           else run_live)
     recs = []
     wall0 = time.monotonic()
     hog = (CpuHog(args.hog_procs, limit_s=120.0 * args.seeds, nice=args.hog_nice)
@@ -420,7 +442,8 @@ def main() -> None:
     args.json.write_text(json.dumps({"mode": args.mode, "hog": args.with_hog,
                                      "hog_nice": args.hog_nice if args.with_hog else None,
                                      "seeds": [args.first_seed, args.seeds],
-                                     "in_domain_only": args.in_domain_only, "runs": recs},
+                                     "in_domain_only": args.in_domain_only,
+                                     "stalls": args.stalls, "runs": recs},
                                     indent=1))
     print(f"records: {args.json}")
 

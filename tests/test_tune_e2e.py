@@ -266,11 +266,14 @@ def test_a_pilot_taking_over_stops_the_tool_without_a_landing(tmp_path):
     assert err.value.partial_result.parameters == ()
 
 
-def test_tilt_limit_aborts_and_lands(tmp_path):
+def test_tilt_limit_aborts_and_lands(tmp_path, monkeypatch):
     """A tilt limit below what the attitude relays swing (they are sized to about 7 deg from
-    their first period, so a larger relay asked for no longer reaches a wide limit)."""
+    their first period, so a larger relay asked for no longer reaches a wide limit). The
+    relay guard, which stops a relay test short of the limit, is off here (test_timeliness)."""
+    from mrft_gcs.flight import safety
     from mrft_gcs.profiles import load_profile
 
+    monkeypatch.setattr(safety, "RELAY_GUARD_FRACTION", 10.0)
     limits = load_profile("sitl").safety.with_overrides(max_tilt_deg=3.0)
     with SitlProcess(vehicle="qdrone", port=None, seed=5) as sitl:
         with pytest.raises(LimitExceeded, match="tilt") as err:

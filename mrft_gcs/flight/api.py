@@ -75,7 +75,7 @@ from mrft_gcs.flight.ratepath import GCS_PD_SCALE as RATE_GCS_PD_SCALE
 from mrft_gcs.flight.ratepath import INAIR_CHECK as RATE_INAIR_CHECK
 from mrft_gcs.flight.ratepath import STREAM_HZ as RATE_STREAM_HZ
 from mrft_gcs.flight.ratepath import RatePath, rate_path_refusal
-from mrft_gcs.flight.safety import LimitExceeded, SafetyMonitor
+from mrft_gcs.flight.safety import SafetyMonitor
 from mrft_gcs.flight.sequence import (
     CycleSnapshot,
     LoopState,
@@ -86,6 +86,7 @@ from mrft_gcs.flight.sequence import (
 )
 from mrft_gcs.flight.source import LinkTelemetry, LiveVehicle, Setpoint, VehicleMode
 from mrft_gcs.flight.structure import OnboardStructure, structured_retarget, vehicle_structure
+from mrft_gcs.flight.timeliness import HostTooSlow, TimelinessMonitor, host_advice
 from mrft_gcs.identify import (
     Identification,
     RelaySettings,
@@ -145,6 +146,9 @@ _ATTITUDE_LOOPS = (Loop.ROLL, Loop.PITCH)
 #: process), and to answer one identification (60-120 ms measured; else likewise)
 WORKER_WARM_UP_S = 60.0
 WORKER_CALL_S = 20.0
+#: seconds the stream runs on the ground before arming: the pre-arm check of the loop's
+#: timeliness (telemetry at the asked rate, set points going out) watches it
+PREARM_S = 2.0
 
 
 def requested_loops(loops: Collection[str | Loop] | None, actuation: Actuation) -> frozenset[Loop]:
@@ -288,9 +292,10 @@ class _ReceiveClock:
     ``rx_offset_s`` takes): stamped again here, a reader thread that lost the GIL between
     would add its wait to the offset."""
 
-    def __init__(self, link: VehicleLink) -> None:
+    def __init__(self, link: VehicleLink, timeliness: TimelinessMonitor | None = None) -> None:
         self.model = ClockModel()
         self._link = link
+        self._timeliness = timeliness
         subscribe = getattr(link, "subscribe", None)
         if subscribe is None:  # a link without subscribers: no measurement, half a period
             return
@@ -301,7 +306,10 @@ class _ReceiveClock:
     def _offer(self, event: object) -> None:
         if isinstance(event, Attitude | LocalPosition):
             rx = getattr(self._link, "_last_telemetry", None)
-            self.model.update(time.monotonic() if rx is None else rx, event.t_s)
+            rx = time.monotonic() if rx is None else rx
+            self.model.update(rx, event.t_s)
+            if self._timeliness is not None:
+                self._timeliness.sample(rx, event.t_s)
 
 
 _CHECK_METHOD = ("square wave on the attitude set point at the predicted crossover of the "
@@ -519,12 +527,15 @@ class _Run:
         self.quality: LinkQuality | None = None
         self.changes: tuple[ParamChange, ...] = ()
         self.backup: str | None = None
-        self.limit_hit: LimitExceeded | None = None
+        #: what stopped the stream from its own thread (a limit, the relay guard, a stall)
+        self.limit_hit: MrftError | None = None
         self.hover_error_m = math.nan
         self.notes: list[str] = []
         self.gcs_delay_s: float | None = None  # None: measured per loop (self.ages)
         self.ages = _AgeLog()
-        self.clock = _ReceiveClock(link)  # ages are counted on it
+        #: stalls of the ground station's loop (telemetry gaps, late set points)
+        self.timeliness = TimelinessMonitor()
+        self.clock = _ReceiveClock(link, self.timeliness)  # ages are counted on it
         self.delays: dict[Loop, float] = {}  # re-targeted out of the written gains (s)
         self.retargets: dict[Loop, Retarget] = {}
         #: the autopilot's attitude-loop structure, read before take-off (flight/structure)
@@ -586,6 +597,7 @@ class _Run:
             notes=tuple([(self.rate.yaw_note if self.rate else None) or YAW_NOTE] + self.notes
                         + (self.rate.notes if self.rate else [])
                         + self._log_notes()
+                        + [n for n in (self.timeliness.summary(),) if n]
                         + (list(seq.events) if seq else [])
                         + ([tilt_note(seq.max_tilt_by_phase)]
                            if seq and seq.max_tilt_by_phase else [])),
@@ -665,7 +677,8 @@ class _Run:
                                                             inner),
             attitude_loop=lambda snap: self._offload("attitude_loop", measured_attitude_loop,
                                                      snap),
-            relay=self.relay, limits=self.lim, max_relay_s=self.max_relay_s, notes=self.notes)
+            relay=self.relay, limits=self.lim, max_relay_s=self.max_relay_s, notes=self.notes,
+            timeliness=self.timeliness)
         for lp in SIDE_INNER:
             if lp not in self.requested:
                 self.seq.leave_alone(lp, f"{NOT_REQUESTED}: not relay-tested; held where it "
@@ -817,9 +830,10 @@ class _Run:
 
         def make(s: FlightState | None) -> Setpoint:
             on_ground = s is None or seq.phase is Phase.PREFLIGHT
+            self.timeliness.tick(time.monotonic())
             try:
                 out = drv.tick(s)
-            except LimitExceeded as err:
+            except MrftError as err:  # a limit, the relay guard, a stalled loop
                 self.limit_hit = err
                 raise
             if on_ground:
@@ -851,13 +865,13 @@ class _Run:
             rate = self.rate
             drv.side_gate = lambda: rate.handed_over
         # the stream starts at once: PX4 needs it before OFFBOARD
+        self.timeliness.reset()
         vehicle = self.vehicle = LiveVehicle(self.link, self.rate_hz, on_tick=tick)
         self.streamer = vehicle.streamer
         qos = self.streamer.cpu_latency
         if qos is not None and qos.denied:
             self.notes.append(f"setpoint stream: {qos.outcome}")
-        time.sleep(0.3)
-        self._check_stream()
+        self._preflight_timeliness()
         vehicle.set_mode(VehicleMode.OFFBOARD)
         self.mode_watch = self.prof.modes["offboard"]
         vehicle.arm()
@@ -878,6 +892,24 @@ class _Run:
         self._write_back(client)
         self._verify_written(client)
         self._hand_over()
+
+    def _preflight_timeliness(self) -> None:
+        """Stream on the ground for :data:`PREARM_S` and refuse to arm where the loop
+        already stalls by the relay tests' rules (:mod:`mrft_gcs.flight.timeliness`)."""
+        end = time.monotonic() + PREARM_S
+        why = None
+        while time.monotonic() < end and why is None:
+            time.sleep(0.02)
+            assert self.streamer is not None
+            if self.limit_hit is None and self.streamer.abort_reason is not None:
+                why = self.streamer.abort_reason  # the watchdog, on the ground: no flight
+                break
+            self._check_stream()
+        why = why or self.timeliness.trouble(time.monotonic())
+        if why is not None:
+            raise HostTooSlow(f"before arming, the ground station could not keep a relay "
+                              f"test's loop on time: {why}; nothing was armed or written; "
+                              f"{host_advice()}")
 
     def _check_stream(self) -> None:
         assert self.streamer is not None

@@ -36,6 +36,7 @@ from mrft_gcs.flight.sequence import (
     TuningSequence,
 )
 from mrft_gcs.flight.source import Setpoint, VehicleSource, idle_setpoint, state_time_s
+from mrft_gcs.flight.timeliness import HostTooSlow, TimelinessMonitor, host_advice
 from mrft_gcs.identify import Identification, Method, RelaySettings, relay_settings
 from mrft_gcs.identify.closed_loop import side_relay_settings
 from mrft_gcs.identify.live import Identifier, closed_loop_summary, measured_attitude_loop
@@ -45,6 +46,11 @@ from mrft_gcs.profiles import Actuation, SafetyLimits
 from mrft_gcs.telemetry import AttitudeTarget, EndOfStream, RateTarget
 
 __all__ = ["SequenceDriver", "NUMERIC_RETRIES"]
+
+#: the phases in which the ground station closes the loops (stalls stop them) and those in
+#: which relays run (the relay guard watches them)
+_FLOWN = frozenset({Phase.TAKEOFF, Phase.INNER_MRFT, Phase.SIDE_MRFT, Phase.HOVER})
+_RELAYS = frozenset({Phase.TAKEOFF, Phase.INNER_MRFT, Phase.SIDE_MRFT})
 
 #: identifications of one loop that may fail on a numerical error (ValueError,
 #: ArithmeticError) and be retried on the next cycles before the tune stops
@@ -73,14 +79,21 @@ class SequenceDriver:
         (:class:`IdentificationError`); None: no limit.
     notes : list of str, optional
         Where the notes on retried identifications go (the tune's report notes).
+    timeliness : TimelinessMonitor, optional
+        Checked on every tick in flight: a stalled loop stops the tests
+        (:class:`~mrft_gcs.flight.timeliness.HostTooSlow`). The live tune feeds it from the
+        link and the stream; :meth:`run` feeds it on the source's clock (a tick per state,
+        a sample per new state).
     """
 
     def __init__(self, seq: TuningSequence, identify: Identifier, *,
                  attitude_loop: Callable[[CycleSnapshot], Identification] = measured_attitude_loop,
                  relay: dict[LoopKind, RelaySettings] | None = None,
                  limits: SafetyLimits | None = None, max_relay_s: float | None = None,
-                 notes: list[str] | None = None) -> None:
+                 notes: list[str] | None = None,
+                 timeliness: TimelinessMonitor | None = None) -> None:
         self.seq = seq
+        self.timeliness = timeliness
         self.identify = identify
         self.attitude_loop = attitude_loop
         self.relay = relay or {}
@@ -108,6 +121,8 @@ class SequenceDriver:
         if self.limits is not None:
             self.monitor = SafetyMonitor(self.limits, (s.x_m, s.y_m, s.z_up_m),
                                          state_time_s(s))
+        if self.timeliness is not None:
+            self.timeliness.forget()  # stalls on the ground were the pre-arm check's
         self.seq.start(s)
 
     def tick(self, s: FlightState | None, applied: Setpoint | None = None) -> Setpoint:
@@ -121,6 +136,10 @@ class SequenceDriver:
         ------
         LimitExceeded
             ``s`` is beyond a safety limit.
+        RelayTooLarge
+            A relay test tilts ``s`` close to the tilt limit.
+        HostTooSlow
+            The ground station's loop stalled (``timeliness``).
         """
         seq = self.seq
         if s is None:
@@ -130,6 +149,14 @@ class SequenceDriver:
             return self.idle
         if self.monitor is not None:
             self.monitor.check(s)
+            if seq.phase in _RELAYS:
+                self.monitor.relay_guard(s, f"{seq.phase.value} relay test")
+        if self.timeliness is not None and seq.phase in _FLOWN:
+            why = self.timeliness.trouble(relays=seq.phase in _RELAYS)
+            if why is not None:
+                raise HostTooSlow(f"the ground station could not keep the {seq.phase.value} "
+                                  f"loop on time: {why}; tests stopped early, landing "
+                                  f"commanded; {host_advice()}")
         return seq.step(s, None if applied is None else self.loop_inputs(s, applied))
 
     def loop_inputs(self, s: FlightState, applied: Setpoint) -> dict[Loop, float]:
@@ -318,22 +345,33 @@ class SequenceDriver:
         """
         seq = self.seq
         stop = stop or (lambda _s: seq.phase is Phase.HOVER)
+        seen = -math.inf
+
+        def state(s: FlightState | None) -> FlightState | None:
+            nonlocal seen
+            if self.timeliness is not None:  # on the source's clock
+                if s is not None and state_time_s(s) > seen:
+                    seen = state_time_s(s)
+                    self.timeliness.sample(source.time_s, seen)
+                self.timeliness.tick(source.time_s)
+            return s
+
         try:
             last: FlightState | None = None
             if ground_ticks is not None:
                 for _ in range(ground_ticks):
-                    last = source.next_state() or last
+                    last = state(source.next_state()) or last
                     source.send(self.tick(last))
             else:
                 while source.time_s < ground_until_s:
-                    source.send(self.tick(source.next_state()))
+                    source.send(self.tick(state(source.next_state())))
             while last is None:
-                last = source.next_state()
+                last = state(source.next_state())
                 if last is None:
                     source.send(self.idle)
             self.start(last)
             while True:
-                s = source.next_state()
+                s = state(source.next_state())
                 if s is None:
                     continue
                 applied = source.applied() if follow_applied else None

@@ -6,21 +6,34 @@ the setpoint callback, which stops the stream and commands a landing
 (:class:`~mrft_gcs.link.SetpointStreamer` does both). Telemetry loss is the
 streamer's watchdog; Ctrl-C is handled by the tuning API. Limits come from the
 autopilot profile and are overridden from the command line.
+
+While a relay test runs, :meth:`SafetyMonitor.relay_guard` stops it a little before the tilt
+limit (:data:`RELAY_GUARD_FRACTION` of it) with :class:`RelayTooLarge`, an explained refusal
+rather than an abort over the limit; the vehicle lands as on any stop.
 """
 
 from __future__ import annotations
 
 import math
 
-from mrft_gcs.errors import SafetyAbort
+from mrft_gcs.errors import IdentificationError, SafetyAbort
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.profiles import SafetyLimits
 
-__all__ = ["LimitExceeded", "SafetyMonitor"]
+__all__ = ["LimitExceeded", "RelayTooLarge", "SafetyMonitor", "RELAY_GUARD_FRACTION"]
+
+#: share of the tilt limit at which a relay test is stopped (the limit itself aborts): room
+#: for the swing that follows the stop, yet above the largest relay swings of completed
+#: tunes (about 31 deg of the 35 deg limit)
+RELAY_GUARD_FRACTION = 0.9
 
 
 class LimitExceeded(SafetyAbort):
     """A safety limit was crossed during the test."""
+
+
+class RelayTooLarge(IdentificationError):
+    """A relay test swung towards the tilt limit and was stopped before it."""
 
 
 class SafetyMonitor:
@@ -76,3 +89,15 @@ class SafetyMonitor:
         reason = self.violation(s)
         if reason is not None:
             raise LimitExceeded(f"safety limit: {reason}: test aborted, landing commanded")
+
+    def relay_guard(self, s: FlightState, what: str) -> None:
+        """Raise :class:`RelayTooLarge` where ``s`` tilts past :data:`RELAY_GUARD_FRACTION`
+        of the tilt limit (``what``: the tests running, for the message)."""
+        tilt = math.degrees(s.tilt_rad)
+        lim = self.limits.max_tilt_deg
+        if tilt > RELAY_GUARD_FRACTION * lim:
+            raise RelayTooLarge(
+                f"{what}: tilt {tilt:.1f} deg, past {RELAY_GUARD_FRACTION:.0%} of the {lim:g} "
+                f"deg limit: test stopped before the limit, landing commanded; check for a busy "
+                f"computer or a lossy link (see the notes), and that the airframe is sound "
+                f"(--max-tilt raises the limit where it can take more)")

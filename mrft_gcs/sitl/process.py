@@ -245,6 +245,11 @@ class SitlProcess:
     def running(self) -> bool:
         return self._proc is not None and self._proc.poll() is None
 
+    @property
+    def pid(self) -> int | None:
+        """The vehicle process's id while it runs (tests stall it with SIGSTOP/SIGCONT)."""
+        return self._proc.pid if self.running and self._proc is not None else None
+
     def command(self) -> list[str]:
         """The argument vector of the subprocess."""
         cmd = [sys.executable, "-m", "mrft_gcs.sitl", "--port", str(self.port),
