@@ -96,6 +96,21 @@ def test_cycle_detector_reports_steady_oscillation():
     assert t.size > 100 and u.size == y.size == t.size
 
 
+def test_cycle_detector_takes_no_float_wobble_of_one_level_for_switches():
+    """A relay output read back from a log before its first switch (one level, wobbling at
+    float32's 1e-7) gives no cycles; the first real switch to the other level does."""
+    rng = np.random.default_rng(0)
+    det = CycleDetector()
+    t = np.arange(400) * 0.004
+    wobble = 0.08 + rng.normal(0.0, 1e-7, t.size)
+    for ti, u in zip(t, wobble, strict=True):
+        st = det.update(ti, float(u), 1e-5 * float(rng.normal()))
+    assert st.cycles == 0 and not st.steady and not det.rises
+    det.update(t[-1] + 0.004, -0.08, 0.0)
+    det.update(t[-1] + 0.008, 0.08, 0.0)
+    assert len(det.rises) == 1
+
+
 def test_cycle_detector_relaxes_its_tolerances_after_relax_after_cycles():
     """Square-wave relay cycles whose amplitude alternates over three levels 12 % apart
     (kicked cycles): never steady within 8 %, steady from cycle ``relax_after`` on."""

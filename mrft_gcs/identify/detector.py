@@ -10,6 +10,10 @@ import numpy as np
 
 __all__ = ["CycleDetector", "CycleStatus"]
 
+#: Two relay levels closer than this (relative) are one: a relay output read back from a
+#: log (float32, or recovered by inverting a controller) wobbles at ~1e-7 before it switches.
+_LEVEL_SPLIT = 1e-4
+
 
 @dataclass(frozen=True)
 class CycleStatus:
@@ -95,7 +99,7 @@ class CycleDetector:
         self.u.append(u)
         self.y.append(y)
         self.lo, self.hi = min(self.lo, u), max(self.hi, u)
-        if self.hi > self.lo:
+        if self.hi - self.lo > _LEVEL_SPLIT * max(abs(self.hi), abs(self.lo)):
             high = bool(u > 0.5 * (self.lo + self.hi))  # a numpy bool is never `is False`
             if self.prev_high is False and high:
                 self._cached = None
