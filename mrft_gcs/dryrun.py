@@ -70,6 +70,7 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError, MrftError
 from mrft_gcs.flight.cycles import CycleRules, CycleWatcher
+from mrft_gcs.flight.structure import OnboardStructure, structured_retarget, vehicle_structure
 from mrft_gcs.identify import Identification, identify
 from mrft_gcs.logs import decode_log, log_truncation, read_csv_metadata, summarize_log
 from mrft_gcs.logs.describe import LogSummary
@@ -1173,22 +1174,41 @@ def _retarget_delay(seg: RelaySegment, t_cycles: np.ndarray) -> tuple[float, boo
 
 
 def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
-                    model: InnerModel | None = None, hover: float = 0.5) -> LoopResult:
+                    model: InnerModel | None = None, hover: float = 0.5,
+                    structure: OnboardStructure | None = None) -> LoopResult:
     """Cycle detector, identification and residual analysis of one relay test.
 
     The cycles identified are those a live tune identifies (:func:`_live_cycles`);
     when the oscillation never becomes steady, the last cycles are identified with a
     note. ``model`` replaces the identified model for the residual
-    analysis (e.g. a known model while the classifiers are not bundled).
+    analysis (e.g. a known model while the classifiers are not bundled). ``structure``:
+    how the autopilot closes the loop on written gains (:func:`log_structure`).
     """
     ident, cyc, steady, notes = _live_cycles(seg, inner)
-    return _loop_result(seg, ident, cyc, steady, notes, model, hover)
+    return _loop_result(seg, ident, cyc, steady, notes, model, hover, structure)
+
+
+def log_structure(decoded: DecodedLog, family: str = "") -> dict[Loop, OnboardStructure]:
+    """Roll and pitch structures from the parameters a log holds, as a live tune reads them
+    from the vehicle (:func:`~mrft_gcs.flight.structure.vehicle_structure`): the first logged
+    value of each (what the vehicle had before any write). ``family`` ("" : an ArduPilot
+    where the log holds ``ATC_*`` parameters) picks the default where the log does not say.
+    """
+    first: dict[str, float] = {}
+    for e in decoded.events:
+        if isinstance(e, ParamValue) and e.name not in first:
+            first[e.name] = float(e.value)
+    if not family and any(n.startswith("ATC_") for n in first):
+        family = "ardupilot"
+    return vehicle_structure(first.get, family)
 
 
 def _loop_result(seg: RelaySegment, ident: Identification | None, cyc: _Cycles, steady: bool,
-                 notes: list[str], model: InnerModel | None, hover: float) -> LoopResult:
+                 notes: list[str], model: InnerModel | None, hover: float,
+                 structure: OnboardStructure | None = None) -> LoopResult:
     """The gains a tune writes from ``ident`` (re-targeted where the relay ran on a ground
-    station) and the residual analysis over the identified cycles ``cyc``."""
+    station, and designed on the autopilot's ``structure`` as a tune designs them) and the
+    residual analysis over the identified cycles ``cyc``."""
     if seg.crossed < 0.9 and seg.beta_from == "switches":
         notes.insert(0, f"the oscillation does not cross the relay's set point every half cycle "
                         f"({100 * seg.crossed:.0f} % do): the relay lost its set point, so its "
@@ -1202,6 +1222,8 @@ def _loop_result(seg: RelaySegment, ident: Identification | None, cyc: _Cycles, 
 
             rt = robust_onboard_gains(ident, _gcs_delay(seg, cyc[0]),
                                       onboard_extra_s=onboard_extra_delay_s(seg.loop))
+            if structure is not None:
+                rt = structured_retarget(ident, rt, structure)
             delay, gains = rt.delay_s, rt.gains
             notes.append(f"gains re-targeted to the onboard loop, less delay than the "
                          f"ground-station relay by how old telemetry was when the command "
@@ -1268,6 +1290,7 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
     segs = [replace(s, clock=decoded.clock) if s.age_s is not None else s for s in segs]
     hover = _hover(log, profile)
     hover_f = hover if hover is not None else 0.5
+    structure = log_structure(decoded, profile.family.value if profile is not None else "")
     by_loop: dict[Loop, LoopResult] = {}
     for seg in sorted(segs, key=lambda s: s.loop.kind is LoopKind.SIDE):
         inner = None
@@ -1278,7 +1301,7 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
                 seg = _segment(seg.loop, seg.source, seg.t, seg.u, seg.y, info,
                                seg.gcs_period_s, inner)
         by_loop[seg.loop] = analyse_segment(seg, inner=inner, model=(models or {}).get(seg.loop),
-                                            hover=hover_f)
+                                            hover=hover_f, structure=structure.get(seg.loop))
     alt = by_loop.get(Loop.ALTITUDE)
     if alt is not None and alt.identification is not None and alt.segment.source == "actuator":
         order = _answer_position(log, order, float(alt.segment.t[-1]))
@@ -1299,7 +1322,7 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
         if session is not None:
             cmds = decoded.actuator if len(decoded.actuator) else decoded.attitude_target
             _use_session(session, by_loop, why, want, models or {}, hover_f,
-                         _setpoint_period(cmds[:, 0]))
+                         _setpoint_period(cmds[:, 0]), structure)
     results = tuple(by_loop[lp] for lp in Loop if lp in by_loop and lp in want)
     why = {k: v for k, v in why.items() if Loop(k) in want}
     params: dict[str, float] = {}
@@ -1449,7 +1472,8 @@ def _replay_session(decoded: DecodedLog, profile) -> _SessionReplay | None:
 
 def _use_session(session: _SessionReplay, by_loop: dict[Loop, LoopResult],
                  why: dict[str, str], want: tuple[Loop, ...], models: dict[Loop, InnerModel],
-                 hover: float, period_s: float) -> None:
+                 hover: float, period_s: float,
+                 structure: dict[Loop, OnboardStructure] | None = None) -> None:
     """Each loop the replayed tune identified: its identification, on the cycles the
     sequence handed over, replaces what the relay-segment search found (whose segment,
     with the ages the written gains are re-targeted by, is kept where it found one)."""
@@ -1470,7 +1494,8 @@ def _use_session(session: _SessionReplay, by_loop: dict[Loop, LoopResult],
         if lp in session.notes:
             notes.append(session.notes[lp])
         why.pop(lp.value, None)
-        by_loop[lp] = _loop_result(seg, ident, cyc, True, notes, models.get(lp), hover)
+        by_loop[lp] = _loop_result(seg, ident, cyc, True, notes, models.get(lp), hover,
+                                   (structure or {}).get(lp))
 
 
 def _before_write_back(decoded: DecodedLog) -> DecodedLog:

@@ -189,6 +189,42 @@ def test_commands_are_paired_with_the_sample_they_answered(lateness):
     assert list(naive.rows) != sorted(first)
 
 
+def test_dry_run_designs_on_the_rate_target_filter_the_log_holds(tmp_path):
+    """An ArduPilot's rate-target low-pass (``ATC_RAT_RLL_FLTT``) logged before the relay
+    test shapes the written roll gains as a live tune shapes them; without it the same
+    test gives the plain PD."""
+    from mrft_gcs.dryrun import log_structure
+    from mrft_gcs.flight.scoring import general_ise
+    from mrft_gcs.flight.structure import structure_controller
+    from mrft_gcs.logs import decode_log
+    from mrft_gcs.pd_design import frequency_grid, margins
+    from mrft_gcs.plant import inner_response
+
+    rec = sitl_relay_record("roll", seed=3, beta=-0.7, h=0.08, duration_s=6.0)
+    plain, filt = tmp_path / "plain.tlog", tmp_path / "fltt.tlog"
+    write_relay_tlog(plain, "roll", rec.t, rec.u, rec.y)
+    write_relay_tlog(filt, "roll", rec.t, rec.u, rec.y, params={"ATC_RAT_RLL_FLTT": 8.0})
+    st = log_structure(decode_log(filt))
+    assert st[Loop.ROLL].target_hz == 8.0 and "read" in st[Loop.ROLL].source
+    assert st[Loop.PITCH].target_hz == 20.0  # ArduPilot's default: the log does not say
+    assert log_structure(decode_log(plain))[Loop.ROLL].plain
+    a, b = (dry_run(p, loops=(Loop.ROLL,)).loops[0] for p in (plain, filt))
+    assert a.identification is not None and b.identification is not None
+    assert a.identification.gains == b.identification.gains  # the same test, identified
+    assert "rate target low-pass 8 Hz" in " ".join(b.notes)
+    assert "rate target" not in " ".join(a.notes)
+    # on the loop the autopilot closes (filter in, the re-targeted delay), the gains
+    # designed for it follow a step better than the plain PD, and keep their margin
+    m = a.identification.model
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    G = inner_response(m.K, m.T_prop, m.T1, m.tau - b.gcs_delay_s, w)[0]
+    fig = {}
+    for k, r in (("plain", a), ("designed", b)):
+        Cr, Cy = structure_controller(r.gains, st[Loop.ROLL], w)
+        fig[k] = (general_ise(Cr, Cy, G, w), margins(Cy * G, w).pm_deg)
+    assert fig["designed"][0] < 0.97 * fig["plain"][0] and fig["designed"][1] >= 15.0, fig
+
+
 def test_dry_run_clamps_parameters_into_the_profile_range(tmp_path):
     """A profile whose range the tuned roll angle P exceeds: clamped, with the loop's note."""
     if not MODELS.exists() or not list((MODELS.parent / "attitude").glob("*.onnx")):

@@ -107,11 +107,13 @@ def sitl_relay_record(loop: str = "roll", *, vehicle: str | Airframe = "qdrone",
 
 
 def write_relay_tlog(path, loop: str, t: np.ndarray, u: np.ndarray, y: np.ndarray,
-                     t_wall0: float = 1_700_000_000.0) -> None:
+                     t_wall0: float = 1_700_000_000.0,
+                     params: dict[str, float] | None = None) -> None:
     """Write a relay test as a .tlog: the vehicle's ATTITUDE / LOCAL_POSITION_NED carrying
     ``y`` and the ground station's SET_ACTUATOR_CONTROL_TARGET carrying ``u``.
 
     ``loop`` is ``roll``, ``pitch`` or ``altitude`` (``u`` the collective thrust then).
+    ``params``: PARAM_VALUE messages the vehicle sends before the test (name -> value).
     """
     from pymavlink.dialects.v20 import common as mav
 
@@ -122,6 +124,9 @@ def write_relay_tlog(path, loop: str, t: np.ndarray, u: np.ndarray, y: np.ndarra
     t = np.asarray(t, float) - float(t[0])
     with TlogWriter(path, overwrite=True) as w:
         w.write(veh.heartbeat_encode(2, 12, 137, 6 << 16, 4, 3).pack(veh), t_wall0)
+        for i, (name, value) in enumerate((params or {}).items()):
+            w.write(veh.param_value_encode(name.encode(), value, 9, len(params or {}), i)
+                    .pack(veh), t_wall0)
         for k in range(t.size):
             boot_ms = int(round(5000 + t[k] * 1000))
             wall = t_wall0 + t[k]
