@@ -50,7 +50,7 @@ def test_the_guard_keeps_the_true_tilt_under_the_limit_where_the_measured_one_di
     looking a round trip ahead it stops it short of the limit."""
     assert domain_check(random_airframe(GUARDED_SEED)).category == "out-of-domain"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(safety, "predicted_tilt_rad", lambda s, _lead: s.tilt_rad)
+        mp.setattr(safety, "predicted_tilt_rad", lambda s, *_: s.tilt_rad)
         before = tp.run_lockstep(GUARDED_SEED)
     assert before["outcome"] == "refused" and "past 90%" in before["reason"]
     assert before["max_tilt_deg"] > 35.0

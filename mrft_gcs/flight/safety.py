@@ -35,8 +35,10 @@ RELAY_GUARD_FRACTION = 0.9
 RELAY_GUARD_LEAD_S = 0.02
 
 
-def predicted_tilt_rad(s: FlightState, lead_s: float) -> float:
-    """Tilt (rad) ``lead_s`` seconds after ``s``: roll and pitch carried on at their rates.
+def predicted_tilt_rad(s: FlightState, lead_s: float,
+                       accel_rad_s2: tuple[float, float] = (0.0, 0.0)) -> float:
+    """Tilt (rad) ``lead_s`` seconds after ``s``: roll and pitch carried on at their rates
+    and angular accelerations (``accel_rad_s2``: roll, pitch).
 
     Body rates stand in for the angles' rates (within a few per cent below 20 deg of tilt
     and a slow yaw). Never less than the measured tilt.
@@ -46,9 +48,11 @@ def predicted_tilt_rad(s: FlightState, lead_s: float) -> float:
     >>> s = FlightState(1, 0.5, 0, 0, 2.0, 0, 0, 1, 0, 0, 1, 0, 0, 0)
     >>> round(math.degrees(predicted_tilt_rad(s, 0.05)), 1)
     34.4
+    >>> round(math.degrees(predicted_tilt_rad(s, 0.05, (-40.0, 0.0))), 1)  # braking
+    31.5
     """
-    r = s.roll_rad + s.p_rad_s * lead_s
-    p = s.pitch_rad + s.q_rad_s * lead_s
+    r = s.roll_rad + s.p_rad_s * lead_s + 0.5 * accel_rad_s2[0] * lead_s ** 2
+    p = s.pitch_rad + s.q_rad_s * lead_s + 0.5 * accel_rad_s2[1] * lead_s ** 2
     c = math.cos(r) * math.cos(p)
     return max(s.tilt_rad, math.acos(max(-1.0, min(1.0, c))))
 
@@ -87,6 +91,10 @@ class SafetyMonitor:
                  t_start_s: float, lead_s: float = RELAY_GUARD_LEAD_S) -> None:
         self.limits = limits
         self.lead_s = lead_s
+        #: (t_att_s, p, q) of the last attitude sample the relay guard saw, and the angular
+        #: accelerations (roll, pitch; rad/s^2) from it to the one before
+        self._last: tuple[float, float, float] | None = None
+        self._accel = (0.0, 0.0)
         self.origin = origin
         self.t_start_s = t_start_s
         self.max_tilt_seen_deg = 0.0
@@ -127,8 +135,14 @@ class SafetyMonitor:
         The measured tilt trails the vehicle's by the telemetry's trip down, and a stop
         acts only after the command's trip up: a guard on the measured tilt alone stopped
         a swing that went on past the limit."""
+        last = self._last
+        if last is None or s.t_att_s > last[0]:
+            if last is not None and s.t_att_s - last[0] < 0.1:  # a braking swing peaks sooner
+                dt = s.t_att_s - last[0]
+                self._accel = ((s.p_rad_s - last[1]) / dt, (s.q_rad_s - last[2]) / dt)
+            self._last = (s.t_att_s, s.p_rad_s, s.q_rad_s)
         tilt = math.degrees(s.tilt_rad)
-        ahead = math.degrees(predicted_tilt_rad(s, self.lead_s))
+        ahead = math.degrees(predicted_tilt_rad(s, self.lead_s, self._accel))
         lim = self.limits.max_tilt_deg
         if ahead > RELAY_GUARD_FRACTION * lim:
             heading = f" heading for {ahead:.1f} deg" if ahead > tilt + 0.05 else ""
