@@ -35,6 +35,27 @@ def test_the_guard_stops_a_swing_heading_past_its_threshold_before_it_gets_there
                   lead_s=0.0).relay_guard(_rolling(28.0, 200.0), "inner MRFT relay test")
 
 
+def _at(t_s: float, deg: float, p_rad_s: float) -> FlightState:
+    return FlightState(t_s, math.radians(deg), 0, 0, p_rad_s, 0, 0, t_s, 0, 0, 1.0, 0, 0, 0)
+
+
+def test_a_braking_swing_is_let_run_where_a_speeding_one_is_stopped():
+    """The same tilt and rate (27.5 deg, 2.6 rad/s: 32 deg ahead on the rate alone); the
+    rate falling by 100 rad/s^2 peaks short of the guard, rising does not."""
+    lim = SafetyLimits(max_tilt_deg=35.0)
+    braking = SafetyMonitor(lim, (0.0, 0.0, 0.0), 0.0, lead_s=0.03)
+    braking.relay_guard(_at(1.000, 26.0, 3.0), "inner MRFT relay test")
+    braking.relay_guard(_at(1.004, 27.5, 2.6), "inner MRFT relay test")
+    speeding = SafetyMonitor(lim, (0.0, 0.0, 0.0), 0.0, lead_s=0.03)
+    speeding.relay_guard(_at(1.000, 26.0, 2.2), "inner MRFT relay test")
+    with pytest.raises(RelayTooLarge, match="heading for 3[3-4]"):
+        speeding.relay_guard(_at(1.004, 27.5, 2.6), "inner MRFT relay test")
+    # a new take-off forgets the last swing
+    speeding.reset((0.0, 0.0, 0.0), 2.0)
+    with pytest.raises(RelayTooLarge, match="heading for 32.0"):
+        speeding.relay_guard(_at(2.000, 27.5, 2.6), "inner MRFT relay test")
+
+
 def test_the_prediction_is_never_below_the_measured_tilt():
     s = _rolling(20.0, -400.0)
     assert predicted_tilt_rad(s, 0.02) == pytest.approx(math.radians(20.0))

@@ -101,6 +101,7 @@ class SafetyMonitor:
 
     def reset(self, origin: tuple[float, float, float], t_start_s: float) -> None:
         self.origin, self.t_start_s, self.max_tilt_seen_deg = origin, t_start_s, 0.0
+        self._last, self._accel = None, (0.0, 0.0)
 
     def violation(self, s: FlightState, duration: bool = True) -> str | None:
         """A one-line reason if ``s`` is beyond a limit, else None (``duration``: check it too)."""
