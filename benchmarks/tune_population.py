@@ -129,6 +129,7 @@ def run_lockstep(seed: int, max_s: float = 70.0,
                          relay_settings(LoopKind.ALTITUDE))
     drv = SequenceDriver(seq, bundled_identifier, limits=lim, max_relay_s=MAX_RELAY_S,
                          timeliness=TimelinessMonitor() if timeliness else None)
+    drv.guard_lead_s = rtt * 1e-3 + 1.0 / tel  # as the tool sets it from the TIMESYNC round trip
     src.send(drv.idle)  # as the tool does: set points first, then offboard, then arm
     src.set_mode(VehicleMode.OFFBOARD)
     src.arm()

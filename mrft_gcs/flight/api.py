@@ -679,6 +679,8 @@ class _Run:
                                                      snap),
             relay=self.relay, limits=self.lim, max_relay_s=self.max_relay_s, notes=self.notes,
             timeliness=self.timeliness)
+        if (rtt := _round_trip_s(self.quality)) > 0:  # the relay guard looks a round trip ahead
+            self.driver.guard_lead_s = rtt + 1.0 / self.rate_hz
         for lp in SIDE_INNER:
             if lp not in self.requested:
                 self.seq.leave_alone(lp, f"{NOT_REQUESTED}: not relay-tested; held where it "

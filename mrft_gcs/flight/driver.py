@@ -27,7 +27,7 @@ from collections.abc import Callable
 
 from mrft_gcs.errors import IdentificationError, SetpointNotCrossed
 from mrft_gcs.flight.controllers import FlightState, wrap_pi
-from mrft_gcs.flight.safety import SafetyMonitor
+from mrft_gcs.flight.safety import RELAY_GUARD_LEAD_S, SafetyMonitor
 from mrft_gcs.flight.sequence import (
     AUTOPILOT_ATTITUDE,
     SIDE_INNER,
@@ -114,13 +114,16 @@ class SequenceDriver:
         #: what the roll/pitch notes say flew the side tests where the autopilot's attitude
         #: loop did (measured from the side relays' cycles)
         self.autopilot_attitude_note = AUTOPILOT_ATTITUDE
+        #: how far ahead the relay guard looks (s): the link's round trip and a telemetry
+        #: period where they are known (:class:`~mrft_gcs.flight.safety.SafetyMonitor`)
+        self.guard_lead_s = RELAY_GUARD_LEAD_S
 
     # ------------------------------------------------------------------ per tick
     def start(self, s: FlightState) -> None:
         """The take-off command: the safety origin and the sequence start at ``s``."""
         if self.limits is not None:
             self.monitor = SafetyMonitor(self.limits, (s.x_m, s.y_m, s.z_up_m),
-                                         state_time_s(s))
+                                         state_time_s(s), lead_s=self.guard_lead_s)
         if self.timeliness is not None:
             self.timeliness.forget()  # stalls on the ground were the pre-arm check's
         self.seq.start(s)

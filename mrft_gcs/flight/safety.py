@@ -20,12 +20,41 @@ from mrft_gcs.errors import IdentificationError, SafetyAbort
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.profiles import SafetyLimits
 
-__all__ = ["LimitExceeded", "RelayTooLarge", "SafetyMonitor", "RELAY_GUARD_FRACTION"]
+__all__ = ["LimitExceeded", "RelayTooLarge", "SafetyMonitor", "RELAY_GUARD_FRACTION",
+           "RELAY_GUARD_LEAD_S", "predicted_tilt_rad"]
 
 #: share of the tilt limit at which a relay test is stopped (the limit itself aborts): room
 #: for the swing that follows the stop, yet above the largest relay swings of completed
 #: tunes (about 31 deg of the 35 deg limit)
 RELAY_GUARD_FRACTION = 0.9
+
+#: how far ahead (s) the relay guard looks where the link's round trip is not known: the
+#: measured tilt is a telemetry trip old and a stop acts a command trip later, so the guard
+#: acts on the tilt extrapolated over the round trip (a loopback or Wi-Fi link: a few ms to
+#: 20 ms; a telemetry period more)
+RELAY_GUARD_LEAD_S = 0.02
+
+
+def predicted_tilt_rad(s: FlightState, lead_s: float,
+                       accel_rad_s2: tuple[float, float] = (0.0, 0.0)) -> float:
+    """Tilt (rad) ``lead_s`` seconds after ``s``: roll and pitch carried on at their rates
+    and angular accelerations (``accel_rad_s2``: roll, pitch).
+
+    Body rates stand in for the angles' rates (within a few per cent below 20 deg of tilt
+    and a slow yaw). Never less than the measured tilt.
+
+    Examples
+    --------
+    >>> s = FlightState(1, 0.5, 0, 0, 2.0, 0, 0, 1, 0, 0, 1, 0, 0, 0)
+    >>> round(math.degrees(predicted_tilt_rad(s, 0.05)), 1)
+    34.4
+    >>> round(math.degrees(predicted_tilt_rad(s, 0.05, (-40.0, 0.0))), 1)  # braking
+    31.5
+    """
+    r = s.roll_rad + s.p_rad_s * lead_s + 0.5 * accel_rad_s2[0] * lead_s ** 2
+    p = s.pitch_rad + s.q_rad_s * lead_s + 0.5 * accel_rad_s2[1] * lead_s ** 2
+    c = math.cos(r) * math.cos(p)
+    return max(s.tilt_rad, math.acos(max(-1.0, min(1.0, c))))
 
 
 class LimitExceeded(SafetyAbort):
@@ -46,6 +75,9 @@ class SafetyMonitor:
         Take-off point.
     t_start_s : float
         Vehicle time of the take-off command (the duration limit counts from it).
+    lead_s : float
+        The relay guard acts on the tilt this far ahead (s): the link's round trip and a
+        telemetry period (:data:`RELAY_GUARD_LEAD_S` where it is not known).
 
     Examples
     --------
@@ -56,14 +88,20 @@ class SafetyMonitor:
     """
 
     def __init__(self, limits: SafetyLimits, origin: tuple[float, float, float],
-                 t_start_s: float) -> None:
+                 t_start_s: float, lead_s: float = RELAY_GUARD_LEAD_S) -> None:
         self.limits = limits
+        self.lead_s = lead_s
+        #: (t_att_s, p, q) of the last attitude sample the relay guard saw, and the angular
+        #: accelerations (roll, pitch; rad/s^2) from it to the one before
+        self._last: tuple[float, float, float] | None = None
+        self._accel = (0.0, 0.0)
         self.origin = origin
         self.t_start_s = t_start_s
         self.max_tilt_seen_deg = 0.0
 
     def reset(self, origin: tuple[float, float, float], t_start_s: float) -> None:
         self.origin, self.t_start_s, self.max_tilt_seen_deg = origin, t_start_s, 0.0
+        self._last, self._accel = None, (0.0, 0.0)
 
     def violation(self, s: FlightState, duration: bool = True) -> str | None:
         """A one-line reason if ``s`` is beyond a limit, else None (``duration``: check it too)."""
@@ -91,13 +129,26 @@ class SafetyMonitor:
             raise LimitExceeded(f"safety limit: {reason}: test aborted, landing commanded")
 
     def relay_guard(self, s: FlightState, what: str) -> None:
-        """Raise :class:`RelayTooLarge` where ``s`` tilts past :data:`RELAY_GUARD_FRACTION`
-        of the tilt limit (``what``: the tests running, for the message)."""
+        """Raise :class:`RelayTooLarge` where ``s`` tilts, or is about to tilt (its rates
+        carried on for ``lead_s``), past :data:`RELAY_GUARD_FRACTION` of the tilt limit
+        (``what``: the tests running, for the message).
+
+        The measured tilt trails the vehicle's by the telemetry's trip down, and a stop
+        acts only after the command's trip up: a guard on the measured tilt alone stopped
+        a swing that went on past the limit."""
+        last = self._last
+        if last is None or s.t_att_s > last[0]:
+            if last is not None and s.t_att_s - last[0] < 0.1:  # a braking swing peaks sooner
+                dt = s.t_att_s - last[0]
+                self._accel = ((s.p_rad_s - last[1]) / dt, (s.q_rad_s - last[2]) / dt)
+            self._last = (s.t_att_s, s.p_rad_s, s.q_rad_s)
         tilt = math.degrees(s.tilt_rad)
+        ahead = math.degrees(predicted_tilt_rad(s, self.lead_s, self._accel))
         lim = self.limits.max_tilt_deg
-        if tilt > RELAY_GUARD_FRACTION * lim:
+        if ahead > RELAY_GUARD_FRACTION * lim:
+            heading = f" heading for {ahead:.1f} deg" if ahead > tilt + 0.05 else ""
             raise RelayTooLarge(
-                f"{what}: tilt {tilt:.1f} deg, past {RELAY_GUARD_FRACTION:.0%} of the {lim:g} "
-                f"deg limit: test stopped before the limit, landing commanded; check for a busy "
-                f"computer or a lossy link (see the notes), and that the airframe is sound "
-                f"(--max-tilt raises the limit where it can take more)")
+                f"{what}: tilt {tilt:.1f} deg{heading}, past {RELAY_GUARD_FRACTION:.0%} of the "
+                f"{lim:g} deg limit: test stopped before the limit, landing commanded; check "
+                f"for a busy computer or a lossy link (see the notes), and that the airframe is "
+                f"sound (--max-tilt raises the limit where it can take more)")
