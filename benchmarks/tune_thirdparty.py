@@ -61,10 +61,13 @@ def score(af, params: dict, identified: dict) -> dict:
 
     loops = [lp for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE, Loop.X, Loop.Y)
              if lp in identified and (lp not in inner or inner[lp] in identified)]
-    sc = score_written(af, params, loops, identified=identified, gcs_delay_s=gcs_delay_s(af))
+    sc = score_written(af, params, loops, identified=identified, gcs_delay_s=gcs_delay_s(af),
+                       floor=True)
     return {lp.value: {
         "onboard_J_pct": _num(s.onboard.J_pct) if s.onboard.stable else None,
         "onboard_pm_deg": _num(s.onboard.pm_deg), "onboard_stable": s.onboard.stable,
+        "structure_floor_J_pct": _num(s.floor.J_pct) if s.floor else None,
+        "onboard_J_vs_structure_pct": _num(s.J_vs_floor_pct) if s.onboard.stable else None,
         "gcs_J_pct": _num(s.gcs.J_pct) if s.gcs and s.gcs.stable else None,
         "gcs_pm_deg": _num(s.gcs.pm_deg) if s.gcs else None} for lp, s in sc.items()}
 
