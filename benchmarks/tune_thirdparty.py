@@ -115,6 +115,9 @@ def run(name: str | None, seed: int | None) -> dict:
         for lp, lr in r.loops.items() if (v := lr.verification) is not None}
     identified = {lp: lr.identification.gains for lp, lr in r.loops.items()
                   if lr.identification is not None}
+    rec["identified"] = {lp.value: {"class": i.class_index, "model": i.model.as_dict(),
+                                    "Kc": i.gains.Kc, "Kd": i.gains.Kd}
+                         for lp, lr in r.loops.items() if (i := lr.identification) is not None}
     if params is not None:
         rec["written"] = {c.name: c.new for c in r.parameters}
         rec["loops"] = score(af, params, identified)

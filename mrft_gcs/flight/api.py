@@ -52,6 +52,7 @@ from mrft_gcs.flight.inair import (
     CHECK_ROUNDS,
     PASS_PM_DEG,
     PM_HIGH_DEG,
+    SIDE_PM_MIN_DEG,
     CheckPlan,
     InAirCheck,
     OnboardCascade,
@@ -60,6 +61,7 @@ from mrft_gcs.flight.inair import (
     check_margin,
     plan_check,
     redesigned_gains,
+    side_behind_checked,
 )
 from mrft_gcs.flight.onboard import (
     Retarget,
@@ -115,7 +117,7 @@ from mrft_gcs.link.modes import CustomMode, mode_matches
 from mrft_gcs.link.quality import LinkQuality
 from mrft_gcs.loops import SIDE_INNER, Loop, LoopKind
 from mrft_gcs.params import ParamChange, ParamClient
-from mrft_gcs.plant import PD, InnerModel
+from mrft_gcs.plant import PD, InnerModel, SideModel
 from mrft_gcs.profiles import (
     Actuation,
     AutopilotProfile,
@@ -1160,6 +1162,7 @@ class _Run:
                           f"check{'s' if rounds > 1 else ''}, {time.monotonic() - started:.1f} s "
                           f"after the write (not in the time to tune)")
         back: dict[Loop, PD] = {}
+        kept: dict[Loop, tuple[CheckPlan, InAirCheck]] = {}
         for lp, tried in history.items():
             passed = [(p, c) for p, c in tried if c.passed]
             if not passed:
@@ -1172,9 +1175,30 @@ class _Run:
                     f"margin measured in the air ({_story(tried)}); landing commanded (restore "
                     f"the backup {self.backup})")
             plan, check = min(passed, key=lambda pc: abs(pc[1].measured_pm_deg - 20.0))
+            kept[lp] = (plan, check)
             if plan.gains != self.written[lp]:
                 back[lp] = self.written[lp] = plan.gains
             self.verification[lp] = _verified(plan, check, _story(tried, plan))
+        # x and y are flown behind pitch and roll: where the check changed those, the side
+        # gains must keep their margin behind the gains kept, on the attitude plant measured
+        sides = []
+        for lp, inner_lp in SIDE_INNER.items():
+            side_id = self.seq.loops[lp].identification if self.seq else None
+            first = self.retargets.get(inner_lp)
+            if (inner_lp in kept and lp in self.written and first is not None
+                    and side_id is not None and isinstance(side_id.model, SideModel)):
+                g = side_behind_checked(self.written[lp], side_id.model, first.gains,
+                                        *kept[inner_lp])
+                if g != self.written[lp]:
+                    self.written[lp] = g
+                    sides.append(lp)
+        if sides:
+            self.notes.append(
+                f"written side gains: {', '.join(lp.value for lp in sides)} re-designed behind "
+                f"the attitude gains the in-air check kept (short of "
+                f"{SIDE_PM_MIN_DEG:.0f} deg behind them on the attitude plant it measured)")
+            # x and y share the autopilot's parameters (the more cautious of the two)
+            back.update({lp: self.written[lp] for lp in SIDE_INNER if lp in self.written})
         if back:
             self._rewrite(client, back)
 

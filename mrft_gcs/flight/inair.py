@@ -39,13 +39,14 @@ import numpy as np
 
 from mrft_gcs.loops import Loop
 from mrft_gcs.pd_design import frequency_grid, margins, optimal_pd
-from mrft_gcs.plant import PD, InnerModel, inner_response
+from mrft_gcs.plant import PD, InnerModel, SideModel, inner_response, side_response
 
 __all__ = ["PM_MIN_DEG", "PASS_PM_DEG", "AGREE_DEG", "MAX_STEADY_SE", "CHECK_HARMONICS",
            "CHECK_AMPLITUDE_RAD",
            "CheckPlan", "InAirCheck", "Verification", "SquareWaveProbe", "plan_check",
            "square_wave", "harmonic_points", "check_margin", "redesigned_gains",
-           "PM_HIGH_DEG", "CHECK_ROUNDS", "OnboardCascade"]
+           "PM_HIGH_DEG", "CHECK_ROUNDS", "OnboardCascade", "side_behind_checked",
+           "SIDE_PM_MIN_DEG"]
 
 #: the least phase margin the written loop must keep (deg), and what its check must measure:
 #: that plus the measurement's own error (live, 1-2.5 deg from the onboard truth)
@@ -74,6 +75,9 @@ CHECK_CYCLES = 3
 #: steady response to the square wave: a loop that oscillates on its own reads as any margin
 #: (in-process, a written loop at -1 deg: 0.35 and "27 deg"; steady loops 0.05-0.06)
 MAX_STEADY_SE = 0.15
+#: the least phase margin side gains re-designed behind checked attitude gains keep on the
+#: measured cascade (deg): the written side loops' robust margin
+SIDE_PM_MIN_DEG = 15.0
 #: the square wave's amplitude on the attitude set point (rad): 2 deg, some 6 deg of swing
 #: at a 20 deg loop's resonance, well clear of noise and of the tilt limits
 CHECK_AMPLITUDE_RAD = 0.035
@@ -333,6 +337,48 @@ def redesigned_gains(plan: CheckPlan, check: InAirCheck) -> PD:
     new = optimal_pd(G, w, pm_min_deg=TIGHTEN_PM_DEG).pd
     up = max(new.Kc / plan.gains.Kc, new.Kd / plan.gains.Kd)
     return new if up <= TIGHTEN_MAX else PD(new.Kc * TIGHTEN_MAX / up, new.Kd * TIGHTEN_MAX / up)
+
+
+def _side_cascade(side: SideModel, plan: CheckPlan, check: InAirCheck, gains: PD
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``(G, w)``: the side process behind attitude ``gains`` on the plant the check measured."""
+    m = check.corrected_model(plan)
+    w = frequency_grid(m.T_prop, m.T1, m.tau, extra_T=(side.T2, side.tau))
+    g = inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0]
+    cr, cy = _paths(gains, w, plan.cascade)
+    return cr * g / (1.0 + cy * g) * side_response(side.K, side.T2, side.tau, w)[0], w
+
+
+def side_behind_checked(written: PD, side: SideModel, first: PD, plan: CheckPlan,
+                        check: InAirCheck) -> PD:
+    """Side gains for the attitude gains a check kept (``plan.gains``, in place of ``first``).
+
+    x and y are flown behind pitch and roll; ``written`` were designed behind the attitude
+    gains ``first`` written. Where a check re-wrote those (backing off: a slower attitude loop,
+    less margin for the side loop behind it), ``written`` stay where they keep
+    :data:`SIDE_PM_MIN_DEG` on the side process behind the gains kept, on the attitude plant
+    the check measured (:meth:`InAirCheck.corrected_model`) and the side part ``side``
+    identified; short of it, the ISE-optimal PD of that process (PM 20 deg on it) replaces
+    them. Side gains with more margin are left as they are: the check did not measure the side
+    loop.
+
+    Examples
+    --------
+    >>> plan = plan_check(InnerModel(40.0, 0.02, 0.3, 0.010), PD(1.5, 0.15), 0.035)
+    >>> chk = InAirCheck(20.0, 20.0, 1.0, 0.0, np.ones(3), np.ones(3), np.full(3, 0.05), 0.0)
+    >>> side = SideModel(9.8, 1.5, 0.01)
+    >>> side_behind_checked(PD(2.0, 1.0), side, PD(3.0, 0.25), plan, chk)  # margin kept
+    PD(Kc=2.0, Kd=1.0)
+    >>> side_behind_checked(PD(9.0, 1.0), side, PD(3.0, 0.25), plan, chk).Kc < 9.0
+    True
+    """
+    if first == plan.gains:
+        return written
+    G, w = _side_cascade(side, plan, check, plan.gains)
+    m = margins((written.Kc + written.Kd * 1j * w) * G, w)
+    if m.stable and m.pm_deg >= SIDE_PM_MIN_DEG:
+        return written
+    return optimal_pd(G, w).pd
 
 
 @dataclass(frozen=True)
