@@ -365,6 +365,13 @@ def summary(recs: list[dict]) -> list[str]:
         out.append(f"in-air check: {len(pairs)} loops measured, |measured - onboard truth| PM "
                    f"mean {np.mean(err):.1f} deg, max {max(err):.1f} deg, "
                    f"{sum(e <= 3 for e in err)}/{len(err)} within 3 deg; {redone} re-designed")
+        pred = [abs(v["measured_pm_deg"] - v["predicted_pm_deg"]) for r in recs
+                for v in r.get("verification", {}).values()
+                if v["measured_pm_deg"] is not None and v["predicted_pm_deg"] is not None]
+        if pred:
+            out.append(f"in-air check, measured vs predicted PM (the gains kept): |difference| "
+                       f"mean {np.mean(pred):.1f} deg, max {max(pred):.1f} deg, "
+                       f"{sum(e <= 3 for e in pred)}/{len(pred)} within 3 deg")
     tilts = [r["max_tilt_deg"] for r in recs if r.get("max_tilt_deg") is not None]
     if tilts:
         out.append(f"largest tilt {max(tilts):.1f} deg; {sum(t > 35 for t in tilts)} vehicles "
