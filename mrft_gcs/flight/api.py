@@ -53,6 +53,7 @@ from mrft_gcs.flight.inair import (
     PASS_PM_DEG,
     PM_HIGH_DEG,
     SIDE_PM_MIN_DEG,
+    STRUCT_TIGHTEN_GAIN,
     CheckPlan,
     InAirCheck,
     OnboardCascade,
@@ -62,6 +63,7 @@ from mrft_gcs.flight.inair import (
     plan_check,
     redesigned_gains,
     side_behind_checked,
+    structured_redesign,
 )
 from mrft_gcs.flight.onboard import (
     Retarget,
@@ -1134,6 +1136,7 @@ class _Run:
                                       f"ArduPilot's cascade as predicted ({err}); landing "
                                       f"commanded, the vehicle's own gains back") from err
         history: dict[Loop, list[tuple[CheckPlan, InAirCheck]]] = {lp: [] for lp in plans}
+        on_structure: set[Loop] = set()  # loops tightened on their rate-target filter
         started = time.monotonic()
         for n in range(CHECK_ROUNDS):
             if not plans:
@@ -1141,11 +1144,19 @@ class _Run:
             nxt: dict[Loop, CheckPlan] = {}
             for lp, (plan, check) in self._probe(plans).items():
                 history[lp].append((plan, check))
-                if (check.passed and check.measured_pm_deg <= PM_HIGH_DEG) or (
+                # a loop through a rate-target low-pass (read from the vehicle) whose design on
+                # that filter would do better on the loop measured is tightened within the band
+                hz = 0.0 if on_rate or lp not in self.structure else self.structure[lp].target_hz
+                tighter = (hz > 0 and check.passed and check.measured_pm_deg <= PM_HIGH_DEG
+                           and structured_redesign(plan, check, hz)[1] >= STRUCT_TIGHTEN_GAIN)
+                if tighter:
+                    on_structure.add(lp)
+                if (check.passed and check.measured_pm_deg <= PM_HIGH_DEG and not tighter) or (
                         n + 1 == CHECK_ROUNDS):
                     continue
                 if check.steady:
-                    model, new = check.corrected_model(plan), redesigned_gains(plan, check)
+                    model = check.corrected_model(plan)
+                    new = redesigned_gains(plan, check, target_hz=hz)
                 else:
                     # no steady response, no model to correct: the gains of the ground-station
                     # loop, which carried more delay than the onboard one
@@ -1174,7 +1185,10 @@ class _Run:
                     f"{lp.value}: none of the gains tried kept {PASS_PM_DEG:.0f} deg of phase "
                     f"margin measured in the air ({_story(tried)}); landing commanded (restore "
                     f"the backup {self.backup})")
-            plan, check = min(passed, key=lambda pc: abs(pc[1].measured_pm_deg - 20.0))
+            # tightened on the structure: the last gains that passed (their plain margin reads
+            # near 20 deg either way; the ISE is what was gained); else nearest the design's 20
+            plan, check = (passed[-1] if lp in on_structure else
+                           min(passed, key=lambda pc: abs(pc[1].measured_pm_deg - 20.0)))
             kept[lp] = (plan, check)
             if plan.gains != self.written[lp]:
                 back[lp] = self.written[lp] = plan.gains
