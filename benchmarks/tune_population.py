@@ -188,6 +188,11 @@ def run_lockstep(seed: int, max_s: float = 70.0,
                                              rts[inner_lp],
                                              target_hz=structure[inner_lp].target_hz).gains
     rec["retarget_delay_ms"] = {lp.value: d * 1e3 for lp, d in delays.items()}
+    # what the re-target was measured as (benchmarks/structure_loss.py re-designs from these)
+    rec["gcs_delay_measured_ms"] = {lp.value: {
+        "estimate": rt.gcs.estimate_s * 1e3, "lo": rt.gcs.lo_s * 1e3, "hi": rt.gcs.hi_s * 1e3,
+        "measured": rt.gcs.measured, "round_trip": rt.gcs.round_trip_s * 1e3}
+        for lp, rt in rts.items()}
     ranged = params_in_range(prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in written.items()}, hover)
     rec["notes"] += list(ranged.notes)
     refused = [n for n, val in ranged.values.items() if not ap.params.set(n, val)]
@@ -279,10 +284,14 @@ def _score(rec: dict, af, params: dict, identified_pd: dict, loops) -> None:
     wanted = [lp for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE, Loop.X, Loop.Y)
               if lp in loops and (lp not in SIDE_INNER or SIDE_INNER[lp] in identified_pd)]
     sc = score_written(af, params, wanted, identified=identified_pd,
-                       gcs_delay_s=gcs_delay_s(af))
+                       gcs_delay_s=gcs_delay_s(af), floor=True)
     rec["loops"] = {lp.value: {
         "onboard_J_pct": _num(s.onboard.J_pct) if s.onboard.stable else None,
         "onboard_pm_deg": _num(s.onboard.pm_deg), "onboard_stable": s.onboard.stable,
+        # the best the autopilot's own structure allows (J vs the ideal PD), and the written
+        # gains against it (mrft_gcs.flight.scoring.structure_floor)
+        "structure_floor_J_pct": _num(s.floor.J_pct) if s.floor else None,
+        "onboard_J_vs_structure_pct": _num(s.J_vs_floor_pct) if s.onboard.stable else None,
         "gcs_J_pct": _num(s.gcs.J_pct) if s.gcs and s.gcs.stable else None,
         "gcs_pm_deg": _num(s.gcs.pm_deg) if s.gcs else None}
         for lp, s in sc.items()}
@@ -331,6 +340,15 @@ def summary(recs: list[dict]) -> list[str]:
                    f"deg, {sum(p < 15 for p in pm)} under 15 deg; J max "
                    f"{max(ok, default=math.nan):.1f} %, {sum(j > 10 for j in ok)} over 10 %, "
                    f"{unst} unstable")
+        fl = [v.get("structure_floor_J_pct") for _, _, v in loops]
+        js = [v.get("onboard_J_vs_structure_pct") for _, _, v in loops]
+        if any(f is not None for f in fl):
+            fs = [f for f in fl if f is not None]
+            ok = [j for j in js if j is not None]
+            out.append(f"against the best of each autopilot's own structure (its floor: J "
+                       f"0-{max(fs):.1f} % vs the ideal PD, {sum(f > 0 for f in fs)} loops with "
+                       f"a floor above 0): J max {max(ok, default=math.nan):.1f} %, "
+                       f"{sum(j > 10 for j in ok)} over 10 %")
         gp = [v["gcs_pm_deg"] for _, _, v in loops if v["gcs_pm_deg"] is not None]
         gj = [v["gcs_J_pct"] for _, _, v in loops if v["gcs_pm_deg"] is not None]
         if gp:
@@ -348,6 +366,13 @@ def summary(recs: list[dict]) -> list[str]:
         out.append(f"in-air check: {len(pairs)} loops measured, |measured - onboard truth| PM "
                    f"mean {np.mean(err):.1f} deg, max {max(err):.1f} deg, "
                    f"{sum(e <= 3 for e in err)}/{len(err)} within 3 deg; {redone} re-designed")
+        pred = [abs(v["measured_pm_deg"] - v["predicted_pm_deg"]) for r in recs
+                for v in r.get("verification", {}).values()
+                if v["measured_pm_deg"] is not None and v["predicted_pm_deg"] is not None]
+        if pred:
+            out.append(f"in-air check, measured vs predicted PM (the gains kept): |difference| "
+                       f"mean {np.mean(pred):.1f} deg, max {max(pred):.1f} deg, "
+                       f"{sum(e <= 3 for e in pred)}/{len(pred)} within 3 deg")
     tilts = [r["max_tilt_deg"] for r in recs if r.get("max_tilt_deg") is not None]
     if tilts:
         out.append(f"largest tilt {max(tilts):.1f} deg; {sum(t > 35 for t in tilts)} vehicles "

@@ -234,3 +234,79 @@ def test_redesign_behind_the_cascade_filters_keeps_the_margin():
     assert not check.passed
     safer = redesigned_gains(plan, check)
     assert _cascade_pm(true, safer, ARDU) >= 18.0
+
+
+def test_side_gains_keep_their_margin_behind_the_attitude_gains_the_check_kept():
+    """A check that backs roll or pitch off (the onboard plant had more delay than predicted)
+    leaves the side loop behind a slower attitude loop: side gains designed behind the first
+    gains, short of margin there, are re-designed; side gains that keep it stay."""
+    from mrft_gcs.flight.inair import SIDE_PM_MIN_DEG, InAirCheck, side_behind_checked
+    from mrft_gcs.plant import SideModel, closed_inner_response, side_response
+
+    side = SideModel(9.8, 1.5, 0.01)
+    first = _optimal(MODEL)
+
+    def side_pm(true: InnerModel, inner: PD, g: PD) -> float:
+        w = frequency_grid(true.T_prop, true.T1, true.tau, extra_T=(side.T2, side.tau))
+        gi = inner_response(true.K, true.T_prop, true.T1, true.tau, w)
+        G = closed_inner_response(inner.Kc, inner.Kd, gi, w)[0] * side_response(
+            side.K, side.T2, side.tau, w)[0]
+        mm = margins((g.Kc + g.Kd * 1j * w) * G, w)
+        return float(mm.pm_deg) if mm.stable else -np.inf
+
+    w = frequency_grid(MODEL.T_prop, MODEL.T1, MODEL.tau, extra_T=(side.T2, side.tau))
+    gi = inner_response(MODEL.K, MODEL.T_prop, MODEL.T1, MODEL.tau, w)
+    written = optimal_pd(closed_inner_response(first.Kc, first.Kd, gi, w)[0]
+                         * side_response(side.K, side.T2, side.tau, w)[0], w).pd
+    level = np.ones(3)
+    for extra_s, redesign in ((0.002, False), (0.012, True)):
+        plan = plan_check(MODEL, first, 0.05)
+        check = InAirCheck(20.0, 10.0, 1.0, extra_s, level, level, level * 0.05, 0.0)
+        kept = redesigned_gains(plan, check)  # backed off on the measured plant
+        true = check.corrected_model(plan)
+        plan2 = plan_check(true, kept, 0.05)
+        exact = InAirCheck(20.0, 20.0, 1.0, 0.0, level, level, level * 0.05, 0.0)
+        g = side_behind_checked(written, side, first, plan2, exact)
+        assert (g != written) == redesign
+        if redesign:
+            assert side_pm(true, kept, written) < SIDE_PM_MIN_DEG
+        assert side_pm(true, kept, g) >= SIDE_PM_MIN_DEG
+    # the check changed nothing: nothing moves
+    assert side_behind_checked(written, side, first, plan_check(MODEL, first, 0.05),
+                               exact) == written
+
+
+def test_a_loop_on_a_rate_target_filter_is_tightened_on_that_structure():
+    """Gains with a few degrees more margin than the design's on ArduPilot's rate-target
+    low-pass (no target-rate feed-forward: the bundled SITL's ArduPilot-like cascade), checked
+    as a plain PD: inverted through the filter the points give the plant, and the gains
+    designed on the filter at PM 20 deg lower the ISE on the true loop and keep 18 deg."""
+    from mrft_gcs.flight.inair import STRUCT_TIGHTEN_GAIN, structured_redesign
+    from mrft_gcs.flight.scoring import general_ise
+    from mrft_gcs.flight.structure import OnboardStructure, structure_controller, structured_pd
+
+    hz = 15.0
+    fltt = OnboardCascade(hz, target_rate_ff=False)
+    st = OnboardStructure(hz)
+    w = frequency_grid(MODEL.T_prop, MODEL.T1, MODEL.tau)
+    G = inner_response(MODEL.K, MODEL.T_prop, MODEL.T1, MODEL.tau, w)[0]
+    best = structured_pd(G, w, st)
+    cautious = PD(best.gains.Kc * 0.88, best.gains.Kd * 0.92)
+    pm_now = _cascade_pm(MODEL, cautious, fltt)
+    assert 21.0 < pm_now < 25.0  # inside the band: the plain rule would leave it
+    plan = plan_check(MODEL, cautious, 0.05)  # the plain check, as on the torque path
+    pts = harmonic_points(*_square_wave_test(MODEL, cautious, plan.period_s, 0.05,
+                                             cascade=fltt), plan.period_s, plan.period_s, 3)
+    check = check_margin(plan, *pts)
+    assert check.passed
+    new, gain = structured_redesign(plan, check, hz)
+    assert gain >= STRUCT_TIGHTEN_GAIN
+    ise = [general_ise(*structure_controller(g, st, w), G, w) for g in (cautious, new)]
+    assert ise[1] < ise[0] * (1 - STRUCT_TIGHTEN_GAIN)
+    assert 18.0 <= _cascade_pm(MODEL, new, fltt) < pm_now
+    assert redesigned_gains(plan, check, target_hz=hz) == new
+    # at the design's own margin there is nothing to gain
+    plan = plan_check(MODEL, best.gains, 0.05)
+    pts = harmonic_points(*_square_wave_test(MODEL, best.gains, plan.period_s, 0.05,
+                                             cascade=fltt), plan.period_s, plan.period_s, 3)
+    assert structured_redesign(plan, check_margin(plan, *pts), hz)[1] < STRUCT_TIGHTEN_GAIN

@@ -15,7 +15,12 @@ from mrft_gcs.flight.onboard import (
     onboard_side_gains,
     robust_onboard_gains,
 )
-from mrft_gcs.flight.scoring import general_ise, score_written
+from mrft_gcs.flight.scoring import (
+    general_ise,
+    onboard_process,
+    score_written,
+    structure_floor,
+)
 from mrft_gcs.flight.structure import (
     OnboardStructure,
     read_structure,
@@ -176,3 +181,42 @@ def test_side_gains_behind_a_known_filter_need_not_allow_for_an_unseen_one():
     assert none.gains.Kc >= unseen.gains.Kc  # no filter to allow for: no less gain
     assert slow.gains.Kc <= none.gains.Kc  # a slower attitude loop: no more gain
     assert np.isfinite(slow.pm_deg)
+
+
+# ------------------------------------------------------------------ the structure's floor
+def test_the_floor_of_a_plain_structure_is_the_ideal_pd():
+    # the written parameters (rate and velocity I, D at 0) close exactly a PD on PX4
+    af = load_airframe("qdrone")
+    params = dict(ParamStore(af.hover_thrust, af.onboard).values)
+    params.update(gains_to_params(load_profile("sitl"), {
+        lp: PDGains(1.0, 0.1) for lp in (Loop.ROLL, Loop.ALTITUDE, Loop.X)},
+        params["MPC_THR_HOVER"]))
+    for lp in (Loop.ROLL, Loop.ALTITUDE, Loop.X):
+        fl = structure_floor(af, lp, params)
+        assert fl.plain and fl.J_pct == 0.0 and fl.pm_deg >= 20.0 - 0.05
+
+
+@pytest.mark.parametrize("name,target_hz", [("qdrone", 12.0), ("racer250", 20.0)])
+def test_the_floor_of_a_rate_target_filter_bounds_every_written_design(name, target_hz):
+    # on the true onboard loop: no pair of written numbers with PM >= 20 there does better than
+    # the floor, neither the ideal PD written through the filter nor the tool's design
+    af = _ardupilot_like(name, target_hz)
+    params = dict(ParamStore(af.hover_thrust, af.onboard).values)
+    params.update(gains_to_params(load_profile("sitl"), {Loop.ROLL: PDGains(1.0, 0.1)},
+                                  params["MPC_THR_HOVER"]))
+    fl = structure_floor(af, Loop.ROLL, params)
+    assert not fl.plain and fl.J_pct > 1.0 and fl.pm_deg >= 20.0 - 0.05
+    G, w = onboard_process(af, Loop.ROLL, params)
+    ident = _identified(af, Loop.ROLL, 0.008)
+    rt = robust_onboard_gains(ident, measure_gcs_delay([0.002] * 30, P, round_trip_s=0.004))
+    st = OnboardStructure(target_hz)
+    for g in (optimal_pd(G, w).pd, structured_retarget(ident, rt, st).gains):
+        sc = score_written(af, {**params, **gains_to_params(
+            load_profile("sitl"), {Loop.ROLL: PDGains(g.Kc, g.Kd)}, params["MPC_THR_HOVER"])},
+            [Loop.ROLL], floor=True)[Loop.ROLL]
+        if sc.onboard.pm_deg >= 20.0:
+            assert sc.onboard.J_pct >= fl.J_pct - 0.05
+        # the second figure is the first one measured from the floor instead of the ideal PD
+        assert sc.floor is not None and sc.floor.J_pct == pytest.approx(fl.J_pct, abs=1e-6)
+        assert (1 + sc.onboard.J_pct / 100) == pytest.approx(
+            (1 + sc.J_vs_floor_pct / 100) * (1 + fl.J_pct / 100))

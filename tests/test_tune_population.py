@@ -8,8 +8,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
+import pytest  # noqa: E402
+import structure_loss as sl  # noqa: E402
 import tune_population as tp  # noqa: E402
 
+from mrft_gcs.loops import Loop  # noqa: E402
 from mrft_gcs.sitl import domain_check, random_airframe  # noqa: E402
 
 
@@ -30,7 +33,17 @@ def test_a_tune_ends_in_one_of_the_outcomes_with_every_written_loop_scored():
         assert set(r["loops"]) == {"roll", "pitch", "altitude", "x", "y"}
         for fig in r["loops"].values():
             assert math.isfinite(fig["onboard_pm_deg"]) and math.isfinite(fig["gcs_pm_deg"])
+            # the second figure: the written gains against the best of the vehicle's structure
+            floor, vs = fig["structure_floor_J_pct"], fig["onboard_J_vs_structure_pct"]
+            assert floor is not None and vs is not None and floor >= 0.0
+            assert 1 + fig["onboard_J_pct"] / 100 == pytest.approx(
+                (1 + vs / 100) * (1 + floor / 100))
         assert 0 < r["time_to_tune_s"] < 60 and r["written"]
+        # where the J of each written loop went, re-designed from the record
+        f = sl.breakdown(r, Loop.ROLL)
+        assert f["written"][0] == pytest.approx(r["loops"]["roll"]["onboard_J_pct"])
+        assert {"floor", "no range", "no cap", "at d*", "cause"} <= set(f)
+        assert (f["cause"] == "") == (f["written"][0] <= 10)
     lines = tp.summary([r])
     assert any(ln.startswith("in-domain tuned:") for ln in lines)
 

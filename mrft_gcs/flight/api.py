@@ -52,6 +52,8 @@ from mrft_gcs.flight.inair import (
     CHECK_ROUNDS,
     PASS_PM_DEG,
     PM_HIGH_DEG,
+    SIDE_PM_MIN_DEG,
+    STRUCT_TIGHTEN_GAIN,
     CheckPlan,
     InAirCheck,
     OnboardCascade,
@@ -60,6 +62,8 @@ from mrft_gcs.flight.inair import (
     check_margin,
     plan_check,
     redesigned_gains,
+    side_behind_checked,
+    structured_redesign,
 )
 from mrft_gcs.flight.onboard import (
     Retarget,
@@ -115,7 +119,7 @@ from mrft_gcs.link.modes import CustomMode, mode_matches
 from mrft_gcs.link.quality import LinkQuality
 from mrft_gcs.loops import SIDE_INNER, Loop, LoopKind
 from mrft_gcs.params import ParamChange, ParamClient
-from mrft_gcs.plant import PD, InnerModel
+from mrft_gcs.plant import PD, InnerModel, SideModel
 from mrft_gcs.profiles import (
     Actuation,
     AutopilotProfile,
@@ -1134,6 +1138,7 @@ class _Run:
                                       f"ArduPilot's cascade as predicted ({err}); landing "
                                       f"commanded, the vehicle's own gains back") from err
         history: dict[Loop, list[tuple[CheckPlan, InAirCheck]]] = {lp: [] for lp in plans}
+        on_structure: set[Loop] = set()  # loops tightened on their rate-target filter
         started = time.monotonic()
         for n in range(CHECK_ROUNDS):
             if not plans:
@@ -1141,11 +1146,19 @@ class _Run:
             nxt: dict[Loop, CheckPlan] = {}
             for lp, (plan, check) in self._probe(plans).items():
                 history[lp].append((plan, check))
-                if (check.passed and check.measured_pm_deg <= PM_HIGH_DEG) or (
+                # a loop through a rate-target low-pass (read from the vehicle) whose design on
+                # that filter would do better on the loop measured is tightened within the band
+                hz = 0.0 if on_rate or lp not in self.structure else self.structure[lp].target_hz
+                tighter = (hz > 0 and check.passed and check.measured_pm_deg <= PM_HIGH_DEG
+                           and structured_redesign(plan, check, hz)[1] >= STRUCT_TIGHTEN_GAIN)
+                if tighter:
+                    on_structure.add(lp)
+                if (check.passed and check.measured_pm_deg <= PM_HIGH_DEG and not tighter) or (
                         n + 1 == CHECK_ROUNDS):
                     continue
                 if check.steady:
-                    model, new = check.corrected_model(plan), redesigned_gains(plan, check)
+                    model = check.corrected_model(plan)
+                    new = redesigned_gains(plan, check, target_hz=hz)
                 else:
                     # no steady response, no model to correct: the gains of the ground-station
                     # loop, which carried more delay than the onboard one
@@ -1162,6 +1175,7 @@ class _Run:
                           f"check{'s' if rounds > 1 else ''}, {time.monotonic() - started:.1f} s "
                           f"after the write (not in the time to tune)")
         back: dict[Loop, PD] = {}
+        kept: dict[Loop, tuple[CheckPlan, InAirCheck]] = {}
         for lp, tried in history.items():
             passed = [(p, c) for p, c in tried if c.passed]
             if not passed:
@@ -1173,10 +1187,34 @@ class _Run:
                     f"{lp.value}: none of the gains tried kept {PASS_PM_DEG:.0f} deg of phase "
                     f"margin measured in the air ({_story(tried)}); landing commanded (restore "
                     f"the backup {self.backup})")
-            plan, check = min(passed, key=lambda pc: abs(pc[1].measured_pm_deg - 20.0))
+            # tightened on the structure: the last gains that passed (their plain margin reads
+            # near 20 deg either way; the ISE is what was gained); else nearest the design's 20
+            plan, check = (passed[-1] if lp in on_structure else
+                           min(passed, key=lambda pc: abs(pc[1].measured_pm_deg - 20.0)))
+            kept[lp] = (plan, check)
             if plan.gains != self.written[lp]:
                 back[lp] = self.written[lp] = plan.gains
             self.verification[lp] = _verified(plan, check, _story(tried, plan))
+        # x and y are flown behind pitch and roll: where the check changed those, the side
+        # gains must keep their margin behind the gains kept, on the attitude plant measured
+        sides = []
+        for lp, inner_lp in SIDE_INNER.items():
+            side_id = self.seq.loops[lp].identification if self.seq else None
+            first = self.retargets.get(inner_lp)
+            if (inner_lp in kept and lp in self.written and first is not None
+                    and side_id is not None and isinstance(side_id.model, SideModel)):
+                g = side_behind_checked(self.written[lp], side_id.model, first.gains,
+                                        *kept[inner_lp])
+                if g != self.written[lp]:
+                    self.written[lp] = g
+                    sides.append(lp)
+        if sides:
+            self.notes.append(
+                f"written side gains: {', '.join(lp.value for lp in sides)} re-designed behind "
+                f"the attitude gains the in-air check kept (short of "
+                f"{SIDE_PM_MIN_DEG:.0f} deg behind them on the attitude plant it measured)")
+            # x and y share the autopilot's parameters (the more cautious of the two)
+            back.update({lp: self.written[lp] for lp in SIDE_INNER if lp in self.written})
         if back:
             self._rewrite(client, back)
 

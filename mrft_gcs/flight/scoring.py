@@ -16,6 +16,13 @@ angle controller linearised, rate target filter and D on the error), per vehicle
 identified there. The general controller ``u = Cr r - Cy y`` is scored as a PD is: the
 ISE of the unit-step error ``E = (1 + G (Cy - Cr)) / (s (1 + G Cy))`` against that of the
 optimal PD of the same true process, and the margins of ``L = Cy G``.
+
+That ``J`` (the headline, the method's definition) counts what the autopilot's structure costs
+as well as what the tune did. :func:`structure_floor` separates the two: the best two written
+numbers can do on the vehicle's own structure (ISE-optimal, the same PM >= 20 deg as the ideal
+PD), so each loop also reads ``J`` of the floor against the ideal PD (what the structure costs,
+0 where the written parameters close exactly a PD) and ``J`` of the written gains against the
+floor (what the tune left on the table).
 """
 
 from __future__ import annotations
@@ -25,9 +32,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.optimize import minimize
 
 from mrft_gcs.loops import SIDE_INNER, Loop
-from mrft_gcs.pd_design import deterioration, frequency_grid, margins, optimal_pd
+from mrft_gcs.pd_design import PM_MIN_DEG, deterioration, frequency_grid, margins, optimal_pd
 from mrft_gcs.plant import PD, closed_inner_response, inner_response, side_response
 
 if TYPE_CHECKING:
@@ -35,7 +43,7 @@ if TYPE_CHECKING:
 
 __all__ = ["LoopScore", "StepFigures", "true_response", "score_gains", "step_figures",
            "onboard_attitude_response", "WrittenScore", "score_written", "onboard_process",
-           "onboard_controller", "general_ise"]
+           "onboard_controller", "general_ise", "StructureFloor", "structure_floor"]
 
 
 @dataclass(frozen=True)
@@ -156,6 +164,16 @@ class WrittenScore:
     loop: Loop
     onboard: LoopScore
     gcs: LoopScore | None
+    #: the best the autopilot's own structure allows on the same truth (None: not asked)
+    floor: StructureFloor | None = None
+
+    @property
+    def J_vs_floor_pct(self) -> float:
+        """``J`` of the written parameters against the structure's best (%; NaN: no floor)."""
+        if self.floor is None:
+            return float("nan")
+        return ((1.0 + self.onboard.J_pct / 100.0) / (1.0 + self.floor.J_pct / 100.0)
+                - 1.0) * 100.0
 
 
 def _lowpass(s: np.ndarray, hz: float) -> np.ndarray | float:
@@ -316,9 +334,107 @@ def _gcs_score(airframe: Airframe, loop: Loop, pd: PD, identified: Mapping[Loop,
     return _score(loop, pd, pd.Kc + 0 * s, pd.Kc + pd.Kd * s, G, w)
 
 
+@dataclass(frozen=True)
+class StructureFloor:
+    """The best two written numbers on an autopilot's loop structure (its floor).
+
+    Attributes
+    ----------
+    gains : PD
+        Their PD equivalent (angle P x rate P, rate P; as the written gains).
+    J_pct : float
+        Their ``J`` against the ideal PD of the same truth (%; 0 where the structure is a PD).
+    pm_deg : float
+        Their phase margin on the truth (deg; >= :data:`~mrft_gcs.pd_design.PM_MIN_DEG`).
+    plain : bool
+        The written parameters close exactly a PD: the floor is the ideal PD.
+    """
+
+    gains: PD
+    J_pct: float
+    pm_deg: float
+    plain: bool
+
+
+def _with_pd(loop: Loop, params: Mapping[str, float], pd: PD) -> dict[str, float]:
+    """``params`` with the two written numbers set for ``pd`` (the inverse of
+    :func:`_pd_equivalent`)."""
+    p = dict(params)
+    if loop in _AXIS:
+        a = _AXIS[loop]
+        p[f"MC_{a}RATE_P"] = pd.Kd / params.get(f"MC_{a}RATE_K", 1.0)
+        p[f"MC_{a}_P"] = pd.Kc / pd.Kd
+    elif loop is Loop.ALTITUDE:
+        p["MPC_Z_VEL_P_ACC"] = pd.Kd * 9.80665 / params["MPC_THR_HOVER"]
+        p["MPC_Z_P"] = pd.Kc / pd.Kd
+    else:
+        p["MPC_XY_VEL_P_ACC"] = pd.Kd * 9.80665
+        p["MPC_XY_P"] = pd.Kc / pd.Kd
+    return p
+
+
+def structure_floor(airframe: Airframe, loop: Loop, params: Mapping[str, float],
+                    pm_min_deg: float = PM_MIN_DEG) -> StructureFloor:
+    """The ISE-optimal written gains of ``loop`` on the autopilot's own structure.
+
+    The loop's two written numbers (angle or position P, rate or velocity P) are searched on
+    the true onboard process and controller (:func:`onboard_process`,
+    :func:`onboard_controller`) with every other parameter as in ``params`` (filters, I, D,
+    FF), under phase margin ``pm_min_deg`` there: the best the structure allows, scored as
+    :func:`score_written` scores the written gains. A structure that closes exactly a PD has
+    the ideal PD as its floor (``J`` 0).
+
+    Examples
+    --------
+    >>> from mrft_gcs.sitl import load_airframe
+    >>> from mrft_gcs.sitl.onboard import ParamStore
+    >>> f = structure_floor(load_airframe("qdrone"), Loop.ROLL, ParamStore(0.45).values)
+    >>> f.J_pct <= 1e-6 or not f.plain, f.pm_deg >= 20.0 - 1e-6
+    (True, True)
+    """
+    G, w = onboard_process(airframe, loop, params)
+    best = optimal_pd(G, w, pm_min_deg)
+    s = 1j * w
+
+    def paths(pd: PD) -> tuple[np.ndarray, np.ndarray]:
+        return onboard_controller(airframe, loop, _with_pd(loop, params, pd), w)
+
+    Cr, Cy = paths(best.pd)
+    ref = np.abs(Cy) + 1e-12
+    if (np.max(np.abs(Cr - best.pd.Kc) / ref) < 1e-9
+            and np.max(np.abs(Cy - best.pd.Kc - best.pd.Kd * s) / ref) < 1e-9):
+        return StructureFloor(best.pd, 0.0, float(best.margins.pm_deg), True)
+
+    def pm_of(pd: PD) -> float:
+        m = margins(paths(pd)[1] * G, w)
+        return float(m.pm_deg) if m.stable else -np.inf
+
+    def cost(x: np.ndarray) -> float:
+        pd = PD(float(np.exp(x[0])), float(np.exp(x[1])))
+        pm = pm_of(pd)
+        if pm == -np.inf:
+            return 1e12
+        q = general_ise(*paths(pd), G, w)
+        short = max(0.0, pm_min_deg - pm)
+        return q * (1.0 + 0.05 * short + 0.02 * short ** 2) if np.isfinite(q) else 1e12
+
+    res = min((minimize(cost, np.log([x0.Kc, x0.Kd]), method="Nelder-Mead",
+                        options={"xatol": 1e-4, "fatol": 1e-9, "maxiter": 600})
+               for x0 in (best.pd, PD(best.pd.Kc * 0.8, best.pd.Kd))), key=lambda r: r.fun)
+    g = PD(float(np.exp(res.x[0])), float(np.exp(res.x[1])))
+    k, pm = 1.0, pm_of(g)
+    while pm < pm_min_deg and k > 1e-3:  # the search ended short of the margin: less gain
+        k *= 0.99
+        pm = pm_of(PD(g.Kc * k, g.Kd * k))
+    g = PD(g.Kc * k, g.Kd * k)
+    J = (general_ise(*paths(g), G, w) - best.ise) / best.ise * 100.0
+    return StructureFloor(g, float(J), float(pm), False)
+
+
 def score_written(airframe: Airframe, params: Mapping[str, float], loops=None,
                   identified: Mapping[Loop, PD] | None = None,
-                  gcs_delay_s: float | Mapping[Loop, float] = 0.0) -> dict[Loop, WrittenScore]:
+                  gcs_delay_s: float | Mapping[Loop, float] = 0.0,
+                  floor: bool = False) -> dict[Loop, WrittenScore]:
     """Score written parameters on the vehicle's true onboard loops (and the GCS side).
 
     Parameters
@@ -334,6 +450,9 @@ def score_written(airframe: Airframe, params: Mapping[str, float], loops=None,
         The PDs the ground station flew (identified); with them each loop also gets its
         ``gcs`` score: that PD on the true process with ``gcs_delay_s`` more delay (s,
         one value or per loop; x/y through the identified attitude PD).
+    floor : bool
+        Also the best the autopilot's structure allows on each loop
+        (:func:`structure_floor`, :attr:`WrittenScore.J_vs_floor_pct`).
 
     Returns
     -------
@@ -357,7 +476,8 @@ def score_written(airframe: Airframe, params: Mapping[str, float], loops=None,
         if identified is not None and loop in identified:
             d = gcs_delay_s.get(loop, 0.0) if isinstance(gcs_delay_s, Mapping) else gcs_delay_s
             gcs = _gcs_score(airframe, loop, identified[loop], identified, float(d))
-        out[loop] = WrittenScore(loop, onboard, gcs)
+        fl = structure_floor(airframe, loop, params) if floor else None
+        out[loop] = WrittenScore(loop, onboard, gcs, fl)
     return out
 
 
