@@ -23,19 +23,17 @@ import argparse
 import json
 import math
 import os
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
-
-from tune_ardupilot import RECIPE
 
 from mrft_gcs.link import VehicleLink
 from mrft_gcs.link.failsafe import install_link_loss_guard
 from mrft_gcs.link.modes import ARDUPILOT_COPTER_MODES
 from mrft_gcs.params import ParamClient
 from mrft_gcs.profiles import load_profile
+from mrft_gcs.sitl.arducopter import ArduCopterSitl
 from mrft_gcs.telemetry import (
     Attitude,
     AttitudeTarget,
@@ -55,20 +53,6 @@ ZERO_SET: dict[str, float] = {
     "MOT_BAT_VOLT_MAX": 0, "ATC_THR_G_BOOST": 0, "ACRO_BAL_ROLL": 0, "ACRO_BAL_PITCH": 0,
 }
 MAV_PARAM_TYPE_REAL32 = 9
-
-
-def start_sitl(instance: int, run_dir: str) -> str:
-    """Boot a wiped SITL with scripting on; its PID. Raises if it did not get ready (a host
-    too loaded: then the vehicle is not fit for the case)."""
-    env = dict(os.environ, INSTANCE=str(instance), NOWAIT="1", WIPE="1", RUN_DIR=run_dir,
-               READY_TIMEOUT="120")
-    out = subprocess.run([str(RECIPE / "start.sh")], env=env, capture_output=True, text=True,
-                         timeout=180, check=True)
-    pid = out.stdout.strip().splitlines()[-1]
-    if "RC at neutral sticks" not in out.stderr:
-        subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
-        raise RuntimeError(f"SITL not ready: {out.stderr.strip().splitlines()[-1]}")
-    return pid
 
 
 def fly(link: VehicleLink, seconds: float, until_m: float | None = None) -> float:
@@ -148,17 +132,13 @@ def main() -> int:
     cases = args.case or ["none:0.1", "1.0:0.1", "0.5:0.1", "0.5:0.3", "0.3:0.3", "none:0.3"]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        defaults = Path(tmp) / "scripting.parm"
-        defaults.write_text("SCR_ENABLE 1\n")
-        os.environ["EXTRA_DEFAULTS"] = str(defaults)
         for case in cases:
             silence, rate = case.split(":")
-            pid = start_sitl(args.instance, str(Path(tmp) / "run"))
-            try:
-                row = run_case(5760 + 10 * args.instance,
+            # a SITL that did not get ready is not fit for the case: it raises
+            with ArduCopterSitl.start(args.instance, Path(tmp) / "run", {"SCR_ENABLE": 1},
+                                      require_ready=True) as sitl:
+                row = run_case(sitl.base_port,
                                None if silence == "none" else float(silence), float(rate))
-            finally:
-                subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
             print(json.dumps(row), flush=True)
             rows.append(row)
     if args.json:

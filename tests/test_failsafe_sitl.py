@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import os
 import re
-import subprocess
 import time
 
 import pytest
-from test_ardupilot_sitl import RECIPE, SITL_DIR, _free_instance, _why_not
 
+from mrft_gcs.errors import LinkError
 from mrft_gcs.link import VehicleLink
 from mrft_gcs.link.failsafe import (
     GUARD_FILE,
@@ -30,9 +29,10 @@ from mrft_gcs.link.failsafe import (
 from mrft_gcs.link.ftp import list_dir
 from mrft_gcs.link.modes import ARDUPILOT_COPTER_MODES
 from mrft_gcs.params import ParamClient
+from mrft_gcs.sitl.arducopter import ArduCopterSitl, free_instance, why_not
 from mrft_gcs.telemetry import AttitudeTarget, Heartbeat, LocalPosition, StatusText
 
-pytestmark = pytest.mark.skipif(_why_not() is not None, reason=str(_why_not()))
+pytestmark = pytest.mark.skipif(why_not() is not None, reason=str(why_not()))
 
 OBSERVER_SYSID = 254
 GUIDED_NOGPS = ARDUPILOT_COPTER_MODES["offboard"]
@@ -43,26 +43,14 @@ LEVEL = (1.0, 0.0, 0.0, 0.0)
 @pytest.fixture(scope="module")
 def copter(tmp_path_factory):
     """``(serial0, serial1)`` of a booted ArduCopter SITL with Lua scripting running."""
-    instance = int(os.environ.get("ARDUPILOT_SITL_INSTANCE", "0")) or _free_instance()
-    run_dir = tmp_path_factory.mktemp("arducopter-lua")
-    scripting = run_dir / "scripting.parm"
-    scripting.write_text("SCR_ENABLE 1\n")
-    env = dict(os.environ, ARDUPILOT_SITL_DIR=str(SITL_DIR), INSTANCE=str(instance), NOWAIT="1",
-               WIPE="1", RUN_DIR=str(run_dir), READY_TIMEOUT="120",
-               EXTRA_DEFAULTS=str(scripting))
-    out = subprocess.run([str(RECIPE / "start.sh")], env=env, capture_output=True, text=True,
-                         timeout=180)
-    if out.returncode != 0:
-        pytest.fail(f"start.sh failed: {out.stderr[-500:]}")
-    pid = out.stdout.strip().splitlines()[-1]
-    if "RC at neutral sticks" not in out.stderr:  # start.sh goes on when not ready
-        subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
-        pytest.fail(f"the SITL did not get ready (a host too loaded?): {out.stderr[-300:]}")
+    instance = int(os.environ.get("ARDUPILOT_SITL_INSTANCE", "0")) or free_instance()
     try:
-        base = 5760 + 10 * instance
-        yield f"tcp:127.0.0.1:{base}", f"tcp:127.0.0.1:{base + 2}"
-    finally:
-        subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
+        sitl = ArduCopterSitl.start(instance, tmp_path_factory.mktemp("arducopter-lua"),
+                                    {"SCR_ENABLE": 1}, require_ready=True)
+    except LinkError as err:
+        pytest.fail(str(err))
+    with sitl:
+        yield sitl.serial0, sitl.serial1
 
 
 def _guard_files(link: VehicleLink) -> list[str]:
