@@ -64,7 +64,8 @@ class Observer:
     def __init__(self, connection: str) -> None:
         self.m = mavutil.mavlink_connection(connection, source_system=254)
         self.m.wait_heartbeat(timeout=10)
-        for msg_id in (30, 32, 74):  # ATTITUDE, LOCAL_POSITION_NED, VFR_HUD at 25 Hz
+        # ATTITUDE, LOCAL_POSITION_NED, VFR_HUD, ATTITUDE_TARGET at 25 Hz
+        for msg_id in (30, 32, 74, 83):
             self.command(511, msg_id, 40_000)
 
     def command(self, cmd: int, *p: float) -> None:
@@ -77,18 +78,26 @@ class Observer:
         self.command(176, 1, number)
 
     def record(self, seconds: float) -> dict[str, np.ndarray]:
-        rows: dict[str, list[tuple[float, ...]]] = {"pos": [], "att": [], "thr": []}
+        rows: dict[str, list[tuple[float, ...]]] = {"pos": [], "att": [], "thr": [],
+                                                    "err": []}
+        target: tuple[float, float] | None = None
         end = time.monotonic() + seconds
         while time.monotonic() < end:
-            msg = self.m.recv_match(type=["LOCAL_POSITION_NED", "ATTITUDE", "VFR_HUD"],
-                                    blocking=True, timeout=0.2)
+            msg = self.m.recv_match(type=["LOCAL_POSITION_NED", "ATTITUDE", "VFR_HUD",
+                                          "ATTITUDE_TARGET"], blocking=True, timeout=0.2)
             if msg is None:
                 continue
             kind = msg.get_type()
             if kind == "LOCAL_POSITION_NED":
                 rows["pos"].append((msg.x, msg.y, -msg.z, -msg.vz))
+            elif kind == "ATTITUDE_TARGET":
+                w, x, y, z = msg.q
+                target = (math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+                          math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x)))))
             elif kind == "ATTITUDE":
                 rows["att"].append((msg.roll, msg.pitch))
+                if target is not None:  # the attitude loop's own error, against its target
+                    rows["err"].append((msg.roll - target[0], msg.pitch - target[1]))
             else:
                 rows["thr"].append((msg.throttle,))
         return {k: np.asarray(v, float) for k, v in rows.items()}
@@ -123,7 +132,7 @@ class Observer:
 
 
 def hold_figures(data: dict[str, np.ndarray]) -> dict[str, float]:
-    pos, att, thr = data["pos"], data["att"], data["thr"]
+    pos, att, thr, err = data["pos"], data["att"], data["thr"], data["err"]
     z = pos[:, 2]
     tilt = np.degrees(np.arccos(np.cos(att[:, 0]) * np.cos(att[:, 1])))
     return {"alt_spread_m": float(z.max() - z.min()), "alt_std_m": float(z.std()),
@@ -132,6 +141,9 @@ def hold_figures(data: dict[str, np.ndarray]) -> dict[str, float]:
             "max_tilt_deg": float(tilt.max()),
             # the rocking about the mean lean (a steady wind leans the vehicle by degrees)
             "tilt_std_deg": float(np.degrees(np.hypot(att[:, 0].std(), att[:, 1].std()))),
+            # roll/pitch against ATTITUDE_TARGET: what the attitude gains alone answer for
+            "att_err_rms_deg": float(np.degrees(np.sqrt(np.mean(np.sum(err**2, axis=1)))))
+            if len(err) else math.nan,
             "throttle_saturated": float(np.mean((thr[:, 0] <= 0) | (thr[:, 0] >= 100)))
             if len(thr) else math.nan,
             "throttle_std_pct": float(thr[:, 0].std()) if len(thr) else math.nan}
@@ -140,7 +152,8 @@ def hold_figures(data: dict[str, np.ndarray]) -> dict[str, float]:
 def line(name: str, f: dict[str, float]) -> str:
     return (f"{name:7s} alt spread {f['alt_spread_m']:.3f} m (std {f['alt_std_m']:.3f}), "
             f"|climb| <= {f['max_climb_m_s']:.2f} m/s, drift {f['max_drift_m']:.3f} m, tilt "
-            f"<= {f['max_tilt_deg']:.1f} deg (std {f['tilt_std_deg']:.2f}), throttle saturated "
+            f"<= {f['max_tilt_deg']:.1f} deg (std {f['tilt_std_deg']:.2f}, against the target "
+            f"{f['att_err_rms_deg']:.2f} rms), throttle saturated "
             f"{100 * f['throttle_saturated']:.0f} % (std {f['throttle_std_pct']:.1f} %)")
 
 

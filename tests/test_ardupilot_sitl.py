@@ -45,6 +45,21 @@ def copter(tmp_path_factory):
         yield sitl.serial0, sitl.serial1, sitl.run_dir
 
 
+@pytest.fixture(autouse=True)
+def landed(copter):
+    """Each test starts on a disarmed vehicle: a test that ends with a land command leaves
+    it descending, and a tune started then would take its take-off from the air."""
+    with VehicleLink.connect(copter[0], timeout_s=10) as link:
+        t = time.monotonic()
+        if link.heartbeat.armed:
+            link.land()
+        while link.heartbeat.armed and time.monotonic() - t < 40:
+            time.sleep(0.2)
+        assert not link.heartbeat.armed, "still armed 40 s after a land command"
+        if time.monotonic() - t > 0.1:
+            print(f"waited {time.monotonic() - t:.1f} s for the vehicle to land and disarm")
+
+
 def test_firmware_is_known_and_link_timed_with_timesync(copter):
     serial0, _, _ = copter
     with VehicleLink.connect(serial0, timeout_s=10) as link:
