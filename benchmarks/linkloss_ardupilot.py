@@ -33,12 +33,10 @@ from mrft_gcs.link.failsafe import install_link_loss_guard
 from mrft_gcs.link.modes import ARDUPILOT_COPTER_MODES
 from mrft_gcs.params import ParamClient
 from mrft_gcs.profiles import load_profile
-from mrft_gcs.sitl.arducopter import ArduCopterSitl
+from mrft_gcs.sitl.arducopter import ArduCopterSitl, fly_level
 from mrft_gcs.telemetry import (
     Attitude,
-    AttitudeTarget,
     Heartbeat,
-    LocalPosition,
     RateTarget,
     StatusText,
 )
@@ -53,20 +51,6 @@ ZERO_SET: dict[str, float] = {
     "MOT_BAT_VOLT_MAX": 0, "ATC_THR_G_BOOST": 0, "ACRO_BAL_ROLL": 0, "ACRO_BAL_PITCH": 0,
 }
 MAV_PARAM_TYPE_REAL32 = 9
-
-
-def fly(link: VehicleLink, seconds: float, until_m: float | None = None) -> float:
-    """Level SET_ATTITUDE_TARGET at 50 Hz, thrust from a PD on altitude (2 m); last altitude."""
-    z = vz = 0.0
-    end = time.monotonic() + seconds
-    while time.monotonic() < end and (until_m is None or -z < until_m):
-        while (s := link.next_sample(0.0)) is not None:
-            if isinstance(s, LocalPosition):
-                z, vz = s.z_m, s.vz_m_s
-        thrust = min(0.75, max(0.2, 0.4 + 0.15 * (2.0 + z) + 0.15 * vz))
-        link.send_attitude_target(AttitudeTarget(0.0, (1.0, 0.0, 0.0, 0.0), thrust))
-        time.sleep(0.02)
-    return -z
 
 
 def run_case(base: int, silence_s: float | None, roll_rate: float) -> dict[str, object]:
@@ -84,9 +68,9 @@ def run_case(base: int, silence_s: float | None, roll_rate: float) -> dict[str, 
                 link.request_message_interval("LOCAL_POSITION_NED", 50.0)
                 link.set_mode(ARDUPILOT_COPTER_MODES["offboard"])
                 link.arm()
-                if fly(link, 30.0, until_m=1.8) < 1.8:
+                if fly_level(link, 30.0, until_m=1.8) < 1.8:
                     raise RuntimeError(f"no take-off in 30 s (armed {link.heartbeat.armed})")
-                out["altitude_m"] = round(fly(link, 2.0), 2)
+                out["altitude_m"] = round(fly_level(link, 2.0), 2)
                 while events.get(0.0) is not None:
                     pass
                 for name, value in ZERO_SET.items():  # a burst, no read-back: no time passes

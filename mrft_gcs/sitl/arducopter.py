@@ -19,15 +19,18 @@ from __future__ import annotations
 import os
 import socket
 import subprocess
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 
 from mrft_gcs.errors import LinkError
+from mrft_gcs.link import VehicleLink
+from mrft_gcs.telemetry import AttitudeTarget, LocalPosition
 
 __all__ = ["RECIPE", "SITL_DIR", "BINARY", "ArduCopterSitl", "why_not", "listening",
-           "free_instance"]
+           "free_instance", "fly_level"]
 
 RECIPE = Path(os.environ.get("ARDUPILOT_SITL_RECIPE", Path(__file__).resolve().parents[3]
                              / "shared" / "external" / "ardupilot-sitl"))
@@ -167,3 +170,22 @@ class ArduCopterSitl:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.stop()
+
+
+def fly_level(link: VehicleLink, seconds: float, alt_m: float = 2.0,
+              until_m: float | None = None) -> float:
+    """Fly level in GUIDED_NOGPS: SET_ATTITUDE_TARGET at 50 Hz, thrust from a PD on altitude
+    (``GUID_OPTIONS`` 8: raw thrust), for ``seconds`` or until above ``until_m`` (m).
+
+    Returns the last altitude (m). Wall-clock time: on a loaded host the SITL runs slower
+    than real time."""
+    z = vz = 0.0
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and (until_m is None or -z < until_m):
+        while (s := link.next_sample(0.0)) is not None:
+            if isinstance(s, LocalPosition):
+                z, vz = s.z_m, s.vz_m_s
+        thrust = min(0.75, max(0.2, 0.4 + 0.15 * (alt_m + z) + 0.15 * vz))
+        link.send_attitude_target(AttitudeTarget(0.0, (1.0, 0.0, 0.0, 0.0), thrust))
+        time.sleep(0.02)
+    return -z
