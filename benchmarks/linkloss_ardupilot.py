@@ -33,7 +33,7 @@ from mrft_gcs.link.failsafe import install_link_loss_guard
 from mrft_gcs.link.modes import ARDUPILOT_COPTER_MODES
 from mrft_gcs.params import ParamClient
 from mrft_gcs.profiles import load_profile
-from mrft_gcs.sitl.arducopter import ArduCopterSitl, fly_level
+from mrft_gcs.sitl.arducopter import ArduCopterSitl, fly_level, why_not
 from mrft_gcs.telemetry import (
     Attitude,
     Heartbeat,
@@ -113,6 +113,9 @@ def main() -> int:
         assert rate_path is not None
         ZERO_SET.clear()
         ZERO_SET.update(rate_path.test_params)
+    if (reason := why_not()) is not None:
+        print(f"error: {reason}", file=sys.stderr)
+        return 2
     cases = args.case or ["none:0.1", "1.0:0.1", "0.5:0.1", "0.5:0.3", "0.3:0.3", "none:0.3"]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

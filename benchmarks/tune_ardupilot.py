@@ -53,7 +53,7 @@ from mrft_gcs.errors import MrftError
 from mrft_gcs.flight.api import tune
 from mrft_gcs.link import VehicleLink
 from mrft_gcs.params import ParamClient
-from mrft_gcs.sitl.arducopter import ArduCopterSitl, free_instance
+from mrft_gcs.sitl.arducopter import ArduCopterSitl, free_instance, why_not
 
 GUIDED, LOITER, LAND = 4, 5, 9
 
@@ -318,6 +318,10 @@ def main() -> int:
     args = ap.parse_args()
     # a timeout's TERM unwinds like an error: the SITL is stopped and --json still written
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+    reason = why_not()
+    if reason is not None:
+        print(f"error: {reason}", file=sys.stderr)
+        return 2
     instance = args.instance if args.instance is not None else free_instance(61, 99)
     out: dict[str, object] = {"settings": {k: (str(v) if isinstance(v, Path) else v)
                                            for k, v in vars(args).items()}}
