@@ -227,7 +227,9 @@ def run_autotune(obs: Observer, serial0: str, rc_port: int, tmp: str, axes: int 
     return {"axes": [name for bit, name in AUTOTUNE_AXES.items() if axes & bit],
             "success": done == done, "autotune_s": done - t0, "from_takeoff_s": done - t_takeoff,
             "total_s": time.monotonic() - t_start,
-            "changed": {n: [old[n], new[n]] for n in old if new[n] != old[n]},
+            # float32 on the wire: a value read back may differ in its last bits
+            "changed": {n: [old[n], new[n]] for n in old
+                        if not math.isclose(new[n], old[n], rel_tol=1e-6)},
             "messages": messages}
 
 
