@@ -23,24 +23,20 @@ import argparse
 import json
 import math
 import os
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
-
-from tune_ardupilot import RECIPE
 
 from mrft_gcs.link import VehicleLink
 from mrft_gcs.link.failsafe import install_link_loss_guard
 from mrft_gcs.link.modes import ARDUPILOT_COPTER_MODES
 from mrft_gcs.params import ParamClient
 from mrft_gcs.profiles import load_profile
+from mrft_gcs.sitl.arducopter import ArduCopterSitl, fly_level, why_not
 from mrft_gcs.telemetry import (
     Attitude,
-    AttitudeTarget,
     Heartbeat,
-    LocalPosition,
     RateTarget,
     StatusText,
 )
@@ -55,34 +51,6 @@ ZERO_SET: dict[str, float] = {
     "MOT_BAT_VOLT_MAX": 0, "ATC_THR_G_BOOST": 0, "ACRO_BAL_ROLL": 0, "ACRO_BAL_PITCH": 0,
 }
 MAV_PARAM_TYPE_REAL32 = 9
-
-
-def start_sitl(instance: int, run_dir: str) -> str:
-    """Boot a wiped SITL with scripting on; its PID. Raises if it did not get ready (a host
-    too loaded: then the vehicle is not fit for the case)."""
-    env = dict(os.environ, INSTANCE=str(instance), NOWAIT="1", WIPE="1", RUN_DIR=run_dir,
-               READY_TIMEOUT="120")
-    out = subprocess.run([str(RECIPE / "start.sh")], env=env, capture_output=True, text=True,
-                         timeout=180, check=True)
-    pid = out.stdout.strip().splitlines()[-1]
-    if "RC at neutral sticks" not in out.stderr:
-        subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
-        raise RuntimeError(f"SITL not ready: {out.stderr.strip().splitlines()[-1]}")
-    return pid
-
-
-def fly(link: VehicleLink, seconds: float, until_m: float | None = None) -> float:
-    """Level SET_ATTITUDE_TARGET at 50 Hz, thrust from a PD on altitude (2 m); last altitude."""
-    z = vz = 0.0
-    end = time.monotonic() + seconds
-    while time.monotonic() < end and (until_m is None or -z < until_m):
-        while (s := link.next_sample(0.0)) is not None:
-            if isinstance(s, LocalPosition):
-                z, vz = s.z_m, s.vz_m_s
-        thrust = min(0.75, max(0.2, 0.4 + 0.15 * (2.0 + z) + 0.15 * vz))
-        link.send_attitude_target(AttitudeTarget(0.0, (1.0, 0.0, 0.0, 0.0), thrust))
-        time.sleep(0.02)
-    return -z
 
 
 def run_case(base: int, silence_s: float | None, roll_rate: float) -> dict[str, object]:
@@ -100,9 +68,9 @@ def run_case(base: int, silence_s: float | None, roll_rate: float) -> dict[str, 
                 link.request_message_interval("LOCAL_POSITION_NED", 50.0)
                 link.set_mode(ARDUPILOT_COPTER_MODES["offboard"])
                 link.arm()
-                if fly(link, 30.0, until_m=1.8) < 1.8:
+                if fly_level(link, 30.0, until_m=1.8) < 1.8:
                     raise RuntimeError(f"no take-off in 30 s (armed {link.heartbeat.armed})")
-                out["altitude_m"] = round(fly(link, 2.0), 2)
+                out["altitude_m"] = round(fly_level(link, 2.0), 2)
                 while events.get(0.0) is not None:
                     pass
                 for name, value in ZERO_SET.items():  # a burst, no read-back: no time passes
@@ -145,20 +113,19 @@ def main() -> int:
         assert rate_path is not None
         ZERO_SET.clear()
         ZERO_SET.update(rate_path.test_params)
+    if (reason := why_not()) is not None:
+        print(f"error: {reason}", file=sys.stderr)
+        return 2
     cases = args.case or ["none:0.1", "1.0:0.1", "0.5:0.1", "0.5:0.3", "0.3:0.3", "none:0.3"]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        defaults = Path(tmp) / "scripting.parm"
-        defaults.write_text("SCR_ENABLE 1\n")
-        os.environ["EXTRA_DEFAULTS"] = str(defaults)
         for case in cases:
             silence, rate = case.split(":")
-            pid = start_sitl(args.instance, str(Path(tmp) / "run"))
-            try:
-                row = run_case(5760 + 10 * args.instance,
+            # a SITL that did not get ready is not fit for the case: it raises
+            with ArduCopterSitl.start(args.instance, Path(tmp) / "run", {"SCR_ENABLE": 1},
+                                      require_ready=True) as sitl:
+                row = run_case(sitl.base_port,
                                None if silence == "none" else float(silence), float(rate))
-            finally:
-                subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
             print(json.dumps(row), flush=True)
             rows.append(row)
     if args.json:

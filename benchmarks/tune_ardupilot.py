@@ -2,10 +2,12 @@
 
     python benchmarks/tune_ardupilot.py [--hold-s 10] [--instance N] [--runs 1]
                                         [--baro-noise 0.2] [--gust 4] [--autotune]
-                                        [--actuation attitude|rate]
+                                        [--autotune-axes 3] [--actuation attitude|rate]
+                                        [--scripting] [--json PATH]
 
-Starts ArduCopter SITL with ``../shared/external/ardupilot-sitl/start.sh`` (parameters wiped,
-an instance of its own; ``$ARDUPILOT_SITL_DIR`` the build), then per run:
+Starts ArduCopter SITL (:mod:`mrft_gcs.sitl.arducopter`: parameters wiped, an instance of
+its own; ``--scripting``: SCR_ENABLE 1, so that the rate path installs its link-loss guard),
+then per run:
 
 1. *before*: take off in GUIDED to 1 m, LOITER for ``--hold-s``, land (the firmware's own
    gains);
@@ -23,22 +25,25 @@ noise for the whole run (tune included); ``--gust 4`` flies both holds in turbul
 with an upward component, so that the altitude loop has something to reject. The hold
 after is called worse where altitude spread, its deviation, drift or saturation grew by
 more than 20 % (and 5 mm). ``--autotune`` first flies ArduPilot's own AUTOTUNE of roll and
-pitch (AUTOTUNE_AXES 3, from a 3 m LOITER, saved by landing and disarming in AUTOTUNE with the
-simulated RC throttle low), holds on its gains the same way, and puts them back before the
-tool's runs.
+pitch (``--autotune-axes``: AUTOTUNE_AXES 3; 7 adds yaw) from a 3 m LOITER, saved by landing
+and disarming in AUTOTUNE with the simulated RC throttle low, holds on its gains the same
+way, and puts them back before the tool's runs (``--runs 0``: AUTOTUNE alone). ``--json``
+writes every figure, as far as the benchmark got.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
+import signal
 import socket
 import struct
-import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -48,23 +53,9 @@ from mrft_gcs.errors import MrftError
 from mrft_gcs.flight.api import tune
 from mrft_gcs.link import VehicleLink
 from mrft_gcs.params import ParamClient
+from mrft_gcs.sitl.arducopter import ArduCopterSitl, free_instance, why_not
 
-RECIPE = Path(os.environ.get("ARDUPILOT_SITL_RECIPE", Path(__file__).resolve().parents[2]
-                             / "shared" / "external" / "ardupilot-sitl"))
 GUIDED, LOITER, LAND = 4, 5, 9
-
-
-def _listening(port: int) -> bool:
-    with socket.socket() as s:
-        return s.connect_ex(("127.0.0.1", port)) == 0
-
-
-def start_sitl(instance: int, run_dir: str) -> str:
-    env = dict(os.environ, INSTANCE=str(instance), NOWAIT="1", WIPE="1", RUN_DIR=run_dir,
-               READY_TIMEOUT="120")
-    out = subprocess.run([str(RECIPE / "start.sh")], env=env, capture_output=True, text=True,
-                         timeout=180, check=True)
-    return out.stdout.strip().splitlines()[-1]
 
 
 class Observer:
@@ -73,7 +64,8 @@ class Observer:
     def __init__(self, connection: str) -> None:
         self.m = mavutil.mavlink_connection(connection, source_system=254)
         self.m.wait_heartbeat(timeout=10)
-        for msg_id in (30, 32, 74):  # ATTITUDE, LOCAL_POSITION_NED, VFR_HUD at 25 Hz
+        # ATTITUDE, LOCAL_POSITION_NED, VFR_HUD, ATTITUDE_TARGET at 25 Hz
+        for msg_id in (30, 32, 74, 83):
             self.command(511, msg_id, 40_000)
 
     def command(self, cmd: int, *p: float) -> None:
@@ -86,18 +78,26 @@ class Observer:
         self.command(176, 1, number)
 
     def record(self, seconds: float) -> dict[str, np.ndarray]:
-        rows: dict[str, list[tuple[float, ...]]] = {"pos": [], "att": [], "thr": []}
+        rows: dict[str, list[tuple[float, ...]]] = {"pos": [], "att": [], "thr": [],
+                                                    "err": []}
+        target: tuple[float, float] | None = None
         end = time.monotonic() + seconds
         while time.monotonic() < end:
-            msg = self.m.recv_match(type=["LOCAL_POSITION_NED", "ATTITUDE", "VFR_HUD"],
-                                    blocking=True, timeout=0.2)
+            msg = self.m.recv_match(type=["LOCAL_POSITION_NED", "ATTITUDE", "VFR_HUD",
+                                          "ATTITUDE_TARGET"], blocking=True, timeout=0.2)
             if msg is None:
                 continue
             kind = msg.get_type()
             if kind == "LOCAL_POSITION_NED":
                 rows["pos"].append((msg.x, msg.y, -msg.z, -msg.vz))
+            elif kind == "ATTITUDE_TARGET":
+                w, x, y, z = msg.q
+                target = (math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+                          math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x)))))
             elif kind == "ATTITUDE":
                 rows["att"].append((msg.roll, msg.pitch))
+                if target is not None:  # the attitude loop's own error, against its target
+                    rows["err"].append((msg.roll - target[0], msg.pitch - target[1]))
             else:
                 rows["thr"].append((msg.throttle,))
         return {k: np.asarray(v, float) for k, v in rows.items()}
@@ -132,13 +132,18 @@ class Observer:
 
 
 def hold_figures(data: dict[str, np.ndarray]) -> dict[str, float]:
-    pos, att, thr = data["pos"], data["att"], data["thr"]
+    pos, att, thr, err = data["pos"], data["att"], data["thr"], data["err"]
     z = pos[:, 2]
     tilt = np.degrees(np.arccos(np.cos(att[:, 0]) * np.cos(att[:, 1])))
     return {"alt_spread_m": float(z.max() - z.min()), "alt_std_m": float(z.std()),
             "max_climb_m_s": float(np.abs(pos[:, 3]).max()),
             "max_drift_m": float(np.hypot(pos[:, 0] - pos[0, 0], pos[:, 1] - pos[0, 1]).max()),
             "max_tilt_deg": float(tilt.max()),
+            # the rocking about the mean lean (a steady wind leans the vehicle by degrees)
+            "tilt_std_deg": float(np.degrees(np.hypot(att[:, 0].std(), att[:, 1].std()))),
+            # roll/pitch against ATTITUDE_TARGET: what the attitude gains alone answer for
+            "att_err_rms_deg": float(np.degrees(np.sqrt(np.mean(np.sum(err**2, axis=1)))))
+            if len(err) else math.nan,
             "throttle_saturated": float(np.mean((thr[:, 0] <= 0) | (thr[:, 0] >= 100)))
             if len(thr) else math.nan,
             "throttle_std_pct": float(thr[:, 0].std()) if len(thr) else math.nan}
@@ -147,29 +152,37 @@ def hold_figures(data: dict[str, np.ndarray]) -> dict[str, float]:
 def line(name: str, f: dict[str, float]) -> str:
     return (f"{name:7s} alt spread {f['alt_spread_m']:.3f} m (std {f['alt_std_m']:.3f}), "
             f"|climb| <= {f['max_climb_m_s']:.2f} m/s, drift {f['max_drift_m']:.3f} m, tilt "
-            f"<= {f['max_tilt_deg']:.1f} deg, throttle saturated "
+            f"<= {f['max_tilt_deg']:.1f} deg (std {f['tilt_std_deg']:.2f}, against the target "
+            f"{f['att_err_rms_deg']:.2f} rms), throttle saturated "
             f"{100 * f['throttle_saturated']:.0f} % (std {f['throttle_std_pct']:.1f} %)")
 
 
-#: ArduPilot's attitude gains AUTOTUNE changes (roll and pitch: AUTOTUNE_AXES 3)
+#: ArduPilot's attitude gains AUTOTUNE may change (read before and after; the changed are kept)
 AUTOTUNE_PARAMS = tuple(f"ATC_{k}" for k in (
-    "ANG_RLL_P", "ANG_PIT_P", "RAT_RLL_P", "RAT_RLL_I", "RAT_RLL_D", "RAT_PIT_P", "RAT_PIT_I",
-    "RAT_PIT_D", "ACCEL_R_MAX", "ACCEL_P_MAX"))
+    "ANG_RLL_P", "ANG_PIT_P", "ANG_YAW_P", "RAT_RLL_P", "RAT_RLL_I", "RAT_RLL_D", "RAT_PIT_P",
+    "RAT_PIT_I", "RAT_PIT_D", "RAT_YAW_P", "RAT_YAW_I", "RAT_YAW_D", "RAT_YAW_FLTE",
+    "ACCEL_R_MAX", "ACCEL_P_MAX", "ACCEL_Y_MAX"))
 AUTOTUNE = 15
+#: AUTOTUNE_AXES bits
+AUTOTUNE_AXES = {1: "roll", 2: "pitch", 4: "yaw", 8: "yaw_d"}
 
 
-def run_autotune(obs: Observer, serial0: str, rc_port: int, tmp: str,
-                 timeout_s: float = 900.0) -> tuple[float, dict[str, tuple[float, float]]]:
-    """ArduPilot's own AUTOTUNE of roll and pitch from a 3 m LOITER, saved the way a pilot
-    saves it (landed and disarmed in AUTOTUNE, here with the simulated RC throttle low).
+def run_autotune(obs: Observer, serial0: str, rc_port: int, tmp: str, axes: int = 3,
+                 timeout_s: float = 900.0) -> dict[str, object]:
+    """ArduPilot's own AUTOTUNE (``AUTOTUNE_AXES`` ``axes``) from a 3 m LOITER, saved the way a
+    pilot saves it (landed and disarmed in AUTOTUNE, here with the simulated RC throttle low).
 
-    Returns the seconds from entering AUTOTUNE to its success and ``name -> (old, new)``."""
+    Returns a dict: ``success``, ``autotune_s`` (entering AUTOTUNE to its success),
+    ``from_takeoff_s`` (the take-off command to its success), ``total_s`` (to the gains saved),
+    ``changed`` (``name -> [old, new]``), ``messages`` (its STATUSTEXTs, with times)."""
+    t_start = time.monotonic()
     with VehicleLink.connect(serial0, timeout_s=10) as link:
         client = ParamClient(link)
         old = {n: p.value for n, p in client.read_many(AUTOTUNE_PARAMS).items()}
-        client.write({"AUTOTUNE_AXES": 3.0}, tmp, label="autotune")
+        client.write({"AUTOTUNE_AXES": float(axes)}, tmp, label="autotune")
     obs.mode(GUIDED)
     obs.command(400, 1)
+    t_takeoff = time.monotonic()
     obs.command(22, 0, 0, 0, 0, 0, 0, 3.0)
     end = time.monotonic() + 20
     while time.monotonic() < end and obs.height() < 2.7:
@@ -179,13 +192,15 @@ def run_autotune(obs: Observer, serial0: str, rc_port: int, tmp: str,
     obs.mode(AUTOTUNE)
     t0 = time.monotonic()
     done = math.nan
+    messages: list[str] = []
     while time.monotonic() < t0 + timeout_s:
         msg = obs.m.recv_match(type="STATUSTEXT", blocking=True, timeout=1.0)
         text = msg.text if msg is not None else ""
         if "AutoTune" in text:
             print(f"  {time.monotonic() - t0:5.0f} s {text}", flush=True)
+            messages.append(f"{time.monotonic() - t0:.0f} s {text}")
         if "Success" in text:
-            done = time.monotonic() - t0
+            done = time.monotonic()
             break
         if "Failed" in text:
             break
@@ -209,7 +224,74 @@ def run_autotune(obs: Observer, serial0: str, rc_port: int, tmp: str,
     rc.close()
     with VehicleLink.connect(serial0, timeout_s=10) as link:
         new = {n: p.value for n, p in ParamClient(link).read_many(AUTOTUNE_PARAMS).items()}
-    return done, {n: (old[n], new[n]) for n in old if new[n] != old[n]}
+    return {"axes": [name for bit, name in AUTOTUNE_AXES.items() if axes & bit],
+            "success": done == done, "autotune_s": done - t0, "from_takeoff_s": done - t_takeoff,
+            "total_s": time.monotonic() - t_start,
+            # float32 on the wire: a value read back may differ in its last bits
+            "changed": {n: [old[n], new[n]] for n in old
+                        if not math.isclose(new[n], old[n], rel_tol=1e-6)},
+            "messages": messages}
+
+
+def worse_in(before: dict[str, float], after: dict[str, float]) -> list[str]:
+    """The hold figures that grew by more than 20 % (and 5 mm) from ``before`` to ``after``.
+
+    A hold is judged on how far altitude and position wander and on throttle saturation; a
+    stiffer loop answers gusts with faster, smaller corrections, so its climb-rate peaks are
+    reported but not held against it."""
+    return [k for k in ("alt_spread_m", "alt_std_m", "max_drift_m", "throttle_saturated")
+            if after[k] > 1.2 * before[k] + (0.005 if k != "throttle_saturated" else 0.0)]
+
+
+def tune_run(run: int, serial0: str, obs: Observer, hold: Callable[[], dict[str, float]],
+             args: argparse.Namespace, tmp: str) -> dict[str, object]:
+    """One run of the tool: hold before, tune, hold after on the written gains, restore."""
+    before = hold()
+    print(line("before", before), flush=True)
+    t = time.monotonic()
+    try:
+        result = tune(serial0, args.profile, backup_dir=tmp, heartbeat_timeout_s=10,
+                      actuation=args.actuation)
+        status, error = result.status, ""
+    except MrftError as err:
+        if err.partial_result is None:
+            raise
+        result = err.partial_result
+        status, error = result.status, str(err)
+    total_s = time.monotonic() - t
+    load = os.getloadavg()[0]
+    written = {c.name: f"{c.old:.4g}->{c.new:.4g}" for c in result.parameters}
+    tuned = [lp.value for lp, r in result.loops.items() if r.state == "tuned"]
+    print(f"run {run}: tune {status} in {total_s:.1f} s "
+          f"({result.duration_s:.1f} s from take-off, load "
+          f"{load:.1f}); loops tuned {tuned}; written {written}; "
+          f"hover check {result.hover_check}; link "
+          f"{result.link.line() if result.link else '-'} {error}", flush=True)
+    notes = [n for n in result.notes if n.startswith(("rate path:", "in-air check"))]
+    for note in notes:  # k measured, alignment, zero-gain window
+        print(f"run {run}: {note}", flush=True)
+    for lp, lr in result.loops.items():  # the in-air check of the written gains
+        if lr.verification is not None and lp.value in ("roll", "pitch"):
+            v = lr.verification
+            print(f"run {run}: {lp.value} {v.line()}; {v.note}", flush=True)
+    row: dict[str, object] = {
+        "status": status, "error": error, "total_s": total_s,
+        "from_takeoff_s": result.duration_s, "load_avg_1min": load, "loops_tuned": tuned,
+        "written": {c.name: [c.old, c.new] for c in result.parameters},
+        "hover_check": str(result.hover_check), "notes": notes, "before": before}
+    obs.land_and_wait()
+    if not result.backup:
+        return row
+    after = hold()
+    print(line("after", after), flush=True)
+    worse = worse_in(before, after)
+    print(f"run {run}: hold after the tune "
+          f"{'worse in ' + ', '.join(worse) if worse else 'as good or better'}"
+          f"; backup restored", flush=True)
+    with VehicleLink.connect(serial0, timeout_s=10) as link:
+        ParamClient(link).restore(result.backup, tmp)
+    row.update(after=after, worse_in=worse)
+    return row
 
 
 def main() -> int:
@@ -226,99 +308,94 @@ def main() -> int:
     ap.add_argument("--autotune", action="store_true",
                     help="first fly ArduPilot's own AUTOTUNE (roll, pitch), hold on its gains, "
                     "restore them, then the tool's runs")
+    ap.add_argument("--autotune-axes", type=int, default=3, metavar="BITS",
+                    help="AUTOTUNE_AXES for --autotune (1 roll, 2 pitch, 4 yaw; default 3)")
+    ap.add_argument("--autotune-timeout-s", type=float, default=480.0, metavar="S",
+                    help="longest wait for AUTOTUNE's success (then land and keep its gains)")
     ap.add_argument("--actuation", default=None, choices=("attitude", "rate"),
                     help="the tune's path (default: the profile's, attitude)")
+    ap.add_argument("--scripting", action="store_true",
+                    help="boot the SITL with SCR_ENABLE 1 (the rate path's link-loss guard)")
+    ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
-    instance = args.instance if args.instance is not None else next(
-        i for i in range(61, 99) if not _listening(5760 + 10 * i))
-    base = 5760 + 10 * instance
+    # a timeout's TERM unwinds like an error: the SITL is stopped and --json still written
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+    reason = why_not()
+    if reason is not None:
+        print(f"error: {reason}", file=sys.stderr)
+        return 2
+    instance = args.instance if args.instance is not None else free_instance(61, 99)
+    out: dict[str, object] = {"settings": {k: (str(v) if isinstance(v, Path) else v)
+                                           for k, v in vars(args).items()}}
     with tempfile.TemporaryDirectory() as tmp:
         t = time.monotonic()
-        pid = start_sitl(instance, tmp)
-        print(f"ArduCopter SITL instance {instance} ready after {time.monotonic() - t:.0f} s; "
-              f"load {os.getloadavg()[0]:.1f}", flush=True)
-        try:
-            obs = Observer(f"tcp:127.0.0.1:{base + 3}")
-            if args.baro_noise is not None:
-                with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
-                    ParamClient(link).write({"SIM_BARO_RND": args.baro_noise}, tmp, label="sim")
-                print(f"SIM_BARO_RND {args.baro_noise} m", flush=True)
-            wind = {"SIM_WIND_SPD": args.gust, "SIM_WIND_TURB": args.gust / 2,
-                    "SIM_WIND_DIR_Z": 30.0, "SIM_WIND_T": 1.0} if args.gust else {}
-            calm = dict.fromkeys(wind, 0.0)
-
-            def hold() -> dict[str, float]:
-                with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
-                    if wind:
-                        ParamClient(link).write(wind, tmp, label="sim")
-                try:
-                    return obs.loiter_hold(args.hold_s)
-                finally:
-                    if wind:
-                        with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
-                            ParamClient(link).write(calm, tmp, label="sim")
-
-            if wind:
-                print(f"holds in wind {args.gust} m/s, turbulence {args.gust / 2} m/s, 30 deg "
-                      f"up", flush=True)
-            if args.autotune:
-                before = hold()
-                print(line("before", before), flush=True)
-                secs, changed = run_autotune(obs, f"tcp:127.0.0.1:{base}", 5501 + 10 * instance,
-                                             tmp)
-                print(f"AUTOTUNE (roll, pitch) {secs:.0f} s to success (load "
-                      f"{os.getloadavg()[0]:.1f}); saved "
-                      f"{ {n: f'{a:.4g}->{b:.4g}' for n, (a, b) in changed.items()} }", flush=True)
-                print(line("autotune", hold()), flush=True)
-                if changed:
-                    with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
-                        ParamClient(link).write({n: a for n, (a, _) in changed.items()}, tmp,
-                                                label="autotune-undo")
-            for run in range(args.runs):
-                before = hold()
-                print(line("before", before), flush=True)
-                t = time.monotonic()
-                try:
-                    result = tune(f"tcp:127.0.0.1:{base}", args.profile, backup_dir=tmp,
-                                  heartbeat_timeout_s=10, actuation=args.actuation)
-                    status, error = result.status, ""
-                except MrftError as err:
-                    result = err.partial_result
-                    status, error = result.status, str(err)
-                written = {c.name: f"{c.old:.4g}->{c.new:.4g}" for c in result.parameters}
-                tuned = [lp.value for lp, r in result.loops.items() if r.state == "tuned"]
-                print(f"run {run}: tune {status} in {time.monotonic() - t:.1f} s "
-                      f"({result.duration_s:.1f} s from take-off, load "
-                      f"{os.getloadavg()[0]:.1f}); loops tuned {tuned}; written {written}; "
-                      f"hover check {result.hover_check}; link "
-                      f"{result.link.line() if result.link else '-'} {error}", flush=True)
-                for note in result.notes:  # k measured, alignment, zero-gain window
-                    if note.startswith(("rate path:", "in-air check")):
-                        print(f"run {run}: {note}", flush=True)
-                for lp, lr in result.loops.items():  # the in-air check of the written gains
-                    if lr.verification is not None and lp.value in ("roll", "pitch"):
-                        v = lr.verification
-                        print(f"run {run}: {lp.value} {v.line()}; {v.note}", flush=True)
-                obs.land_and_wait()
-                if not result.backup:
-                    continue
-                after = hold()
-                print(line("after", after), flush=True)
-                # a hold is judged on how far altitude and position wander and on throttle
-                # saturation; a stiffer loop answers gusts with faster, smaller corrections,
-                # so its climb-rate peaks are reported but not held against it
-                worse = [k for k in ("alt_spread_m", "alt_std_m", "max_drift_m",
-                                     "throttle_saturated")
-                         if after[k] > 1.2 * before[k] + (0.005 if k != "throttle_saturated"
-                                                          else 0.0)]
-                print(f"run {run}: hold after the tune "
-                      f"{'worse in ' + ', '.join(worse) if worse else 'as good or better'}"
-                      f"; backup restored", flush=True)
-                with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
-                    ParamClient(link).restore(result.backup, tmp)
-        finally:
-            subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
+        with ArduCopterSitl.start(instance, tmp,
+                                  {"SCR_ENABLE": 1} if args.scripting else None) as sitl:
+            print(f"ArduCopter SITL instance {instance} ready after {time.monotonic() - t:.0f} "
+                  f"s; load {os.getloadavg()[0]:.1f}", flush=True)
+            out["sitl"] = {"instance": instance, "ready": sitl.ready,
+                           "boot_s": time.monotonic() - t, "load_avg_1min": os.getloadavg()[0]}
+            try:
+                run_all(sitl, args, tmp, out)
+            finally:
+                if args.json:
+                    args.json.write_text(json.dumps(out, indent=1) + "\n")
     return 0
+
+
+def run_all(sitl: ArduCopterSitl, args: argparse.Namespace, tmp: str,
+            out: dict[str, object]) -> None:
+    """The AUTOTUNE leg (``--autotune``) and the tool's runs on one booted SITL, into ``out``."""
+    obs = Observer(sitl.serial2)
+    if args.baro_noise is not None:
+        with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
+            ParamClient(link).write({"SIM_BARO_RND": args.baro_noise}, tmp, label="sim")
+        print(f"SIM_BARO_RND {args.baro_noise} m", flush=True)
+    wind = {"SIM_WIND_SPD": args.gust, "SIM_WIND_TURB": args.gust / 2,
+            "SIM_WIND_DIR_Z": 30.0, "SIM_WIND_T": 1.0} if args.gust else {}
+    calm = dict.fromkeys(wind, 0.0)
+
+    def hold() -> dict[str, float]:
+        with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
+            if wind:
+                ParamClient(link).write(wind, tmp, label="sim")
+        try:
+            return obs.loiter_hold(args.hold_s)
+        finally:
+            if wind:
+                with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
+                    ParamClient(link).write(calm, tmp, label="sim")
+
+    if wind:
+        print(f"holds in wind {args.gust} m/s, turbulence {args.gust / 2} m/s, 30 deg "
+              f"up", flush=True)
+    if args.autotune:
+        before = hold()
+        print(line("before", before), flush=True)
+        at = run_autotune(obs, sitl.serial0, sitl.rc_port, tmp, args.autotune_axes,
+                          args.autotune_timeout_s)
+        changed, axes = at["changed"], at["axes"]
+        assert isinstance(changed, dict) and isinstance(axes, list)
+        at.update(before=before, load_avg_1min=os.getloadavg()[0])
+        out["autotune"] = at
+        print(f"AUTOTUNE ({', '.join(axes)}) {at['autotune_s']:.0f} s to success, "
+              f"{at['from_takeoff_s']:.0f} s from take-off (load {os.getloadavg()[0]:.1f}); "
+              f"saved { {n: f'{a:.4g}->{b:.4g}' for n, (a, b) in changed.items()} }",
+              flush=True)
+        after = hold()
+        worse = worse_in(before, after)
+        at.update(after=after, worse_in=worse)
+        print(line("autotune", after), flush=True)
+        print(f"hold after AUTOTUNE "
+              f"{'worse in ' + ', '.join(worse) if worse else 'as good or better'}", flush=True)
+        if changed:
+            with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
+                ParamClient(link).write({n: a for n, (a, _) in changed.items()}, tmp,
+                                        label="autotune-undo")
+    runs: list[dict[str, object]] = []
+    out["runs"] = runs
+    for run in range(args.runs):
+        runs.append(tune_run(run, sitl.serial0, obs, hold, args, tmp))
 
 
 if __name__ == "__main__":

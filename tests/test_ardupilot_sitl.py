@@ -11,10 +11,7 @@ from __future__ import annotations
 
 import json
 import os
-import socket
-import subprocess
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,58 +26,38 @@ from mrft_gcs.link.quality import RTT_TIMESYNC, _param_read_rtts
 from mrft_gcs.loops import Loop
 from mrft_gcs.params import ParamClient
 from mrft_gcs.profiles import SafetyLimits
+from mrft_gcs.sitl.arducopter import ArduCopterSitl, free_instance, why_not
 from mrft_gcs.telemetry import AutopilotFamily
 
-RECIPE = Path(os.environ.get("ARDUPILOT_SITL_RECIPE", Path(__file__).resolve().parents[2]
-                             / "shared" / "external" / "ardupilot-sitl"))
-SITL_DIR = Path(os.environ.get("ARDUPILOT_SITL_DIR", Path.home() / "ardupilot-sitl"))
-BINARY = SITL_DIR / "ardupilot" / "build" / "sitl" / "bin" / "arducopter"
-
-
-def _why_not() -> str | None:
-    if not BINARY.is_file():
-        return (f"no ArduCopter SITL build at {BINARY}: build it with {RECIPE / 'build.sh'} or "
-                f"set ARDUPILOT_SITL_DIR")
-    if not (RECIPE / "start.sh").is_file():
-        return f"no start.sh in {RECIPE}"
-    return None
-
-
-pytestmark = pytest.mark.skipif(_why_not() is not None, reason=str(_why_not()))
-
-
-def _listening(port: int) -> bool:
-    with socket.socket() as s:
-        return s.connect_ex(("127.0.0.1", port)) == 0
-
-
-def _free_instance() -> int:
-    for instance in range(31, 90):  # clear of the instances people start by hand (0-9)
-        if not any(_listening(5760 + 10 * instance + k) for k in (0, 2, 3)):
-            return instance
-    raise RuntimeError("no free SITL instance")
+pytestmark = pytest.mark.skipif(why_not() is not None, reason=str(why_not()))
 
 
 @pytest.fixture(scope="module")
 def copter(tmp_path_factory):
-    """``(serial0, serial1)`` connection strings of a booted ArduCopter SITL with a position."""
-    instance = _free_instance()
-    run_dir = tmp_path_factory.mktemp("arducopter")
-    scripting = run_dir / "scripting.parm"  # the rate path's link-loss guard is a Lua script
-    scripting.write_text("SCR_ENABLE 1\n")
-    env = dict(os.environ, ARDUPILOT_SITL_DIR=str(SITL_DIR), INSTANCE=str(instance), NOWAIT="1",
-               WIPE="1", RUN_DIR=str(run_dir), READY_TIMEOUT="120",
-               EXTRA_DEFAULTS=str(scripting))
-    out = subprocess.run([str(RECIPE / "start.sh")], env=env, capture_output=True, text=True,
-                         timeout=180)
-    if out.returncode != 0:
-        pytest.fail(f"start.sh failed: {out.stderr[-500:]}")
-    pid = out.stdout.strip().splitlines()[-1]
+    """``(serial0, serial1, run_dir)`` of a booted ArduCopter SITL with a position and Lua
+    scripting on (the rate path's link-loss guard is a Lua script)."""
     try:
-        base = 5760 + 10 * instance
-        yield f"tcp:127.0.0.1:{base}", f"tcp:127.0.0.1:{base + 2}", run_dir
-    finally:
-        subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
+        sitl = ArduCopterSitl.start(free_instance(), tmp_path_factory.mktemp("arducopter"),
+                                    {"SCR_ENABLE": 1})
+    except LinkError as err:
+        pytest.fail(str(err))
+    with sitl:
+        yield sitl.serial0, sitl.serial1, sitl.run_dir
+
+
+@pytest.fixture(autouse=True)
+def landed(copter):
+    """Each test starts on a disarmed vehicle: a test that ends with a land command leaves
+    it descending, and a tune started then would take its take-off from the air."""
+    with VehicleLink.connect(copter[0], timeout_s=10) as link:
+        t = time.monotonic()
+        if link.heartbeat.armed:
+            link.land()
+        while link.heartbeat.armed and time.monotonic() - t < 40:
+            time.sleep(0.2)
+        assert not link.heartbeat.armed, "still armed 40 s after a land command"
+        if time.monotonic() - t > 0.1:
+            print(f"waited {time.monotonic() - t:.1f} s for the vehicle to land and disarm")
 
 
 def test_firmware_is_known_and_link_timed_with_timesync(copter):

@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import os
 import re
-import subprocess
 import time
 
 import pytest
-from test_ardupilot_sitl import RECIPE, SITL_DIR, _free_instance, _why_not
 
+from mrft_gcs.errors import LinkError
 from mrft_gcs.link import VehicleLink
 from mrft_gcs.link.failsafe import (
     GUARD_FILE,
@@ -30,39 +29,27 @@ from mrft_gcs.link.failsafe import (
 from mrft_gcs.link.ftp import list_dir
 from mrft_gcs.link.modes import ARDUPILOT_COPTER_MODES
 from mrft_gcs.params import ParamClient
-from mrft_gcs.telemetry import AttitudeTarget, Heartbeat, LocalPosition, StatusText
+from mrft_gcs.sitl.arducopter import ArduCopterSitl, fly_level, free_instance, why_not
+from mrft_gcs.telemetry import Heartbeat, StatusText
 
-pytestmark = pytest.mark.skipif(_why_not() is not None, reason=str(_why_not()))
+pytestmark = pytest.mark.skipif(why_not() is not None, reason=str(why_not()))
 
 OBSERVER_SYSID = 254
 GUIDED_NOGPS = ARDUPILOT_COPTER_MODES["offboard"]
 LAND = ARDUPILOT_COPTER_MODES["land"]
-LEVEL = (1.0, 0.0, 0.0, 0.0)
 
 
 @pytest.fixture(scope="module")
 def copter(tmp_path_factory):
     """``(serial0, serial1)`` of a booted ArduCopter SITL with Lua scripting running."""
-    instance = int(os.environ.get("ARDUPILOT_SITL_INSTANCE", "0")) or _free_instance()
-    run_dir = tmp_path_factory.mktemp("arducopter-lua")
-    scripting = run_dir / "scripting.parm"
-    scripting.write_text("SCR_ENABLE 1\n")
-    env = dict(os.environ, ARDUPILOT_SITL_DIR=str(SITL_DIR), INSTANCE=str(instance), NOWAIT="1",
-               WIPE="1", RUN_DIR=str(run_dir), READY_TIMEOUT="120",
-               EXTRA_DEFAULTS=str(scripting))
-    out = subprocess.run([str(RECIPE / "start.sh")], env=env, capture_output=True, text=True,
-                         timeout=180)
-    if out.returncode != 0:
-        pytest.fail(f"start.sh failed: {out.stderr[-500:]}")
-    pid = out.stdout.strip().splitlines()[-1]
-    if "RC at neutral sticks" not in out.stderr:  # start.sh goes on when not ready
-        subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
-        pytest.fail(f"the SITL did not get ready (a host too loaded?): {out.stderr[-300:]}")
+    instance = int(os.environ.get("ARDUPILOT_SITL_INSTANCE", "0")) or free_instance()
     try:
-        base = 5760 + 10 * instance
-        yield f"tcp:127.0.0.1:{base}", f"tcp:127.0.0.1:{base + 2}"
-    finally:
-        subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
+        sitl = ArduCopterSitl.start(instance, tmp_path_factory.mktemp("arducopter-lua"),
+                                    {"SCR_ENABLE": 1}, require_ready=True)
+    except LinkError as err:
+        pytest.fail(str(err))
+    with sitl:
+        yield sitl.serial0, sitl.serial1
 
 
 def _guard_files(link: VehicleLink) -> list[str]:
@@ -100,23 +87,6 @@ def test_a_parameter_the_firmware_lacks_fails_the_install_and_leaves_nothing(cop
         assert link.heartbeat_period_s == 1.0
 
 
-def _fly(link: VehicleLink, seconds: float, alt_m: float = 2.0,
-         until_m: float | None = None) -> float:
-    """Stream level SET_ATTITUDE_TARGET at 50 Hz, thrust from a PD on altitude (GUID_OPTIONS 8:
-    raw thrust), for ``seconds`` or until above ``until_m``; return the last altitude (m).
-    (Wall-clock time: on a loaded host the SITL runs slower than real time.)"""
-    z = vz = 0.0
-    end = time.monotonic() + seconds
-    while time.monotonic() < end and (until_m is None or -z < until_m):
-        while (s := link.next_sample(0.0)) is not None:
-            if isinstance(s, LocalPosition):
-                z, vz = s.z_m, s.vz_m_s
-        thrust = min(0.75, max(0.2, 0.4 + 0.15 * (alt_m + z) + 0.15 * vz))
-        link.send_attitude_target(AttitudeTarget(0.0, LEVEL, thrust))
-        time.sleep(0.02)
-    return -z
-
-
 def test_silent_ground_station_restores_the_gains_and_lands(copter, tmp_path):
     """Guard installed, take-off in GUIDED_NOGPS, ATC_RAT_RLL_P zeroed in flight, then the
     tool's link closes. Seen from the observer: the guard reports within the silence time plus
@@ -139,10 +109,10 @@ def test_silent_ground_station_restores_the_gains_and_lands(copter, tmp_path):
                 link.request_message_interval("LOCAL_POSITION_NED", 50.0)
                 link.set_mode(GUIDED_NOGPS)
                 link.arm()
-                alt = _fly(link, 30.0, until_m=1.5)  # 2 s arming delay, then ~1 s climb
+                alt = fly_level(link, 30.0, until_m=1.5)  # 2 s arming delay, then ~1 s climb
                 assert alt > 1.5, f"did not take off ({alt:.2f} m, armed {link.heartbeat.armed})"
                 ParamClient(link).write({"ATC_RAT_RLL_P": 0.0}, tmp_path)
-                alt = _fly(link, 2.0)  # still guarded, still flying: the guard must stay quiet
+                alt = fly_level(link, 2.0)  # still guarded, still flying: the guard must stay quiet
                 assert obs.heartbeat.custom_mode == GUIDED_NOGPS.main and obs.heartbeat.armed
                 assert obs_params.read("ATC_RAT_RLL_P").value == 0.0
             finally:
@@ -198,14 +168,14 @@ def test_the_rate_path_hook_guards_after_arming_and_ends_at_the_hand_over(copter
                 assert found is not None, note
                 tag = f"mrftguard {found.group(1)}"
                 assert link.heartbeat.armed and _guard_files(link) == []
-                alt = _fly(link, 30.0, until_m=1.5)
+                alt = fly_level(link, 30.0, until_m=1.5)
                 assert alt > 1.5, f"did not take off ({alt:.2f} m, armed {link.heartbeat.armed})"
                 client.write({"ATC_RAT_RLL_P": tuned}, tmp_path)
                 link.set_mode(ARDUPILOT_COPTER_MODES["position"])  # LOITER: the hand-over
                 off = texts.wait_for(lambda e: e.text == f"{tag} off", 3.0)
                 assert off is not None, "the guard did not end itself on the hand-over"
                 link.set_mode(GUIDED_NOGPS)  # a later offboard stretch, no longer guarded
-                _fly(link, 1.0)
+                fly_level(link, 1.0)
             finally:
                 link.close()
             fired = texts.wait_for(lambda e: e.text.startswith(f"{tag} "), 0.5 + 2.0)
