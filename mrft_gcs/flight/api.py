@@ -54,6 +54,7 @@ from mrft_gcs.flight.inair import (
     PM_HIGH_DEG,
     SIDE_PM_MIN_DEG,
     STRUCT_TIGHTEN_GAIN,
+    STRUCT_TIGHTEN_LIVE,
     CheckPlan,
     InAirCheck,
     OnboardCascade,
@@ -1148,7 +1149,8 @@ class _Run:
                 history[lp].append((plan, check))
                 # a loop through a rate-target low-pass (read from the vehicle) whose design on
                 # that filter would do better on the loop measured is tightened within the band
-                hz = 0.0 if on_rate or lp not in self.structure else self.structure[lp].target_hz
+                hz = (self.structure[lp].target_hz if STRUCT_TIGHTEN_LIVE and not on_rate
+                      and lp in self.structure else 0.0)
                 tighter = (hz > 0 and check.passed and check.measured_pm_deg <= PM_HIGH_DEG
                            and structured_redesign(plan, check, hz)[1] >= STRUCT_TIGHTEN_GAIN)
                 if tighter:
