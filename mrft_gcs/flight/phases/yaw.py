@@ -46,7 +46,7 @@ class YawRules:
     #: the hold's output averaged over this window before the relay is its bias
     bias_window_s: float = 0.4
     #: first relay amplitude; sized once on the first cycles, within [h_min, h_max]
-    h_start: float = 0.1
+    h_start: float = 0.2
     h_min: float = 0.01
     h_max: float = 0.3
     #: the heading swing the relay is sized towards
@@ -64,8 +64,9 @@ class YawRules:
     settle_rad: float = math.radians(1.0)
     settle_rate_rad_s: float = math.radians(5.0)
     settle_max_s: float = 1.5
-    #: a cycle centred this share of its swing off the set point has drifted
-    drift_share: float = 0.5
+    #: a cycle centred this share of its swing off the set point has drifted (1: it no
+    #: longer crosses the set point)
+    drift_share: float = 1.0
     max_restarts: int = 3
 
 
@@ -173,9 +174,9 @@ class YawRelay:
             cycles = self.watch.status.cycles
             status = self.watch.update(t_s, u, -e)
             if self.state is YawState.RELAY:
-                if status.cycles > cycles and self._drifting(status.amplitude):
-                    return self.hold.step(ref, y, rate)
                 if self._size(status.cycles, status.amplitude):
+                    return self.hold.step(ref, y, rate)
+                if status.cycles > cycles and self._drifting(status.amplitude):
                     return self.hold.step(ref, y, rate)
                 if self.watch.steady and (c := self.watch.cycles()) is not None:
                     ts, us, ys = c
