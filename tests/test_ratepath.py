@@ -126,7 +126,7 @@ def test_feed_forward_check_corrects_small_and_refuses_large_errors():
 
 # ---------------------------------------------------------------------- yaw
 def _fly_yaw(relay, K: float, T_prop: float, T1: float, tau: float, seconds: float,
-             disturbance: float = 0.0, until_ready: bool = True):
+             disturbance: float = 0.0, until_ready: bool = True, disturbance_from_s=0.0):
     """A yaw plant ``K e^{-tau s} / (s (T_prop s + 1) (T1 s + 1))`` (normalised torque in,
     heading out) integrated at 1 kHz, sampled and commanded at 250 Hz as the stream does;
     the heading set point is 0. Returns the headings seen (rad)."""
@@ -142,7 +142,7 @@ def _fly_yaw(relay, K: float, T_prop: float, T1: float, tau: float, seconds: flo
             seen.append(y)
             if until_ready and relay.snapshot is not None:
                 break
-        queue.append(u + disturbance)
+        queue.append(u + (disturbance if k * dt >= disturbance_from_s else 0.0))
         lag += dt * (queue.popleft() - lag) / T_prop
         r += dt * (K * lag - r) / T1
         y += dt * r
@@ -269,3 +269,19 @@ def test_profiles_back_up_and_restore_the_yaw_gains_the_tune_writes():
         assert rp is not None
         assert set(yaw_names(rp).values()) - {yaw_names(rp)["flte"]} <= set(rp.test_params)
         assert yaw_names(rp)["flte"] in rp.test_params
+
+
+def test_yaw_relay_takes_the_torque_that_holds_the_heading_as_its_bias():
+    """A yaw torque that appears once the relay runs (roll and pitch relays next to it move
+    it) centres the cycle off the set point: the relay's bias becomes the cycle's mean
+    torque and the cycles come steady about the set point."""
+    from mrft_gcs.flight.controllers import YawHold
+    from mrft_gcs.flight.phases.yaw import YawRelay, YawState
+
+    relay = YawRelay(YawHold(0.8, 0.2, limit=0.5), -0.7)
+    _fly_yaw(relay, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.0)
+    assert relay.state is YawState.READY, (relay.state, relay.why, relay.events)
+    assert relay.rebiased >= 1 and any("relay bias" in e for e in relay.events)
+    assert relay.bias == pytest.approx(-0.1, abs=0.02)
+    snap = relay.take()
+    assert abs(float(np.mean(snap.y))) < 0.5 * float(np.ptp(snap.y))

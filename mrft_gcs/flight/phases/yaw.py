@@ -67,7 +67,7 @@ class YawRules:
     #: a cycle centred this share of its swing off the set point has drifted (1: it no
     #: longer crosses the set point)
     drift_share: float = 1.0
-    max_restarts: int = 3
+    max_rebias: int = 2
 
 
 class YawState(enum.Enum):
@@ -108,7 +108,7 @@ class YawRelay:
         self.pd: PDLoop | None = None
         self.snapshot: CycleSnapshot | None = None
         self.resized = False
-        self.restarts = 0
+        self.rebiased = 0
         self.t_first_s = math.nan  # first airborne tick
         self.t_relay_s = math.nan
         self.t_ready_s = math.nan  # steady cycles handed over
@@ -197,27 +197,34 @@ class YawRelay:
         if not math.isfinite(self.t_relay_s):
             self.t_relay_s = t_s
 
-    def _settle(self, why: str) -> None:
-        """Back to the hold until the heading is near its set point, then the relay starts
-        over (an MRFT started mid-swing on a plant that barely damps its rate drifts off)."""
-        self.restarts += 1
-        if self.restarts > self.rules.max_restarts:
-            self._give_up(f"its relay cycle kept drifting ({why})")
-            return
-        self.events.append(f"yaw: relay restarted from the hold ({why})")
-        self.state, self.relay = YawState.SETTLE, None
-
     def _drifting(self, amp: float) -> bool:
         """A cycle whose mean heading lies off the set point by more than
-        :attr:`YawRules.drift_share` of its swing: the relay starts over."""
-        _, _, ys = self.watch.last_cycles(1)
+        :attr:`YawRules.drift_share` of its swing: its relay's bias is not the torque that
+        holds the heading (roll and pitch relays running next to it move that torque). The
+        bias is set to the cycle's mean torque (the plant integrates: over a full cycle the
+        mean torque is the holding one; also the hold's trim) and the relay starts over from
+        the set point, up to
+        :attr:`YawRules.max_rebias` times; after that the cycles are identified as they are
+        (identification reads the bias from the cycle). True: started over."""
+        if self.rebiased >= self.rules.max_rebias:
+            return False
+        ts, us, ys = self.watch.last_cycles(1)
         if ys.size < 4 or not amp > 4 * self.rules.band_rad:
             return False
         mean = float(np.mean(ys))
         if abs(mean) <= self.rules.drift_share * amp:
             return False
-        self._settle(f"a cycle centred {math.degrees(mean):+.1f} deg off its set point, swing "
-                     f"{math.degrees(amp):.1f} deg")
+        dt = np.diff(ts)
+        bias = float(np.sum(us[:-1] * dt) / np.sum(dt))
+        self.rebiased += 1
+        self.events.append(f"yaw: relay bias {self.bias:+.3g} -> {bias:+.3g} (a cycle centred "
+                           f"{math.degrees(mean):+.1f} deg off its set point, swing "
+                           f"{math.degrees(amp):.1f} deg: the mean torque of the cycle)")
+        # the hold brings the heading back at that torque (an MRFT on an integrating plant
+        # cycles wherever it is: a right bias alone does not re-centre it), then the relay
+        # starts over from rest at the set point
+        self.bias = self.hold.trim = bias
+        self.state, self.relay = YawState.SETTLE, None
         return True
 
     def _size(self, cycles: int, amp: float) -> bool:
