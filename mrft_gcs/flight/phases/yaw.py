@@ -1,14 +1,15 @@
-"""The yaw relay (torque and rate paths): MRFT on the heading, then its identified PD.
+"""The yaw relay (rate path): MRFT on the heading, then its identified PD.
 
 Yaw has the attitude model's structure (a torque into an angle through motor lag, body drag
 and delay), so its relay cycle is identified by the attitude classifier. Until the relay
 starts, and wherever it gives up, the heading is held by the hold it was given (on the rate
 path: the vehicle's own yaw gains). The relay starts :attr:`YawRules.start_after_s` after the
-first airborne tick, next to the altitude and roll/pitch relays (the zero-gain window of the
-rate path closes only once yaw is done too), at the mean torque the hold needed as its bias;
-it is sized once on its first cycles towards :attr:`YawRules.amp_goal_rad`. A heading error
-beyond :attr:`YawRules.abort_rad` or no steady cycle within :attr:`YawRules.max_s` hands yaw
-back to the hold, with the reason (:attr:`YawRelay.why`).
+first airborne tick (once the heading is at rest), next to the altitude and roll/pitch
+relays (the zero-gain window of the rate path closes only once yaw is done too); it is sized
+once on its first cycle towards :attr:`YawRules.amp_goal_rad`, and a cycle centred off its
+set point takes the cycle's mean torque as its bias and starts over from the set point. A
+heading error beyond :attr:`YawRules.abort_rad` or no steady cycle within
+:attr:`YawRules.max_s` hands yaw back to the hold, with the reason (:attr:`YawRelay.why`).
 
 :meth:`YawRelay.step` runs on the setpoint stream's thread (called as the sequence's yaw hold
 is), :meth:`YawRelay.take` and :meth:`YawRelay.apply` on the thread that identifies.
@@ -19,7 +20,6 @@ from __future__ import annotations
 import enum
 import math
 import threading
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,8 +43,6 @@ class YawRules:
 
     #: after the first airborne tick: the climb's own transient passes first
     start_after_s: float = 0.5
-    #: the hold's output averaged over this window before the relay is its bias
-    bias_window_s: float = 0.4
     #: first relay amplitude; sized once on the first cycles, within [h_min, h_max]
     h_start: float = 0.2
     h_min: float = 0.01
@@ -56,7 +54,7 @@ class YawRules:
     #: a heading error that ends the test (back to the hold)
     abort_rad: float = math.radians(25.0)
     #: seconds from the relay's due start without a steady cycle that end the test
-    max_s: float = 10.0
+    max_s: float = 8.0
     #: relay noise band (rad): heading noise is far below the cycle
     band_rad: float = 0.0005
     #: the relay (re)starts once the hold brought the heading this near its set point, this
@@ -116,7 +114,6 @@ class YawRelay:
         self.events: list[str] = []
         self._t_last_s = -math.inf
         self._t_settle_s = math.nan  # the hold began to settle the heading
-        self._held_u: deque[tuple[float, float]] = deque(maxlen=2000)
         self._lock = threading.Lock()
 
     @property
@@ -150,7 +147,6 @@ class YawRelay:
                 self._give_up(f"no steady relay cycle within {r.max_s:g} s")
             if self.state in (YawState.HOLD, YawState.SETTLE, YawState.HELD):
                 u = self.hold.step(ref, y, rate)
-                self._held_u.append((t_s, u))
                 if self.state is YawState.HELD or t_s - self.t_first_s < r.start_after_s:
                     return u
                 if not math.isfinite(self._t_settle_s):
@@ -187,11 +183,12 @@ class YawRelay:
 
     def _start(self, t_s: float) -> None:
         """The relay from here (the heading settled near its set point), biased at the
-        hold's mean output over the last :attr:`YawRules.bias_window_s`."""
-        r = self.rules
-        recent = [v for t, v in self._held_u if t >= t_s - r.bias_window_s]
-        self.bias = float(np.mean(recent)) if recent else 0.0
-        self.relay = MRFT(self.beta, self.h, bias=self.bias, band=r.band_rad)
+        hold's trim: no torque until a cycle measured the one that holds the heading (the
+        hold's mean output is no measure of it: without an I term it also carries P times
+        the error left and D times the turn, a +0.04 bias that centred ArduCopter SITL's
+        cycles 1-2 deg off their set point)."""
+        self.bias = self.hold.trim
+        self.relay = MRFT(self.beta, self.h, bias=self.bias, band=self.rules.band_rad)
         self.watch.restart()
         self.state, self._t_settle_s = YawState.RELAY, math.nan
         if not math.isfinite(self.t_relay_s):
