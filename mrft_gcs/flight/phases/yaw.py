@@ -62,9 +62,9 @@ class YawRules:
     settle_rad: float = math.radians(1.0)
     settle_rate_rad_s: float = math.radians(5.0)
     settle_max_s: float = 1.5
-    #: a cycle centred this share of its swing off the set point has drifted (1: it no
-    #: longer crosses the set point)
-    drift_share: float = 1.0
+    #: a cycle off its set point whose centre moved this share of its swing since the cycle
+    #: before has drifted
+    drift_share: float = 0.5
     max_rebias: int = 2
 
 
@@ -114,6 +114,7 @@ class YawRelay:
         self.events: list[str] = []
         self._t_last_s = -math.inf
         self._t_settle_s = math.nan  # the hold began to settle the heading
+        self._centre = math.nan  # the last cycle's mean heading (rad)
         self._lock = threading.Lock()
 
     @property
@@ -190,15 +191,15 @@ class YawRelay:
         self.bias = self.hold.trim
         self.relay = MRFT(self.beta, self.h, bias=self.bias, band=self.rules.band_rad)
         self.watch.restart()
-        self.state, self._t_settle_s = YawState.RELAY, math.nan
+        self.state, self._t_settle_s, self._centre = YawState.RELAY, math.nan, math.nan
         if not math.isfinite(self.t_relay_s):
             self.t_relay_s = t_s
 
     def _drifting(self, amp: float) -> bool:
-        """A cycle whose mean heading lies off the set point by more than
-        :attr:`YawRules.drift_share` of its swing: its relay's bias is not the torque that
-        holds the heading (roll and pitch relays running next to it move that torque). The
-        bias is set to the cycle's mean torque (the plant integrates: over a full cycle the
+        """A cycle centred off the set point by more than its swing whose centre moved by
+        more than :attr:`YawRules.drift_share` of its swing since the cycle before: its
+        relay's bias is not the torque that holds the heading (roll and pitch relays running
+        next to it move that torque). The bias is set to the cycle's mean torque (the plant integrates: over a full cycle the
         mean torque is the holding one; also the hold's trim) and the relay starts over from
         the set point, up to
         :attr:`YawRules.max_rebias` times; after that the cycles are identified as they are
@@ -208,8 +209,14 @@ class YawRelay:
         ts, us, ys = self.watch.last_cycles(1)
         if ys.size < 4 or not amp > 4 * self.rules.band_rad:
             return False
-        mean = float(np.mean(ys))
-        if abs(mean) <= self.rules.drift_share * amp:
+        mean, last = float(np.mean(ys)), self._centre
+        self._centre = mean
+        # off centre alone is no drift: on a plant that barely damps its rate the cycle's
+        # centre is where its first swing left it (neutral; ArduCopter SITL's sat 1 deg off
+        # at a 0.8 deg swing, and its mean torque was the bias already); a centre that moves
+        # on from cycle to cycle is
+        if not (math.isfinite(last) and abs(mean) > amp
+                and abs(mean - last) > self.rules.drift_share * amp):
             return False
         dt = np.diff(ts)
         bias = float(np.sum(us[:-1] * dt) / np.sum(dt))
