@@ -199,10 +199,10 @@ class YawRelay:
         """A cycle centred off the set point by more than its swing whose centre moved by
         more than :attr:`YawRules.drift_share` of its swing since the cycle before: its
         relay's bias is not the torque that holds the heading (roll and pitch relays running
-        next to it move that torque). The bias is set to the cycle's mean torque (the plant integrates: over a full cycle the
-        mean torque is the holding one; also the hold's trim) and the relay starts over from
-        the set point, up to
-        :attr:`YawRules.max_rebias` times; after that the cycles are identified as they are
+        next to it move that torque). The bias is set to the cycle's mean torque (the plant
+        integrates: over a full cycle the mean torque is the holding one; also the hold's
+        trim) and the relay starts over from the set point, up to :attr:`YawRules.max_rebias`
+        times; after that the cycles are identified as they are
         (identification reads the bias from the cycle). True: started over."""
         if self.rebiased >= self.rules.max_rebias:
             return False
