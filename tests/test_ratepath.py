@@ -273,15 +273,19 @@ def test_profiles_back_up_and_restore_the_yaw_gains_the_tune_writes():
 
 def test_yaw_relay_takes_the_torque_that_holds_the_heading_as_its_bias():
     """A yaw torque that appears once the relay runs (roll and pitch relays next to it move
-    it) centres the cycle off the set point: the relay's bias becomes the cycle's mean
-    torque and the cycles come steady about the set point."""
+    it) drifts the cycle off the set point: with re-biasing on, the relay's bias becomes the
+    cycle's mean torque and the cycles come steady about the set point; off (the default),
+    the relay swings off and gives up."""
     from mrft_gcs.flight.controllers import YawHold
-    from mrft_gcs.flight.phases.yaw import YawRelay, YawState
+    from mrft_gcs.flight.phases.yaw import YawRelay, YawRules, YawState
 
-    relay = YawRelay(YawHold(0.8, 0.2, limit=0.5), -0.7)
+    relay = YawRelay(YawHold(0.8, 0.2, limit=0.5), -0.7, YawRules(max_rebias=2))
     _fly_yaw(relay, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.0)
     assert relay.state is YawState.READY, (relay.state, relay.why, relay.events)
     assert relay.rebiased >= 1 and any("relay bias" in e for e in relay.events)
     assert relay.bias == pytest.approx(-0.1, abs=0.02)
     snap = relay.take()
     assert abs(float(np.mean(snap.y))) < 0.5 * float(np.ptp(snap.y))
+    off = YawRelay(YawHold(0.8, 0.2, limit=0.5), -0.7)
+    _fly_yaw(off, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.0)
+    assert off.state is YawState.HELD and off.rebiased == 0, (off.state, off.why)

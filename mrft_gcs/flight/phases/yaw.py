@@ -63,9 +63,12 @@ class YawRules:
     settle_rate_rad_s: float = math.radians(5.0)
     settle_max_s: float = 1.5
     #: a cycle off its set point whose centre moved this share of its swing since the cycle
-    #: before has drifted
+    #: before has drifted; re-biased at most this many times. Off by default: on ArduCopter
+    #: SITL the centres of the first cycles moved as they grew, and the re-bias that took
+    #: their mean torque (-0.07 against a true ~0) lost the cycle; its cycles were identified
+    #: off centre as they came (identification reads the bias from the cycle)
     drift_share: float = 0.5
-    max_rebias: int = 2
+    max_rebias: int = 0
 
 
 class YawState(enum.Enum):
