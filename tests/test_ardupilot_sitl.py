@@ -237,6 +237,56 @@ def test_rate_path_abort_puts_the_gains_back_before_landing(copter, tmp_path):
         assert not link.heartbeat.armed
 
 
+def _heading_hold(connection: str, seconds: float) -> tuple[float, float]:
+    """Heading peak-to-peak (deg) and yaw-rate standard deviation (deg/s) from ATTITUDE on a
+    link of its own, for ``seconds``."""
+    from pymavlink import mavutil
+
+    m = mavutil.mavlink_connection(connection, source_system=253)
+    try:
+        m.wait_heartbeat(timeout=10)
+        m.mav.command_long_send(m.target_system, m.target_component, 511, 0, 30, 40_000,
+                                0, 0, 0, 0, 0)  # ATTITUDE at 25 Hz
+        rows, end = [], time.monotonic() + seconds
+        while time.monotonic() < end:
+            msg = m.recv_match(type="ATTITUDE", blocking=True, timeout=0.2)
+            if msg is not None:
+                rows.append((msg.yaw, msg.yawspeed))
+    finally:
+        m.close()
+    a = np.array(rows, float).reshape(-1, 2)
+    assert len(a) > 10 * seconds, f"{len(a)} ATTITUDE samples in {seconds} s"
+    return float(np.degrees(np.ptp(np.unwrap(a[:, 0])))), float(np.degrees(a[:, 1].std()))
+
+
+def _check_yaw(result, before: dict[str, float], serial1: str) -> None:
+    """Yaw on the rate path: relay-tested, identified and written into ArduCopter's yaw
+    cascade with a predicted margin of at least 15 deg there, or held on its own gains with
+    the reason and those gains back; either way the hold after the hand-over (LOITER, the
+    written gains) keeps its heading: a yaw loop written wrong (2x its gains) rocks by
+    degrees or diverges where this one holds to a fraction of one."""
+    import re
+
+    note = result.notes[0]
+    print(f"  yaw: {note}")
+    written = {c.name: c for c in result.parameters}
+    yaw = ("ATC_ANG_YAW_P", "ATC_RAT_YAW_P", "ATC_RAT_YAW_I", "ATC_RAT_YAW_D")
+    if note.startswith("yaw tuned on the rate path"):
+        assert set(yaw) <= set(written), sorted(written)
+        for n in yaw:
+            assert written[n].old == pytest.approx(before[n]), n
+        assert written["ATC_ANG_YAW_P"].new > 0 and written["ATC_RAT_YAW_P"].new > 0
+        pm = float(re.search(r"predicted PM (-?[\d.]+) deg", note).group(1))
+        assert pm >= 15.0 - 0.5, note  # rounded in the note
+    else:
+        assert note.startswith("yaw held on its own gains: "), note
+        assert not set(yaw) & set(written), sorted(written)
+    p2p, rate_sd = _heading_hold(serial1, 3.0)
+    print(f"  yaw hold after the hand-over (LOITER): heading p2p {p2p:.2f} deg, yaw rate "
+          f"std {rate_sd:.2f} deg/s")
+    assert p2p < 2.0 and rate_sd < 2.0, (p2p, rate_sd)
+
+
 def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path):
     """All five loops from the ground through the stock firmware's rate loop reduced to
     feed-forward: roll and pitch written into ATC_ANG/ATC_RAT as soon as both are
@@ -244,7 +294,7 @@ def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path
     altitude and x/y written, hand-over to LOITER with the hover check. Every parameter the
     tune changed is either written and read back, or back at its value from before; the
     backup holds the values from before the tune."""
-    serial0, _, _ = copter
+    serial0, serial1, _ = copter
     names = _rate_test_names() + ["PILOT_THR_FILT"]
     with VehicleLink.connect(serial0, timeout_s=10) as link:
         before = {n: p.value for n, p in ParamClient(link).read_many(names).items()}
@@ -293,6 +343,7 @@ def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path
         for n in ("ATC_ANG_RLL_P", "ATC_RAT_RLL_P", "ATC_ANG_PIT_P", "ATC_RAT_PIT_P"):
             assert written[n].old == pytest.approx(before[n]) and written[n].new > 0
         assert any("zero-gain window" in n for n in result.notes), result.notes
+        _check_yaw(result, before, serial1)
         # scripting is on: the link-loss guard covered the zero-gain window
         assert any("link-loss guard mrftguard" in n for n in result.notes), result.notes
         if INAIR_CHECK:  # the written gains measured in the air

@@ -397,3 +397,28 @@ def test_rate_path_gains_checked_on_arducopters_cascade():
     assert "scaled by" in hot.note() and "20 Hz rate-target filter" in hot.note()
     # the same gains as a plain PD (no filter) have less margin: the filter is not the risk
     assert cascade_gains(m, g, 0.0).pm_deg < stock.pm_deg
+
+
+def test_cascade_check_models_the_rate_error_filter_yaw_has():
+    """ArduCopter's yaw rate loop low-passes its error (ATC_RAT_YAW_FLTE, 2.5 Hz stock): the
+    whole feedback path goes through it. Checked with it, gains that keep their margin
+    without it lose it and are scaled down, on the loop recomputed here; with none, the
+    check is the roll/pitch one."""
+    from mrft_gcs.flight.onboard import CASCADE_LOOP_HZ, cascade_gains
+
+    m = InnerModel(K=20.0, T_prop=0.05, T1=1.0, tau=0.01)
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    g = optimal_pd(inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0], w).pd
+    plain = cascade_gains(m, g, 20.0)
+    assert cascade_gains(m, g, 20.0, error_filter_hz=0.0) == plain
+    assert plain.error_filter_hz == 0.0 and "error filter" not in plain.note()
+    filt = cascade_gains(m, g, 20.0, error_filter_hz=2.5)
+    assert filt.pm_identified_deg < plain.pm_identified_deg - 10.0, (filt, plain)
+    assert filt.scale < plain.scale and "2.5 Hz rate-error filter" in filt.note()
+    s = 1j * w
+    G = m.K * np.exp(-(m.tau + 0.5 / CASCADE_LOOP_HZ) * s) / (
+        s * (m.T_prop * s + 1) * (m.T1 * s + 1))
+    fe = 1 / (1 + s / (2 * np.pi * 2.5))
+    L = fe * (filt.gains.Kc / (1 + s / (2 * np.pi * 20.0)) + filt.gains.Kd * s) * G
+    assert margins(L, w).pm_deg == pytest.approx(filt.pm_deg, abs=0.5)
+    assert filt.pm_deg >= PM_ROBUST_DEG - 0.1

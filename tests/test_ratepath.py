@@ -122,3 +122,170 @@ def test_feed_forward_check_corrects_small_and_refuses_large_errors():
     assert check_feed_forward("pitch", 10.0, d, 5.0 * d, np.zeros(40)).verdict == "refused"
     # too small to measure: nothing to judge on, refused rather than assumed
     assert check_feed_forward("yaw", 10.0, d * 0.01, d * 0.1, np.zeros(40)).verdict == "refused"
+
+
+# ---------------------------------------------------------------------- yaw
+def _fly_yaw(relay, K: float, T_prop: float, T1: float, tau: float, seconds: float,
+             disturbance: float = 0.0, until_ready: bool = True, disturbance_from_s=0.0):
+    """A yaw plant ``K e^{-tau s} / (s (T_prop s + 1) (T1 s + 1))`` (normalised torque in,
+    heading out) integrated at 1 kHz, sampled and commanded at 250 Hz as the stream does;
+    the heading set point is 0. Returns the headings seen (rad)."""
+    from collections import deque
+
+    dt, every = 0.001, 4
+    lag, r, y = 0.0, 0.0, 0.0
+    queue = deque([0.0] * max(1, round(tau / dt)))
+    u, seen = 0.0, []
+    for k in range(round(seconds / dt)):
+        if k % every == 0:
+            u = relay.step(0.0, y, r, k * dt)
+            seen.append(y)
+            if until_ready and relay.snapshot is not None:
+                break
+        queue.append(u + (disturbance if k * dt >= disturbance_from_s else 0.0))
+        lag += dt * (queue.popleft() - lag) / T_prop
+        r += dt * (K * lag - r) / T1
+        y += dt * r
+    return np.array(seen)
+
+
+YAW_PLANT = (20.0, 0.05, 1.0, 0.01)  # K, T_prop, T1, tau: inside the attitude domain
+
+
+def test_yaw_relay_holds_then_cycles_and_hands_its_steady_cycles_once():
+    from mrft_gcs.flight.controllers import YawHold
+    from mrft_gcs.flight.phases.yaw import YawRelay, YawState
+    from mrft_gcs.identify import relay_settings
+    from mrft_gcs.loops import LoopKind
+
+    beta = relay_settings(LoopKind.ATTITUDE).beta
+    relay = YawRelay(YawHold(0.8, 0.2, limit=0.5), beta)
+    seen = _fly_yaw(relay, *YAW_PLANT, seconds=15.0)
+    assert relay.state is YawState.READY, (relay.state, relay.why)
+    snap = relay.take()
+    assert snap is not None and relay.take() is None  # handed over once
+    # it cycled about the set point, near the goal swing, and never far off
+    assert abs(float(np.mean(snap.y))) < 0.5 * float(np.ptp(snap.y))
+    assert 0.4 < 0.5 * float(np.ptp(snap.y)) / relay.rules.amp_goal_rad < 2.5
+    assert np.max(np.abs(seen)) < relay.rules.abort_rad
+    assert snap.beta == beta and snap.h == relay.h
+
+
+def test_yaw_identified_by_the_attitude_classifier_and_checked_on_the_cascade():
+    """The bundled classifier identifies the yaw relay's cycles (the attitude model); the
+    written gains keep the margin on the true plant's cascade, and twice those gains do not:
+    the check that scales them is what stands between a wrong gain and the vehicle."""
+    from mrft_gcs.flight.controllers import YawHold
+    from mrft_gcs.flight.onboard import cascade_gains
+    from mrft_gcs.flight.phases.yaw import YawRelay
+    from mrft_gcs.flight.ratepath import yaw_design, yaw_names
+    from mrft_gcs.identify import identify, relay_settings
+    from mrft_gcs.loops import LoopKind
+    from mrft_gcs.pd_design import PD
+    from mrft_gcs.plant import InnerModel
+
+    beta = relay_settings(LoopKind.ATTITUDE).beta
+    relay = YawRelay(YawHold(0.8, 0.2, limit=0.5), beta)
+    _fly_yaw(relay, *YAW_PLANT, seconds=15.0)
+    snap = relay.take()
+    assert snap is not None
+    ident = identify(LoopKind.ATTITUDE, snap.t_s, snap.u, snap.y, beta=snap.beta, h=snap.h,
+                     bias=snap.bias)
+    m = ident.model
+    assert isinstance(m, InnerModel)
+    K, T_prop, T1, tau = YAW_PLANT
+    # the relay's own dynamics at the cycle: K/T1 (the gain there) within a factor of 2
+    assert 0.5 < (m.K / m.T1) / (K / T1) < 2.0, m
+    names = yaw_names(load_profile("ardupilot").rate_path)
+    d = yaw_design(ident, names, 20.0, 2.5)
+    assert d.refusal is None and d.cascade is not None, d
+    assert d.values[names["rate_i"]] == 0.0 and d.values[names["rate_d"]] == 0.0
+    written = PD(d.values[names["angle_p"]] * d.values[names["rate_p"]],
+                 d.values[names["rate_p"]])
+    fe = d.values[names["flte"]]
+    truth = InnerModel(*YAW_PLANT)
+    on_truth = cascade_gains(truth, written, 20.0, error_filter_hz=fe)
+    assert on_truth.pm_deg >= 10.0, on_truth  # the design's 15 less the identification's error
+    doubled = cascade_gains(truth, PD(2 * written.Kc, 2 * written.Kd), 20.0,
+                            error_filter_hz=fe)
+    assert doubled.pm_identified_deg < 10.0 and doubled.scale < 0.8, doubled
+
+
+def test_yaw_relay_gives_up_to_the_hold_with_the_reason():
+    from mrft_gcs.flight.controllers import YawHold
+    from mrft_gcs.flight.phases.yaw import YawRelay, YawRules, YawState
+
+    hold = YawHold(0.8, 0.2, limit=0.5)
+    # a heading swing past the limit (here a tiny one) ends the relay
+    relay = YawRelay(hold, -0.7, YawRules(abort_rad=math.radians(0.2)))
+    _fly_yaw(relay, *YAW_PLANT, seconds=10.0)
+    assert relay.state is YawState.HELD and "swung" in relay.why, relay.why
+    assert relay.done and relay.take() is None
+    # the hold flies from there: the same output as the hold itself
+    assert relay.step(0.0, 0.1, 0.0, 20.0) == hold.step(0.0, 0.1, 0.0)
+    # no steady cycle within the time limit
+    slow = YawRelay(hold, -0.7, YawRules(max_s=1.0))
+    _fly_yaw(slow, 4.0, 0.05, 1.0, 0.01, seconds=4.0)
+    assert slow.state is YawState.HELD and "no steady relay cycle" in slow.why, slow.why
+    # a torque bias the hold's P cannot take out: the relay still starts (once at rest), and
+    # gives up in time (the zero-gain window waits for it)
+    biased = YawRelay(hold, -0.7, YawRules(max_s=3.0))
+    _fly_yaw(biased, *YAW_PLANT, seconds=6.0, disturbance=0.15, until_ready=False)
+    assert biased.done and math.isfinite(biased.t_relay_s), (biased.state, biased.why)
+
+
+def test_yaw_design_raises_the_error_filter_only_as_far_as_the_margin_needs():
+    from mrft_gcs.flight.onboard import cascade_gains
+    from mrft_gcs.flight.ratepath import YAW_FLTE_KEEP, YAW_FLTE_STEP, yaw_design, yaw_names
+    from mrft_gcs.identify import Identification
+    from mrft_gcs.loops import LoopKind
+    from mrft_gcs.pd_design import frequency_grid, optimal_pd
+    from mrft_gcs.plant import InnerModel, inner_response
+
+    m = InnerModel(*YAW_PLANT)
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    pd = optimal_pd(inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0], w).pd
+    ident = Identification(LoopKind.ATTITUDE, m, 0, 1.0, -0.7, 0.1, 0.5, 0.03, pd)
+    names = yaw_names(load_profile("ardupilot").rate_path)
+    d = yaw_design(ident, names, 20.0, 2.5)
+    fe = d.values[names["flte"]]
+    unfiltered = cascade_gains(m, pd, 20.0).scale
+    assert fe > 2.5 and d.flte_from_hz == 2.5, d
+    assert d.cascade.scale >= YAW_FLTE_KEEP * unfiltered and d.cascade.pm_deg >= 15.0, d
+    # one step lower would not do
+    assert (cascade_gains(m, pd, 20.0, error_filter_hz=fe / YAW_FLTE_STEP).scale
+            < YAW_FLTE_KEEP * unfiltered)
+    # a vehicle without an error filter keeps none; the same gains, unscaled
+    d0 = yaw_design(ident, names, 20.0, 0.0)
+    assert d0.values[names["flte"]] == 0.0 and d0.flte_from_hz is None
+    assert d0.cascade.scale == unfiltered
+
+
+def test_profiles_back_up_and_restore_the_yaw_gains_the_tune_writes():
+    from mrft_gcs.flight.ratepath import yaw_names
+
+    for name in ("ardupilot", "ardupilot-ned"):
+        rp = load_profile(name).rate_path
+        assert rp is not None
+        assert set(yaw_names(rp).values()) - {yaw_names(rp)["flte"]} <= set(rp.test_params)
+        assert yaw_names(rp)["flte"] in rp.test_params
+
+
+def test_yaw_relay_takes_the_torque_that_holds_the_heading_as_its_bias():
+    """A yaw torque that appears once the relay runs (roll and pitch relays next to it move
+    it) drifts the cycle off the set point: with re-biasing on, the relay's bias becomes the
+    cycle's mean torque and the cycles come steady about the set point; off (the default),
+    the relay swings off and gives up."""
+    from mrft_gcs.flight.controllers import YawHold
+    from mrft_gcs.flight.phases.yaw import YawRelay, YawRules, YawState
+
+    relay = YawRelay(YawHold(0.8, 0.2, limit=0.5), -0.7, YawRules(max_rebias=2))
+    _fly_yaw(relay, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.0)
+    assert relay.state is YawState.READY, (relay.state, relay.why, relay.events)
+    assert relay.rebiased >= 1 and any("relay bias" in e for e in relay.events)
+    assert relay.bias == pytest.approx(-0.1, abs=0.02)
+    snap = relay.take()
+    assert abs(float(np.mean(snap.y))) < 0.5 * float(np.ptp(snap.y))
+    off = YawRelay(YawHold(0.8, 0.2, limit=0.5), -0.7)
+    _fly_yaw(off, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.0)
+    assert off.state is YawState.HELD and off.rebiased == 0, (off.state, off.why)

@@ -75,6 +75,7 @@ from mrft_gcs.flight.onboard import (
     onboard_side_gains,
     robust_onboard_gains,
 )
+from mrft_gcs.flight.phases.yaw import IDENTIFY_AS as YAW_IDENTIFY_AS
 from mrft_gcs.flight.ratepath import CHECK_SPAN_S as RATE_CHECK_SPAN_S
 from mrft_gcs.flight.ratepath import GCS_PD_SCALE as RATE_GCS_PD_SCALE
 from mrft_gcs.flight.ratepath import INAIR_CHECK as RATE_INAIR_CHECK
@@ -884,7 +885,9 @@ class _Run:
         vehicle.arm()
         if self.rate is not None:
             self.rate.engage(client)  # armed with the stock gains: no arming check is off
-            if (hold := self.rate.yaw_hold()) is not None:
+            # yaw relay-tested next to roll and pitch, its cycles identified like theirs
+            if (hold := self.rate.yaw_hold(seq.attitude_relay.beta, lambda snap: self._offload(
+                    "identify", self.ident_fn, YAW_IDENTIFY_AS, snap, None))) is not None:
                 seq.yaw = hold
             self.rate.require_aligned()
         deadline = time.monotonic() + 1.0

@@ -114,5 +114,6 @@ class YawHold(PDLoop):
     def __init__(self, Kc: float = 0.2, Kd: float = 0.08, limit: float = 0.3) -> None:
         super().__init__(Kc, Kd, 0.0, -limit, limit)
 
-    def step(self, ref: float, y: float, dy: float) -> float:
+    def step(self, ref: float, y: float, dy: float, t_s: float = math.nan) -> float:
+        # ``t_s`` (the sample's time) is for yaw controllers that record, e.g. a yaw relay
         return super().step(0.0, -wrap_pi(ref - y), dy)

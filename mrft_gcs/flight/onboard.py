@@ -660,10 +660,15 @@ class CascadeGains:
     pm_identified_deg: float
     target_filter_hz: float
     wc_rad_s: float
+    #: the rate loop's error filter modelled (Hz; 0: none): ArduCopter's yaw has one
+    #: (``ATC_RAT_YAW_FLTE``, 2.5 Hz by default), on the rate P in the feedback path
+    error_filter_hz: float = 0.0
 
     def note(self) -> str:
         f = (f"{self.target_filter_hz:g} Hz rate-target filter" if self.target_filter_hz > 0
              else "no rate-target filter")
+        if self.error_filter_hz > 0:
+            f += f", {self.error_filter_hz:g} Hz rate-error filter"
         out = (f"predicted PM {self.pm_deg:.0f} deg at {self.wc_rad_s:.0f} rad/s on ArduCopter's "
                f"cascade ({f}, {CASCADE_LOOP_HZ:g} Hz loop, the identified delay kept)")
         if self.scale < 1.0:
@@ -673,20 +678,24 @@ class CascadeGains:
 
 
 def _cascade_pm(model: InnerModel, gains: PD, target_filter_hz: float,
-                w: np.ndarray) -> tuple[float, float]:
+                w: np.ndarray, error_filter_hz: float = 0.0) -> tuple[float, float]:
     s = 1j * w
     g = inner_response(model.K, model.T_prop, model.T1, model.tau + 0.5 / CASCADE_LOOP_HZ, w)[0]
     f = 1.0 / (1.0 + s / (2 * np.pi * target_filter_hz)) if target_filter_hz > 0 else 1.0
-    m = margins((gains.Kc * f + gains.Kd * s) * g, w)
+    # the error filter low-passes the rate P's input, so the whole feedback path
+    fe = 1.0 / (1.0 + s / (2 * np.pi * error_filter_hz)) if error_filter_hz > 0 else 1.0
+    m = margins(fe * (gains.Kc * f + gains.Kd * s) * g, w)
     return (float(m.pm_deg) if m.stable else -math.inf), float(m.wc)
 
 
 def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
-                  pm_min_deg: float = PM_ROBUST_DEG) -> CascadeGains:
-    """The identified roll/pitch ``gains`` checked on ArduCopter's cascade (see
+                  pm_min_deg: float = PM_ROBUST_DEG,
+                  error_filter_hz: float = 0.0) -> CascadeGains:
+    """The identified roll/pitch (or yaw) ``gains`` checked on ArduCopter's cascade (see
     :class:`CascadeGains`), on ``model`` with its identified delay (the ground station's
     delay left in: the onboard loop has less) plus half a loop period; scaled down together
-    until they keep ``pm_min_deg`` where they do not.
+    until they keep ``pm_min_deg`` where they do not. ``error_filter_hz``: the rate loop's
+    error filter (Hz; 0: none).
 
     Examples
     --------
@@ -699,17 +708,19 @@ def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     (True, 40)
     """
     w = frequency_grid(model.T_prop, model.T1, model.tau)
-    pm0, wc0 = _cascade_pm(model, gains, target_filter_hz, w)
+    fe = error_filter_hz
+    pm0, wc0 = _cascade_pm(model, gains, target_filter_hz, w, fe)
     if pm0 >= pm_min_deg:
-        return CascadeGains(gains, 1.0, pm0, pm0, target_filter_hz, wc0)
+        return CascadeGains(gains, 1.0, pm0, pm0, target_filter_hz, wc0, fe)
     lo, hi = 0.0, 1.0  # the largest factor that keeps the margin, to 0.1 %
     while hi - lo > 1e-3:
         mid = 0.5 * (lo + hi)
-        pm_mid, _ = _cascade_pm(model, PD(gains.Kc * mid, gains.Kd * mid), target_filter_hz, w)
+        pm_mid, _ = _cascade_pm(model, PD(gains.Kc * mid, gains.Kd * mid), target_filter_hz, w,
+                                fe)
         if pm_mid >= pm_min_deg:
             lo = mid
         else:
             hi = mid
     scaled = PD(gains.Kc * lo, gains.Kd * lo)
-    pm, wc = _cascade_pm(model, scaled, target_filter_hz, w)
-    return CascadeGains(scaled, round(lo, 3), pm, pm0, target_filter_hz, wc)
+    pm, wc = _cascade_pm(model, scaled, target_filter_hz, w, fe)
+    return CascadeGains(scaled, round(lo, 3), pm, pm0, target_filter_hz, wc, fe)

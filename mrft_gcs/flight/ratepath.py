@@ -31,6 +31,7 @@ parameters are restored *before* the landing command (a landing on zero gains wo
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -39,10 +40,15 @@ from pathlib import Path
 
 import numpy as np
 
+from mrft_gcs.domains import D_ATT
 from mrft_gcs.errors import LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState, YawHold
 from mrft_gcs.flight.inair import OnboardCascade
+from mrft_gcs.flight.onboard import CascadeGains, cascade_gains
+from mrft_gcs.flight.phases.state import CycleSnapshot
+from mrft_gcs.flight.phases.yaw import YawRelay, YawState
 from mrft_gcs.flight.source import Setpoint
+from mrft_gcs.identify import Identification
 from mrft_gcs.link.failsafe import rate_path_guard
 from mrft_gcs.link.firmware import Firmware
 from mrft_gcs.link.vehicle import VehicleLink
@@ -53,6 +59,8 @@ from mrft_gcs.params import (
     read_params_file,
     write_params_file,
 )
+from mrft_gcs.pd_design import PD
+from mrft_gcs.plant import InnerModel
 from mrft_gcs.profiles import AutopilotProfile, RatePathParams
 from mrft_gcs.telemetry import (
     ActuatorTarget,
@@ -67,7 +75,8 @@ from mrft_gcs.telemetry import (
 __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignment",
            "check_feed_forward", "rate_path_refusal", "body_rates", "LINK_LOSS_GUARD",
            "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE", "TARGET_SET_PARAM",
-           "CHECK_PARAMS", "CHECK_SPAN_S", "INAIR_CHECK"]
+           "CHECK_PARAMS", "CHECK_SPAN_S", "INAIR_CHECK", "TUNE_YAW", "YawDesign",
+           "yaw_design", "yaw_names"]
 
 #: relative error of the measured ``k`` above which the rates are scaled to it
 K_CORRECT = 0.02
@@ -108,6 +117,24 @@ ALIGN_HOLD_S = 0.05
 GCS_PD_SCALE = 0.5
 #: the yaw hold's output limit on this path (normalised yaw command)
 YAW_LIMIT = 0.5
+#: yaw is relay-tested next to roll and pitch and written at the hand-over (off: held on
+#: the vehicle's own yaw gains throughout, which are restored)
+TUNE_YAW = True
+#: the identified yaw model's (T_prop, T1, tau) may lie this factor outside the attitude
+#: classifier's domain (its scale search reaches a little past the box) before yaw is
+#: refused as out of the domain
+YAW_DOMAIN_SLACK = 2.0
+#: a drag time constant past the domain is accepted where the domain's edge model's drag
+#: pole differs from the identified one by less than this phase at the crossover (deg)
+YAW_T1_PHASE_DEG = 5.0
+#: ArduCopter's yaw rate loop low-passes its error (``ATC_RAT_YAW_FLTE``, 2.5 Hz by default),
+#: a lag the identified PD (designed without it) may not survive: the written filter is the
+#: vehicle's own raised in steps of this factor up to the cap (Hz) until it does
+YAW_FLTE_STEP = 1.25
+YAW_FLTE_MAX_HZ = 40.0
+#: ... i.e. until the scale the cascade check leaves the gains is this share of the scale
+#: they keep with no error filter at all
+YAW_FLTE_KEEP = 0.95
 #: the in-air check of the written roll/pitch gains flies on this path (off: ArduCopter's
 #: ATTITUDE_TARGET came too unevenly at these crossovers to measure the loop, and a check
 #: that cannot measure lands the vehicle; the gains are checked on the cascade's model at
@@ -269,6 +296,153 @@ def check_feed_forward(axis: str, k_set: float, desired: np.ndarray, ff: np.ndar
     return FeedForwardCheck(axis, int(use.sum()), k_set, k, pid, verdict)
 
 
+# ---------------------------------------------------------------------- yaw's written gains
+def yaw_names(params: RatePathParams) -> dict[str, str]:
+    """ArduCopter's yaw cascade names from the profile's ``[rate_path]``: angle P, rate
+    P/I/D and the rate loop's target and error filters (``<rate P less P>I``, ...)."""
+    prefix = params.rate_p[2].removesuffix("P")
+    return {"angle_p": params.angle_p[2], "rate_p": params.rate_p[2], "rate_i": prefix + "I",
+            "rate_d": prefix + "D", "fltt": prefix + "FLTT", "flte": prefix + "FLTE"}
+
+
+@dataclass(frozen=True)
+class YawDesign:
+    """The yaw gains to write, or why none are.
+
+    Attributes
+    ----------
+    values : dict
+        Parameter -> value (angle P ``Kc/Kd``, rate P ``Kd``, rate I and D 0); empty where
+        refused.
+    cascade : CascadeGains or None
+        The identified gains checked (and scaled) on ArduCopter's yaw cascade: on the
+        identified model, or where the domain's edge model needs the smaller scale, on that.
+    edge : InnerModel or None
+        The domain's edge model the gains were also checked on (T1 past the domain).
+    refusal : str or None
+        Why nothing is written (the vehicle keeps its own yaw gains).
+    """
+
+    values: dict[str, float]
+    cascade: CascadeGains | None
+    edge: InnerModel | None = None
+    refusal: str | None = None
+    #: the vehicle's rate-error filter where the written one differs (Hz), else None
+    flte_from_hz: float | None = None
+
+    def note(self) -> str:
+        """How the written gains were checked."""
+        if self.cascade is None:
+            return ""
+        out = self.cascade.note()
+        if self.flte_from_hz is not None:
+            keep = 100 * (1 - YAW_FLTE_KEEP)
+            out += (f"; the rate-error filter {self.flte_from_hz:g} -> "
+                    f"{self.cascade.error_filter_hz:g} Hz, the lowest that costs the gains at "
+                    f"most {keep:.0f} % against no filter" if self.cascade.error_filter_hz > 0 else
+                    f"; the rate-error filter {self.flte_from_hz:g} Hz switched off (every "
+                    f"frequency up to {YAW_FLTE_MAX_HZ:g} Hz cost the gains more than "
+                    f"{keep:.0f} %)")
+        if self.edge is not None:
+            out += (f"; T1 past the classifier's domain, so also checked on its edge model "
+                    f"(T1 {self.edge.T1:g} s, K {self.edge.K:.3g}: the same gain and, within "
+                    f"{YAW_T1_PHASE_DEG:g} deg, phase at the crossover), the smaller scale kept")
+        return out
+
+
+def _t1_phase_deg(t1_a: float, t1_b: float, w: float) -> float:
+    """Phase difference of the drag poles ``1/(T1 s + 1)`` of two models at ``w`` (deg)."""
+    return abs(math.degrees(math.atan(w * t1_a) - math.atan(w * t1_b)))
+
+
+def yaw_design(ident: Identification, names: Mapping[str, str], target_filter_hz: float,
+               error_filter_hz: float) -> YawDesign:
+    """Yaw's written gains: the identified PD on ArduCopter's yaw cascade (its target and
+    error filters, the 400 Hz loop; :func:`~mrft_gcs.flight.onboard.cascade_gains`), scaled
+    down where it falls short of the margin.
+
+    Refused where the identified model lies outside the attitude classifier's domain by more
+    than :data:`YAW_DOMAIN_SLACK` (its gains would be a guess), with one exception: a drag
+    time constant T1 past the domain's largest. A multirotor's yaw has little drag (T1 of
+    several seconds), and far above ``1/T1`` the plant ``K/(s (T1 s + 1))`` is
+    ``(K/T1)/s^2`` whatever T1: the domain's edge model (T1 at its largest, K scaled to keep
+    ``K/T1``) then has the same response at the loop's crossover. Where its drag pole's phase
+    there differs by less than :data:`YAW_T1_PHASE_DEG`, the gains are checked on both models
+    and the smaller scale kept; otherwise refused.
+
+    >>> from mrft_gcs.identify import Identification
+    >>> from mrft_gcs.loops import LoopKind
+    >>> from mrft_gcs.pd_design import PD
+    >>> names = {"angle_p": "A", "rate_p": "P", "rate_i": "I", "rate_d": "D"}
+    >>> def ident(T_prop, T1, tau):
+    ...     return Identification(LoopKind.ATTITUDE, InnerModel(3.0, T_prop, T1, tau), 0, 1.0,
+    ...                           -0.7, 0.05, 0.3, 0.05, PD(1.0, 0.1))
+    >>> d = yaw_design(ident(0.03, 0.5, 0.01), names, 20.0, 2.5)
+    >>> g = d.cascade.gains
+    >>> d.refusal is None, d.edge is None, d.values["A"] == g.Kc / g.Kd, d.values["I"]
+    (True, True, True, 0.0)
+    >>> yaw_design(ident(0.03, 9.0, 0.01), names, 20.0, 2.5).edge.T1  # integrating drag
+    2.0
+    >>> yaw_design(ident(0.9, 1.0, 0.01), names, 20.0, 2.5).refusal[:40]
+    'the identified yaw model (T_prop 0.9 s, '
+    """
+    m = ident.model
+    if not isinstance(m, InnerModel):
+        return YawDesign({}, None, refusal="identified as no attitude model")
+    p = np.array([m.T_prop, m.T1, m.tau])
+    lo, hi = D_ATT.lo / YAW_DOMAIN_SLACK, D_ATT.hi * YAW_DOMAIN_SLACK
+    inside = (p >= lo) & (p <= hi)
+    t1_max = D_ATT.high[1]
+    integrating = bool(m.T1 > t1_max)
+    domain = (f"the identified yaw model (T_prop {m.T_prop:.3g} s, T1 {m.T1:.3g} s, tau "
+              f"{m.tau:.3g} s) lies outside the attitude classifier's domain (T_prop "
+              f"{D_ATT.low[0]:g}-{D_ATT.high[0]:g}, T1 {D_ATT.low[1]:g}-{t1_max:g}, tau "
+              f"{D_ATT.low[2]:g}-{D_ATT.high[2]:g} s, x{YAW_DOMAIN_SLACK:g} either way)")
+    if not (inside[0] and inside[2] and (inside[1] or integrating)):
+        return YawDesign({}, None, refusal=f"{domain}: its gains would be a guess")
+    edge = (dataclasses.replace(m, K=m.K * t1_max / m.T1, T1=t1_max) if integrating
+            else None)
+
+    def check(fe: float, gains: PD) -> CascadeGains:
+        # the smaller scale of the identified and (T1 past the domain) the edge model
+        c = cascade_gains(m, gains, target_filter_hz, error_filter_hz=fe)
+        if edge is not None:
+            ce = cascade_gains(edge, gains, target_filter_hz, error_filter_hz=fe)
+            c = ce if ce.scale < c.scale else c
+        return c
+
+    fe, c = error_filter_hz, check(error_filter_hz, ident.gains)
+    unfiltered = check(0.0, ident.gains).scale
+    if error_filter_hz > 0 and c.scale < YAW_FLTE_KEEP * unfiltered:
+        # the error filter is the rate P's noise filter: raised only as far as the gains need
+        # (within YAW_FLTE_KEEP of what they keep with none); off where no frequency up to
+        # the cap does
+        fe, k = 0.0, 1
+        while (cand := math.ceil(2.0 * error_filter_hz * YAW_FLTE_STEP ** k) / 2.0
+               ) <= YAW_FLTE_MAX_HZ:
+            if check(cand, ident.gains).scale >= YAW_FLTE_KEEP * unfiltered:
+                fe = cand
+                break
+            k += 1
+        c = check(fe, ident.gains)
+    if edge is not None:
+        off = _t1_phase_deg(m.T1, t1_max, c.wc_rad_s)
+        if not off < YAW_T1_PHASE_DEG:
+            return YawDesign({}, c, edge, refusal=(
+                f"{domain}, and the domain's edge model differs by {off:.0f} deg at the "
+                f"crossover (more than {YAW_T1_PHASE_DEG:g}): its gains would be a guess"))
+    if not (c.scale > 0 and math.isfinite(c.pm_deg)):
+        return YawDesign({}, c, edge, refusal=f"no gain keeps its margin on ArduCopter's yaw "
+                                              f"cascade ({c.note()})")
+    g = c.gains
+    values = {names["angle_p"]: g.Kc / g.Kd, names["rate_p"]: g.Kd, names["rate_i"]: 0.0,
+              names["rate_d"]: 0.0}
+    if "flte" in names:
+        values[names["flte"]] = fe
+    return YawDesign(values, c, edge, flte_from_hz=error_filter_hz if fe != error_filter_hz
+                     else None)
+
+
 # ---------------------------------------------------------------------- streaming state
 class RateChannel:
     """Torque set points -> body-rate set points, on the stream's ticks.
@@ -344,6 +518,15 @@ class RatePath:
         self.handed_over = False
         self.changes: tuple[ParamChange, ...] = ()
         self.yaw_note: str | None = None  # how yaw was held, where not the default hold
+        #: yaw's relay (None: held on the vehicle's own gains throughout), the identifier
+        #: it is handed to (``f(snapshot) -> Identification``), what came of it
+        self.yaw: YawRelay | None = None
+        self.identify: Callable[[CycleSnapshot], Identification] | None = None
+        self.yaw_ident: Identification | None = None
+        self.yaw_written: YawDesign | None = None
+        self.yaw_flte = 0.0  # the vehicle's own yaw rate-error filter (Hz; 0: none)
+        self.yaw_staged: dict[str, float] = {}
+        self._yaw_gcs_s = math.nan  # monotonic time the yaw gains were designed
         self._stack = contextlib.ExitStack()
         self._targets = self._stack.enter_context(link.subscribe(AttitudeSetpoint))
         self._pid = self._stack.enter_context(link.subscribe(PidTuning))
@@ -385,6 +568,9 @@ class RatePath:
         self.backup = result.backup_path
         self.originals = {c.name: c.old for c in result.changes}
         self.known = {e.param.name: e.param for e in read_params_file(self.backup)}
+        # the written yaw gains are checked through the vehicle's own rate-error filter
+        flte = self.originals.get(yaw_names(self.params)["flte"], 0.0)
+        self.yaw_flte = float(flte) if math.isfinite(flte) and flte > 0 else 0.0
         self.t_engaged = time.monotonic()
         self._checking = True
         self.channel.worst_thrust_rad = self.channel.worst_heading_rad = 0.0
@@ -400,11 +586,17 @@ class RatePath:
                               "onboard (no link-loss guard installed): GUID_TIMEOUT only "
                               "levels the attitude target, the gains stay zero")
 
-    def yaw_hold(self) -> YawHold | None:
+    def yaw_hold(self, beta: float | None = None,
+                 identify: Callable[[CycleSnapshot], Identification] | None = None
+                 ) -> YawHold | YawRelay | None:
         """The ground station's yaw hold on this path: the vehicle's own yaw gains (angle P
         times rate P, and rate P; the rate I left out), read before the test parameters
         zeroed them. The default hold (Kc 0.2) let ArduCopter SITL's yaw drift 20 deg
-        during the side tests. None where the values are not known."""
+        during the side tests. None where the values are not known.
+
+        With the attitude relay's ``beta`` and an ``identify`` (and :data:`TUNE_YAW`): a
+        yaw relay (:class:`~mrft_gcs.flight.phases.yaw.YawRelay`) around that hold, whose
+        cycles :meth:`check` identifies and whose gains the hand-over writes."""
         names = (self.params.angle_p[2], self.params.rate_p[2])
         if not all(n in self.originals for n in names):
             return None
@@ -415,7 +607,73 @@ class RatePath:
                          f"the vehicle's own yaw gains (Kc {ang * rate:.3g} /rad, Kd "
                          f"{rate:.3g} s/rad on the normalised yaw command, rate I left out), "
                          f"which are restored afterwards")
-        return YawHold(ang * rate, rate, limit=YAW_LIMIT)
+        hold = YawHold(ang * rate, rate, limit=YAW_LIMIT)
+        if not (TUNE_YAW and beta is not None and identify is not None):
+            return hold
+        self.identify = identify
+        self.yaw = YawRelay(hold, beta)
+        return self.yaw
+
+    def _yaw_step(self) -> None:
+        """Identify yaw's steady cycles where they wait, design its written gains, and fly
+        the identified PD (times :data:`GCS_PD_SCALE`) until the hand-over; or give up to
+        the vehicle's own gains with the reason."""
+        relay, identify = self.yaw, self.identify
+        if relay is None or identify is None or (snap := relay.take()) is None:
+            return
+        try:
+            ident = identify(snap)
+        except MrftError as err:
+            relay.give_up(f"its relay cycle was not identified ({err})")
+            return
+        self.yaw_ident = ident
+        final = self._final(keep_written=False)
+        n = yaw_names(self.params)
+        fltt = final.get(n["fltt"], 0.0)
+        design = yaw_design(ident, n, fltt if math.isfinite(fltt) else 0.0, self.yaw_flte)
+        self.yaw_written = design
+        if design.refusal is not None:
+            relay.give_up(design.refusal)
+            return
+        self.yaw_staged = dict(design.values)
+        if not self.handed_over:
+            self.staged.update(self.yaw_staged)
+        self._yaw_gcs_s = time.monotonic()
+        relay.apply(GCS_PD_SCALE * ident.gains.Kc, GCS_PD_SCALE * ident.gains.Kd)
+
+    def _yaw_outcome(self) -> None:
+        """The report's line on yaw (``yaw_note``), once the hand-over writes or not."""
+        relay = self.yaw
+        if relay is None:
+            return
+        if not relay.done:
+            relay.give_up("the tests ended before its relay cycle was steady")
+        when = ""
+        if math.isfinite(relay.t_ready_s) and math.isfinite(relay.t_first_s):
+            when = (f"; steady cycles {relay.t_ready_s - relay.t_first_s:.1f} s after "
+                    f"lift-off (relay from {relay.t_relay_s - relay.t_first_s:.1f} s, h "
+                    f"{relay.h:.3g}, largest heading error "
+                    f"{math.degrees(relay.max_error_rad):.1f} deg)")
+        ident, design = self.yaw_ident, self.yaw_written
+        if relay.state is YawState.TUNED and ident is not None and design is not None:
+            m, c = ident.model, design.cascade
+            assert isinstance(m, InnerModel) and c is not None
+            vals = ", ".join(f"{k} {v:.4g}" for k, v in design.values.items())
+            self.yaw_note = (
+                f"yaw tuned on the rate path: identified by the attitude classifier (K "
+                f"{m.K:.3g}, T_prop {m.T_prop:.3g} s, T1 {m.T1:.3g} s, tau {m.tau:.3g} s; "
+                f"period {ident.period_s:.3f} s, amplitude {math.degrees(ident.amplitude):.2f} "
+                f"deg; PD Kc {ident.gains.Kc:.3g}, Kd {ident.gains.Kd:.3g}), written {vals}: "
+                f"{design.note()}{when}")
+        else:
+            if ident is not None and isinstance(ident.model, InnerModel):
+                m = ident.model
+                when += (f"; identified K {m.K:.3g}, T_prop {m.T_prop:.3g} s, T1 {m.T1:.3g} s, "
+                         f"tau {m.tau:.3g} s, period {ident.period_s:.3f} s")
+            self.yaw_note = (f"yaw held on its own gains: {relay.why}; the ground station "
+                             f"held it on the vehicle's own yaw gains, which are restored"
+                             f"{when}")
+        self.notes.extend(relay.events)
 
     def require_aligned(self, timeout_s: float = 1.5) -> Alignment:
         """Before the take-off: the onboard target must sit on the body (ATTITUDE_TARGET
@@ -452,6 +710,7 @@ class RatePath:
         if self._checking:
             for axis in (1, 2, 3):
                 self._judge(axis)
+        self._yaw_step()
         if self.t_engaged is not None and (self.channel.worst_thrust_rad
                                            > math.radians(MAX_THRUST_ERROR_DEG)):
             raise SafetyAbort(
@@ -492,6 +751,7 @@ class RatePath:
         test = self.params.test_params
         if not self.handed_over:
             self.staged = {n: v for n, v in values.items() if n in test}
+            self.staged.update(self.yaw_staged)
         return {n: v for n, v in values.items() if n not in test}
 
     def _final(self, keep_written: bool = True) -> dict[str, float]:
@@ -524,6 +784,8 @@ class RatePath:
         """
         if self.handed_over:
             return self.changes
+        self._yaw_outcome()
+        self.staged.update(self.yaw_staged)
         self._checking = False  # the rate loop is no longer pure feed-forward from here
         final, p = self._final(), self.params
         t0 = time.monotonic()
@@ -623,8 +885,10 @@ class RatePath:
     def inner_due(self, roll_pitch_tuned: bool) -> bool:
         """True once roll and pitch are identified and the hand-over has not run: the side
         tests then fly on the written gains onboard (as on the attitude path), and the
-        zero-gain window closes there."""
-        return roll_pitch_tuned and not self.handed_over and self.backup is not None
+        zero-gain window closes there. A yaw relay must be done too (identified or given
+        up: it gives up within its own time limit)."""
+        yaw_done = self.yaw is None or self.yaw.done
+        return roll_pitch_tuned and yaw_done and not self.handed_over and self.backup is not None
 
     def merged_backup(self, other: str | None) -> str:
         """A backup file with the values from before the tune of every parameter it wrote:

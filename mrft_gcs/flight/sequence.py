@@ -54,6 +54,7 @@ from mrft_gcs.flight.phases.state import (
     LoopTest,
     Phase,
 )
+from mrft_gcs.flight.phases.yaw import YawRelay
 from mrft_gcs.flight.takeoff import TakeoffController
 from mrft_gcs.identify import Identification, RelaySettings
 from mrft_gcs.loops import INNER_LOOPS, SIDE_LOOPS, Loop
@@ -106,7 +107,7 @@ class TuningSequence:
         self.altitude = AltitudeRelay(self.shared, self.altitude_relay)
         self.attitude = AttitudeRelays(self.shared, self.attitude_relay, self.liftoff)
         self.side = SideRelays(self.shared)
-        self.yaw = YawHold()
+        self.yaw: YawHold | YawRelay = YawHold()
         self.yaw_ref = 0.0
         self.t_start_s = _NAN
         self.t_last_tuned_s = _NAN
@@ -376,7 +377,8 @@ class TuningSequence:
                                       new_att, airborne)
             pitch = self.attitude.step(Loop.PITCH, pitch_ref, s.pitch_rad, s.q_rad_s, s.t_att_s,
                                        new_att, airborne)
-            yaw = self.yaw.step(self.yaw_ref, s.yaw_rad, s.r_rad_s) if airborne else 0.0
+            yaw = (self.yaw.step(self.yaw_ref, s.yaw_rad, s.r_rad_s, s.t_att_s) if airborne
+                   else 0.0)
             return ActuatorTarget(s.t_att_s, roll, pitch, yaw, thrust)
 
     # ------------------------------------------------------------------ display

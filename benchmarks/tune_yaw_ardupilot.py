@@ -1,0 +1,133 @@
+"""Yaw on ArduCopter's rate path: tune all loops and yaw, and compare the heading hold.
+
+    python benchmarks/tune_yaw_ardupilot.py [--runs 2] [--instance N] [--hold-s 8]
+
+Starts ArduCopter SITL (parameters wiped, :mod:`tune_ardupilot`'s recipe), then per run:
+*before* (the vehicle's own gains) and *after* (the gains the tune wrote, restored after):
+take off in GUIDED to 1 m, hold in LOITER for ``--hold-s`` (heading peak-to-peak, yaw-rate
+standard deviation), then in GUIDED a 45 deg heading step (MAV_CMD_CONDITION_YAW at
+90 deg/s): overshoot past the new heading, time to stay within 2 deg, the error left; land.
+Between them ``tune(actuation="rate")``: what yaw identified and wrote, the zero-gain window,
+the time from take-off. One line per figure; nothing is written to disk but the SITL's run
+folder (a temporary one).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from tune_ardupilot import GUIDED, LOITER, RECIPE, Observer, _listening, start_sitl  # noqa: E402
+
+from mrft_gcs.errors import MrftError  # noqa: E402
+from mrft_gcs.flight.api import tune  # noqa: E402
+from mrft_gcs.link import VehicleLink  # noqa: E402
+from mrft_gcs.params import ParamClient  # noqa: E402
+
+YAW_NAMES = ("ATC_ANG_YAW_P", "ATC_RAT_YAW_P", "ATC_RAT_YAW_I", "ATC_RAT_YAW_D",
+             "ATC_RAT_YAW_FLTE", "ATC_RAT_YAW_FLTT")
+
+
+def heading(obs: Observer, seconds: float) -> np.ndarray:
+    """(t, yaw rad unwrapped, yaw rate rad/s) from ATTITUDE for ``seconds``."""
+    rows = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        msg = obs.m.recv_match(type="ATTITUDE", blocking=True, timeout=0.2)
+        if msg is not None:
+            rows.append((msg.time_boot_ms * 1e-3, msg.yaw, msg.yawspeed))
+    a = np.asarray(rows, float).reshape(-1, 3)
+    a[:, 1] = np.unwrap(a[:, 1])
+    return a
+
+
+def yaw_figures(obs: Observer, hold_s: float) -> dict[str, float]:
+    obs.mode(GUIDED)
+    obs.command(400, 1)
+    obs.command(22, 0, 0, 0, 0, 0, 0, 1.0)
+    end = time.monotonic() + 20
+    while time.monotonic() < end and obs.height() < 0.9:
+        pass
+    time.sleep(2.0)
+    obs.mode(LOITER)
+    hold = heading(obs, hold_s)
+    obs.mode(GUIDED)
+    time.sleep(1.0)
+    start = heading(obs, 0.3)
+    y0 = float(start[-1, 1])
+    obs.command(115, 45.0, 90.0, 1, 1)  # CONDITION_YAW: +45 deg, 90 deg/s, clockwise, relative
+    step = heading(obs, 5.0)
+    obs.land_and_wait()
+    e = np.degrees(step[:, 1] - (y0 + math.radians(45.0)))
+    outside = np.flatnonzero(np.abs(e) > 2.0)
+    settle = (float(step[outside[-1] + 1, 0] - step[0, 0]) if outside.size and
+              outside[-1] + 1 < len(step) else math.nan if outside.size else 0.0)
+    return {"heading_p2p_deg": float(np.degrees(np.ptp(hold[:, 1]))),
+            "yaw_rate_std_deg_s": float(np.degrees(hold[:, 2].std())),
+            "step_overshoot_deg": float(max(0.0, e.max())),
+            "step_settle_s": settle, "step_error_end_deg": float(abs(e[-10:]).mean())}
+
+
+def line(name: str, f: dict[str, float]) -> str:
+    return (f"{name:6s} LOITER heading p2p {f['heading_p2p_deg']:.2f} deg, yaw rate std "
+            f"{f['yaw_rate_std_deg_s']:.2f} deg/s; 45 deg step overshoot "
+            f"{f['step_overshoot_deg']:.1f} deg, within 2 deg after {f['step_settle_s']:.2f} s, "
+            f"error at the end {f['step_error_end_deg']:.2f} deg")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=1)
+    ap.add_argument("--instance", type=int, default=None)
+    ap.add_argument("--hold-s", type=float, default=8.0)
+    ap.add_argument("--no-before", action="store_true", help="skip the holds before")
+    args = ap.parse_args()
+    instance = args.instance if args.instance is not None else next(
+        i for i in range(61, 99) if not _listening(5760 + 10 * i))
+    base = 5760 + 10 * instance
+    with tempfile.TemporaryDirectory() as tmp:
+        pid = start_sitl(instance, tmp)
+        try:
+            obs = Observer(f"tcp:127.0.0.1:{base + 3}")
+            for run in range(args.runs):
+                if not args.no_before:
+                    print(line("before", yaw_figures(obs, args.hold_s)), flush=True)
+                t = time.monotonic()
+                try:
+                    result = tune(f"tcp:127.0.0.1:{base}", "ardupilot", backup_dir=tmp,
+                                  heartbeat_timeout_s=10, actuation="rate")
+                    status, error = result.status, ""
+                except MrftError as err:
+                    result = err.partial_result
+                    status, error = result.status, str(err)
+                written = {c.name: f"{c.old:.4g}->{c.new:.4g}" for c in result.parameters
+                           if "YAW" in c.name}
+                print(f"run {run}: tune {status} in {time.monotonic() - t:.1f} s "
+                      f"({result.duration_s:.1f} s from take-off, load "
+                      f"{os.getloadavg()[0]:.1f}); yaw written {written} {error}", flush=True)
+                for note in result.notes:
+                    if note.startswith(("yaw", "rate path: zero-gain", "rate path: roll written",
+                                        "rate path: pitch written")):
+                        print(f"run {run}: {note}", flush=True)
+                obs.land_and_wait()
+                if not result.backup:
+                    continue
+                print(line("after", yaw_figures(obs, args.hold_s)), flush=True)
+                with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
+                    ParamClient(link).restore(result.backup, tmp)
+        finally:
+            subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
