@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -26,12 +25,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from tune_ardupilot import GUIDED, LOITER, RECIPE, Observer, _listening, start_sitl  # noqa: E402
+from tune_ardupilot import GUIDED, LOITER, Observer  # noqa: E402
 
 from mrft_gcs.errors import MrftError  # noqa: E402
 from mrft_gcs.flight.api import tune  # noqa: E402
 from mrft_gcs.link import VehicleLink  # noqa: E402
 from mrft_gcs.params import ParamClient  # noqa: E402
+from mrft_gcs.sitl.arducopter import ArduCopterSitl, free_instance, why_not  # noqa: E402
 
 YAW_NAMES = ("ATC_ANG_YAW_P", "ATC_RAT_YAW_P", "ATC_RAT_YAW_I", "ATC_RAT_YAW_D",
              "ATC_RAT_YAW_FLTE", "ATC_RAT_YAW_FLTT")
@@ -91,41 +91,39 @@ def main() -> int:
     ap.add_argument("--hold-s", type=float, default=8.0)
     ap.add_argument("--no-before", action="store_true", help="skip the holds before")
     args = ap.parse_args()
-    instance = args.instance if args.instance is not None else next(
-        i for i in range(61, 99) if not _listening(5760 + 10 * i))
-    base = 5760 + 10 * instance
-    with tempfile.TemporaryDirectory() as tmp:
-        pid = start_sitl(instance, tmp)
-        try:
-            obs = Observer(f"tcp:127.0.0.1:{base + 3}")
-            for run in range(args.runs):
-                if not args.no_before:
-                    print(line("before", yaw_figures(obs, args.hold_s)), flush=True)
-                t = time.monotonic()
-                try:
-                    result = tune(f"tcp:127.0.0.1:{base}", "ardupilot", backup_dir=tmp,
-                                  heartbeat_timeout_s=10, actuation="rate")
-                    status, error = result.status, ""
-                except MrftError as err:
-                    result = err.partial_result
-                    status, error = result.status, str(err)
-                written = {c.name: f"{c.old:.4g}->{c.new:.4g}" for c in result.parameters
-                           if "YAW" in c.name}
-                print(f"run {run}: tune {status} in {time.monotonic() - t:.1f} s "
-                      f"({result.duration_s:.1f} s from take-off, load "
-                      f"{os.getloadavg()[0]:.1f}); yaw written {written} {error}", flush=True)
-                for note in result.notes:
-                    if note.startswith(("yaw", "rate path: zero-gain", "rate path: roll written",
-                                        "rate path: pitch written")):
-                        print(f"run {run}: {note}", flush=True)
-                obs.land_and_wait()
-                if not result.backup:
-                    continue
-                print(line("after", yaw_figures(obs, args.hold_s)), flush=True)
-                with VehicleLink.connect(f"tcp:127.0.0.1:{base}", timeout_s=10) as link:
-                    ParamClient(link).restore(result.backup, tmp)
-        finally:
-            subprocess.run([str(RECIPE / "stop.sh"), pid], capture_output=True, timeout=30)
+    reason = why_not()
+    if reason is not None:
+        print(reason, file=sys.stderr)
+        return 2
+    instance = args.instance if args.instance is not None else free_instance(61, 99)
+    with tempfile.TemporaryDirectory() as tmp, ArduCopterSitl.start(instance, tmp) as sitl:
+        obs = Observer(sitl.serial2)
+        for run in range(args.runs):
+            if not args.no_before:
+                print(line("before", yaw_figures(obs, args.hold_s)), flush=True)
+            t = time.monotonic()
+            try:
+                result = tune(sitl.serial0, "ardupilot", backup_dir=tmp,
+                              heartbeat_timeout_s=10, actuation="rate")
+                status, error = result.status, ""
+            except MrftError as err:
+                result = err.partial_result
+                status, error = result.status, str(err)
+            written = {c.name: f"{c.old:.4g}->{c.new:.4g}" for c in result.parameters
+                       if "YAW" in c.name}
+            print(f"run {run}: tune {status} in {time.monotonic() - t:.1f} s "
+                  f"({result.duration_s:.1f} s from take-off, load "
+                  f"{os.getloadavg()[0]:.1f}); yaw written {written} {error}", flush=True)
+            for note in result.notes:
+                if note.startswith(("yaw", "rate path: zero-gain", "rate path: roll written",
+                                    "rate path: pitch written")):
+                    print(f"run {run}: {note}", flush=True)
+            obs.land_and_wait()
+            if not result.backup:
+                continue
+            print(line("after", yaw_figures(obs, args.hold_s)), flush=True)
+            with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
+                ParamClient(link).restore(result.backup, tmp)
     return 0
 
 
