@@ -75,3 +75,40 @@ def fly(seq: TuningSequence, vehicle: str = "qdrone", seed: int = 0, max_s: floa
 
 
 __all__ = ["truth_identifier", "fly", "state_of", "ATT_RELAY", "ALT_RELAY", "SIDE_RELAY", "np"]
+
+
+def fly_roll_check(v, hover_thrust: float, gains, model, level_ticks: int = 125):
+    """The in-air check of roll gains ``gains`` (a PD) flown on an in-process vehicle ``v``
+    (its physics and onboard PX4-style cascade; telemetry and set points at 250 Hz), after
+    ``level_ticks`` level ticks; the plan predicts on ``model``. Returns ``(plan, check)``."""
+    from mrft_gcs.flight.inair import (
+        CHECK_AMPLITUDE_RAD,
+        SquareWaveProbe,
+        check_margin,
+        plan_check,
+    )
+    from mrft_gcs.loops import Loop
+    from mrft_gcs.sitl.onboard import FlightMode
+    from mrft_gcs.sitl.physics import quat_from_euler
+
+    v.reset((0.0, 0.0, -3.0), airborne=True)
+    ap = v.autopilot
+    for name, value in {"MC_ROLL_P": gains.Kc / gains.Kd, "MC_ROLLRATE_P": gains.Kd,
+                        "MC_ROLLRATE_I": 0.0, "MC_ROLLRATE_D": 0.0,
+                        "MC_ROLLRATE_K": 1.0}.items():
+        assert ap.params.set(name, value)
+    level = quat_from_euler(0.0, 0.0, 0.0)
+    ap.set_attitude_target(level, hover_thrust)
+    ap.set_mode(FlightMode.OFFBOARD)
+    ap.arm(True)
+    for _ in range(level_ticks):
+        ap.set_attitude_target(level, hover_thrust)
+        v.run(0.004)
+    plan = plan_check(model, gains, CHECK_AMPLITUDE_RAD)
+    probe = SquareWaveProbe({Loop.ROLL: plan})
+    while not probe.done:
+        att = v.physics.meas_att
+        r, p = probe.step(v.time_s, v.time_s, att[0], att[1])
+        ap.set_attitude_target(quat_from_euler(r, p, 0.0), hover_thrust)
+        v.run(0.004)
+    return plan, check_margin(plan, *probe.points()[Loop.ROLL])

@@ -109,34 +109,12 @@ def _fly_check(Kc: float, Kd: float, model: InnerModel):
     """The check of roll gains ``(Kc, Kd)`` flown on the bundled SITL's vehicle in-process
     (its physics and onboard PX4-style cascade at 1 kHz, telemetry and set points at 250 Hz);
     the plan predicts on ``model``."""
-    from mrft_gcs.flight.inair import CHECK_AMPLITUDE_RAD, SquareWaveProbe
-    from mrft_gcs.loops import Loop
+    from flight_sim import fly_roll_check
+
     from mrft_gcs.sitl import SimVehicle, load_airframe
-    from mrft_gcs.sitl.onboard import FlightMode
-    from mrft_gcs.sitl.physics import quat_from_euler
 
     af = load_airframe("qdrone")
-    v = SimVehicle(af, seed=0)
-    v.reset((0.0, 0.0, -3.0), airborne=True)
-    ap = v.autopilot
-    for name, value in {"MC_ROLL_P": Kc / Kd, "MC_ROLLRATE_P": Kd, "MC_ROLLRATE_I": 0.0,
-                        "MC_ROLLRATE_D": 0.0, "MC_ROLLRATE_K": 1.0}.items():
-        assert ap.params.set(name, value)
-    level = quat_from_euler(0.0, 0.0, 0.0)
-    ap.set_attitude_target(level, af.hover_thrust)
-    ap.set_mode(FlightMode.OFFBOARD)
-    ap.arm(True)
-    for _ in range(125):  # half a second level first
-        ap.set_attitude_target(level, af.hover_thrust)
-        v.run(0.004)
-    plan = plan_check(model, PD(Kc, Kd), CHECK_AMPLITUDE_RAD)
-    probe = SquareWaveProbe({Loop.ROLL: plan})
-    while not probe.done:
-        att = v.physics.meas_att
-        r, p = probe.step(v.time_s, v.time_s, att[0], att[1])
-        ap.set_attitude_target(quat_from_euler(r, p, 0.0), af.hover_thrust)
-        v.run(0.004)
-    return plan, check_margin(plan, *probe.points()[Loop.ROLL])
+    return fly_roll_check(SimVehicle(af, seed=0), af.hover_thrust, PD(Kc, Kd), model)
 
 
 def test_check_on_the_sitl_vehicle_measures_its_onboard_loop():

@@ -292,21 +292,15 @@ def test_the_benchmark_scores_the_delays_the_vehicle_realises():
     the in-air check flown in-process on that vehicle then reads the margin of that truth."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     import tune_thirdparty as tt
+    from flight_sim import fly_roll_check
 
-    from mrft_gcs.flight.inair import (
-        AGREE_DEG,
-        CHECK_AMPLITUDE_RAD,
-        SquareWaveProbe,
-        check_margin,
-        plan_check,
-    )
+    from mrft_gcs.flight.inair import AGREE_DEG
     from mrft_gcs.flight.scoring import score_written
     from mrft_gcs.loops import Loop
     from mrft_gcs.pd_design import frequency_grid, optimal_pd
     from mrft_gcs.plant import PD, InnerModel, inner_response
     from mrft_gcs.profiles import PDGains, gains_to_params, load_profile
-    from mrft_gcs.sitl.onboard import FlightMode, ParamStore
-    from mrft_gcs.sitl.physics import quat_from_euler
+    from mrft_gcs.sitl.onboard import ParamStore
 
     spec = rotorpy_airframe("crazyfliebrushless")
     af = spec.airframe
@@ -319,27 +313,8 @@ def test_the_benchmark_scores_the_delays_the_vehicle_realises():
     m = InnerModel(648.9, 0.0412, 0.947, 0.0074)
     w = frequency_grid(m.T_prop, m.T1, m.tau)
     g = optimal_pd(inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0], w).pd
-    v = rotorpy_vehicle(spec, seed=0)
-    v.reset((0.0, 0.0, -3.0), airborne=True)
-    ap = v.autopilot
-    for name, value in {"MC_ROLL_P": g.Kc / g.Kd, "MC_ROLLRATE_P": g.Kd, "MC_ROLLRATE_I": 0.0,
-                        "MC_ROLLRATE_D": 0.0, "MC_ROLLRATE_K": 1.0}.items():
-        assert ap.params.set(name, value)
-    level = quat_from_euler(0.0, 0.0, 0.0)
-    ap.set_attitude_target(level, af.hover_thrust)
-    ap.set_mode(FlightMode.OFFBOARD)
-    ap.arm(True)
-    for _ in range(250):
-        ap.set_attitude_target(level, af.hover_thrust)
-        v.run(0.004)
-    plan = plan_check(m, PD(g.Kc, g.Kd), CHECK_AMPLITUDE_RAD)
-    probe = SquareWaveProbe({Loop.ROLL: plan})
-    while not probe.done:
-        att = v.physics.meas_att
-        r, p = probe.step(v.time_s, v.time_s, att[0], att[1])
-        ap.set_attitude_target(quat_from_euler(r, p, 0.0), af.hover_thrust)
-        v.run(0.004)
-    check = check_margin(plan, *probe.points()[Loop.ROLL])
+    _, check = fly_roll_check(rotorpy_vehicle(spec, seed=0), af.hover_thrust,
+                              PD(g.Kc, g.Kd), m, level_ticks=250)
     prm = dict(ParamStore(af.hover_thrust, af.onboard).values)
     prm.update(gains_to_params(load_profile("sitl"), {Loop.ROLL: PDGains(g.Kc, g.Kd)},
                                prm["MPC_THR_HOVER"]))
