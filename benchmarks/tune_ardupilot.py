@@ -79,7 +79,7 @@ class Observer:
 
     def record(self, seconds: float) -> dict[str, np.ndarray]:
         rows: dict[str, list[tuple[float, ...]]] = {"pos": [], "att": [], "thr": [],
-                                                    "err": []}
+                                                    "err": [], "att_t": [], "tgt_t": []}
         target: tuple[float, float] | None = None
         end = time.monotonic() + seconds
         while time.monotonic() < end:
@@ -94,8 +94,10 @@ class Observer:
                 w, x, y, z = msg.q
                 target = (math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
                           math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x)))))
+                rows["tgt_t"].append((msg.time_boot_ms * 1e-3, *target))
             elif kind == "ATTITUDE":
                 rows["att"].append((msg.roll, msg.pitch))
+                rows["att_t"].append((msg.time_boot_ms * 1e-3, msg.roll, msg.pitch))
                 if target is not None:  # the attitude loop's own error, against its target
                     rows["err"].append((msg.roll - target[0], msg.pitch - target[1]))
             else:
@@ -131,10 +133,35 @@ class Observer:
         return hold_figures(data)
 
 
+def synced_error(att_t: np.ndarray, tgt_t: np.ndarray) -> np.ndarray:
+    """Roll/pitch minus the target interpolated to each ATTITUDE's own vehicle time (rad,
+    shape (n, 2)); ATTITUDE samples outside the target's time span are left out. Pairing each
+    ATTITUDE with the latest ATTITUDE_TARGET instead counts the target's motion since that
+    message as error: up to one stream period of it, more the faster the target moves."""
+    if len(att_t) < 2 or len(tgt_t) < 2:
+        return np.zeros((0, 2))
+    order = np.argsort(tgt_t[:, 0], kind="stable")
+    tt, tr, tp = tgt_t[order, 0], tgt_t[order, 1], tgt_t[order, 2]
+    keep = (att_t[:, 0] >= tt[0]) & (att_t[:, 0] <= tt[-1])
+    t = att_t[keep, 0]
+    return np.column_stack((att_t[keep, 1] - np.interp(t, tt, tr),
+                            att_t[keep, 2] - np.interp(t, tt, tp)))
+
+
+def _rms_deg(x: np.ndarray) -> float:
+    return float(np.degrees(np.sqrt(np.mean(np.sum(x**2, axis=1))))) if len(x) else math.nan
+
+
 def hold_figures(data: dict[str, np.ndarray]) -> dict[str, float]:
     pos, att, thr, err = data["pos"], data["att"], data["thr"], data["err"]
     z = pos[:, 2]
     tilt = np.degrees(np.arccos(np.cos(att[:, 0]) * np.cos(att[:, 1])))
+    sync = synced_error(data.get("att_t", np.zeros((0, 3))), data.get("tgt_t", np.zeros((0, 3))))
+    tgt = data.get("tgt_t", np.zeros((0, 3)))
+    rate = (np.diff(tgt[:, 1:], axis=0) / np.maximum(np.diff(tgt[:, 0]), 1e-3)[:, None]
+            if len(tgt) > 2 else np.zeros((0, 2)))
+    hf = (sync - np.column_stack([np.convolve(sync[:, k], np.ones(13) / 13, mode="same")
+                                  for k in range(2)]))[6:-6] if len(sync) > 13 else sync
     return {"alt_spread_m": float(z.max() - z.min()), "alt_std_m": float(z.std()),
             "max_climb_m_s": float(np.abs(pos[:, 3]).max()),
             "max_drift_m": float(np.hypot(pos[:, 0] - pos[0, 0], pos[:, 1] - pos[0, 1]).max()),
@@ -142,8 +169,12 @@ def hold_figures(data: dict[str, np.ndarray]) -> dict[str, float]:
             # the rocking about the mean lean (a steady wind leans the vehicle by degrees)
             "tilt_std_deg": float(np.degrees(np.hypot(att[:, 0].std(), att[:, 1].std()))),
             # roll/pitch against ATTITUDE_TARGET: what the attitude gains alone answer for
-            "att_err_rms_deg": float(np.degrees(np.sqrt(np.mean(np.sum(err**2, axis=1)))))
-            if len(err) else math.nan,
+            "att_err_rms_deg": _rms_deg(err),
+            # ... against the target at the same vehicle time, and its part above ~2 Hz
+            # (less a 0.5 s running mean); how fast the target itself moved (rms, deg/s)
+            "att_err_sync_rms_deg": _rms_deg(sync),
+            "att_err_hf_rms_deg": _rms_deg(hf),
+            "target_rate_rms_deg_s": _rms_deg(rate),
             "throttle_saturated": float(np.mean((thr[:, 0] <= 0) | (thr[:, 0] >= 100)))
             if len(thr) else math.nan,
             "throttle_std_pct": float(thr[:, 0].std()) if len(thr) else math.nan}
@@ -153,7 +184,10 @@ def line(name: str, f: dict[str, float]) -> str:
     return (f"{name:7s} alt spread {f['alt_spread_m']:.3f} m (std {f['alt_std_m']:.3f}), "
             f"|climb| <= {f['max_climb_m_s']:.2f} m/s, drift {f['max_drift_m']:.3f} m, tilt "
             f"<= {f['max_tilt_deg']:.1f} deg (std {f['tilt_std_deg']:.2f}, against the target "
-            f"{f['att_err_rms_deg']:.2f} rms), throttle saturated "
+            f"{f['att_err_rms_deg']:.2f} rms, synced "
+            f"{f.get('att_err_sync_rms_deg', math.nan):.3f}, "
+            f"above 2 Hz {f.get('att_err_hf_rms_deg', math.nan):.3f}; target moving "
+            f"{f.get('target_rate_rms_deg_s', math.nan):.1f} deg/s rms), throttle saturated "
             f"{100 * f['throttle_saturated']:.0f} % (std {f['throttle_std_pct']:.1f} %)")
 
 
@@ -294,6 +328,58 @@ def tune_run(run: int, serial0: str, obs: Observer, hold: Callable[[], dict[str,
     return row
 
 
+def compare_configs(source: Path, run: int, extra: list[str]) -> dict[str, dict[str, float]]:
+    """Parameter sets to hold on, from run ``run``'s written values in an earlier ``--json``:
+    ``stock`` (every written parameter at its value before), ``tuned`` (all written),
+    ``attitude`` (the ATC_* written, PSC_* stock), ``position`` (the PSC_* written, ATC_*
+    stock); ``extra``: ``NAME=BASE:P=V,P=V`` adds BASE with those values set on top."""
+    written = json.loads(source.read_text())["runs"][run]["written"]
+    old = {n: float(v[0]) for n, v in written.items()}
+    new = {n: float(v[1]) for n, v in written.items()}
+    out = {"stock": dict(old), "tuned": dict(new),
+           "attitude": {n: (new if n.startswith("ATC_") else old)[n] for n in old},
+           "position": {n: (new if n.startswith("PSC_") else old)[n] for n in old}}
+    for spec in extra:
+        name, rest = spec.split("=", 1)
+        base, _, sets = rest.partition(":")
+        cfg = dict(out[base])
+        for kv in filter(None, sets.split(",")):
+            k, v = kv.split("=")
+            cfg[k] = float(v)
+            old.setdefault(k, math.nan)
+        out[name] = cfg
+    return out
+
+
+def run_compare(sitl: ArduCopterSitl, args: argparse.Namespace, tmp: str,
+                hold: Callable[[], dict[str, float]], out: dict[str, object]) -> None:
+    """``--compare``: LOITER holds on each parameter set of :func:`compare_configs`, the sets
+    interleaved ``--repeats`` times; the vehicle's own values put back after."""
+    configs = compare_configs(args.compare, args.compare_run, args.config)
+    names = sorted({n for c in configs.values() for n in c})
+    with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
+        own = {n: p.value for n, p in ParamClient(link).read_many(names).items()}
+    for c in configs.values():  # names a set leaves out stay at the vehicle's own value
+        for n in names:
+            c.setdefault(n, own[n])
+    rows: list[dict[str, object]] = []
+    out["compare"] = {"source": str(args.compare), "run": args.compare_run,
+                      "configs": configs, "holds": rows}
+    try:
+        for rep in range(args.repeats):
+            for name, values in configs.items():
+                with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
+                    ParamClient(link).write(values, tmp, label="compare")
+                f = hold()
+                print(line(name[:7], f) + f" [repeat {rep}, load {os.getloadavg()[0]:.1f}]",
+                      flush=True)
+                rows.append({"config": name, "repeat": rep, "load_avg_1min":
+                             os.getloadavg()[0], **f})
+    finally:
+        with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
+            ParamClient(link).write(own, tmp, label="compare-undo")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hold-s", type=float, default=10.0)
@@ -316,6 +402,14 @@ def main() -> int:
                     help="the tune's path (default: the profile's, attitude)")
     ap.add_argument("--scripting", action="store_true",
                     help="boot the SITL with SCR_ENABLE 1 (the rate path's link-loss guard)")
+    ap.add_argument("--compare", type=Path, metavar="JSON",
+                    help="no tune: hold on the written values of an earlier --json run, split "
+                    "into stock / tuned / attitude only / position only (--compare-run, "
+                    "--repeats, --config)")
+    ap.add_argument("--compare-run", type=int, default=0, metavar="N")
+    ap.add_argument("--repeats", type=int, default=1, metavar="N")
+    ap.add_argument("--config", action="append", default=[], metavar="NAME=BASE:P=V,...",
+                    help="with --compare: another set, BASE's with these values on top")
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
     # a timeout's TERM unwinds like an error: the SITL is stopped and --json still written
@@ -392,6 +486,9 @@ def run_all(sitl: ArduCopterSitl, args: argparse.Namespace, tmp: str,
             with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
                 ParamClient(link).write({n: a for n, (a, _) in changed.items()}, tmp,
                                         label="autotune-undo")
+    if args.compare is not None:
+        run_compare(sitl, args, tmp, hold, out)
+        return
     runs: list[dict[str, object]] = []
     out["runs"] = runs
     for run in range(args.runs):

@@ -422,3 +422,66 @@ def test_cascade_check_models_the_rate_error_filter_yaw_has():
     L = fe * (filt.gains.Kc / (1 + s / (2 * np.pi * 20.0)) + filt.gains.Kd * s) * G
     assert margins(L, w).pm_deg == pytest.approx(filt.pm_deg, abs=0.5)
     assert filt.pm_deg >= PM_ROBUST_DEG - 0.1
+
+
+def _fly_arducopter_roll(m: InnerModel, angle_p: float, rate_p: float, rate_i: float,
+                         fltt_hz: float, torque: float, seconds: float = 6.0) -> np.ndarray:
+    """Roll angle (rad, one sample per 400 Hz loop) of ``m`` under ArduCopter's cascade as
+    AC_PID runs it (angle P into a rate target, FLTT on the target, P and I on the rate
+    error, IMAX 0.5), held level against a constant ``torque`` (normalised) from rest."""
+    dt, sub = 1.0 / 400.0, 8
+    h = dt / sub
+    delay = [0.0] * max(int(round(m.tau / h)), 1)
+    alpha = dt / (dt + 1.0 / (2 * np.pi * fltt_hz))
+    y = rate = up = target = integ = 0.0
+    out = []
+    for _ in range(int(seconds / dt)):
+        target += alpha * (angle_p * (0.0 - y) - target)
+        err = target - rate
+        integ = float(np.clip(integ + rate_i * err * dt, -0.5, 0.5))
+        u = rate_p * err + integ + torque
+        for _ in range(sub):
+            delay.append(u)
+            ud = delay.pop(0)
+            up += h * (ud - up) / m.T_prop
+            rate += h * (m.K * up - rate) / m.T1
+            y += h * rate
+        out.append(y)
+    return np.array(out)
+
+
+def test_rate_path_writes_a_rate_i_that_holds_level_against_a_torque():
+    """A constant torque (an offset centre of gravity, a weak motor) leaves the written
+    roll loop ``Kd (F Kc/Kd e - w)`` with P alone at the steady error ``d / Kc``; the
+    rate I written with its zero a decade below the crossover removes it, and the gains
+    keep PM >= 15 deg on the cascade with the 20 Hz rate-target filter and the I
+    (recomputed here), scaled down where the I's phase cost them the margin. Flown on
+    ArduCopter's discrete cascade, from the ArduCopter SITL roll model."""
+    from mrft_gcs.flight.onboard import CASCADE_LOOP_HZ, cascade_gains, rate_loop_gains
+    from mrft_gcs.flight.ratepath import RATE_I_DECADE
+
+    m = InnerModel(K=34.0, T_prop=0.0085, T1=0.095, tau=0.006)  # ArduCopter SITL roll
+    d = 0.02
+    w = frequency_grid(m.T_prop, m.T1, m.tau, extra_T=(10.0,))
+    s = 1j * w
+    G = m.K * np.exp(-(m.tau + 0.5 / CASCADE_LOOP_HZ) * s) / (
+        s * (m.T_prop * s + 1) * (m.T1 * s + 1))
+    for g in (PD(6.4, 0.21), PD(1.3 * 6.4, 1.3 * 0.21)):  # 21 and 16 deg without an I
+        plain = cascade_gains(m, g, 20.0)
+        c = rate_loop_gains(m, g, 20.0, decade=RATE_I_DECADE)
+        assert c.rate_i > 0 and c.pm_deg >= PM_ROBUST_DEG and "rate I" in c.note()
+        wc_p = cascade_gains(m, c.gains, 20.0).wc_rad_s
+        assert c.integrator_zero_rad_s == pytest.approx(wc_p / RATE_I_DECADE, rel=1e-3)
+        L = ((1 + c.integrator_zero_rad_s / s)
+             * (c.gains.Kc / (1 + s / (2 * np.pi * 20.0)) + c.gains.Kd * s) * G)
+        mg = margins(L, w)
+        assert mg.stable and mg.pm_deg == pytest.approx(c.pm_deg, abs=0.5)
+        assert mg.pm_deg >= PM_ROBUST_DEG - 0.5
+        without = _fly_arducopter_roll(m, g.Kc / g.Kd, g.Kd, 0.0, 20.0, d)
+        assert abs(without[-1] - d / plain.gains.Kc) < 0.05 * d / plain.gains.Kc
+        with_i = _fly_arducopter_roll(m, c.gains.Kc / c.gains.Kd, c.gains.Kd, c.rate_i, 20.0,
+                                      d)
+        # the error gone within a few integrator time constants, no oscillation left
+        assert np.abs(with_i[-400:]).max() < 0.05 * abs(without[-1])
+    assert rate_loop_gains(m, PD(6.4, 0.21), 20.0, decade=0.0) == cascade_gains(
+        m, PD(6.4, 0.21), 20.0)

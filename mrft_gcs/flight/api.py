@@ -68,7 +68,6 @@ from mrft_gcs.flight.inair import (
 )
 from mrft_gcs.flight.onboard import (
     Retarget,
-    cascade_gains,
     measure_gcs_delay,
     onboard_extra_delay_s,
     onboard_gains,
@@ -990,7 +989,7 @@ class _Run:
             m = t.identification.model
             g = t.identification.gains
             if isinstance(m, InnerModel):
-                cg = cascade_gains(m, g, rate.target_filter_hz(_ATTITUDE_LOOPS.index(lp)))
+                cg = rate.roll_pitch_gains(m, g, _ATTITUDE_LOOPS.index(lp))
                 g = cg.gains
                 self.notes.append(f"rate path: {lp.value} written {cg.note()}")
             self.written[lp] = g

@@ -78,7 +78,7 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "robust_onboard_gains", "PM_ROBUST_DEG", "ROUND_TRIP_SLACK_S", "SideRetarget",
            "onboard_side_gains", "onboard_extra_delay_s", "CAP_SHARE", "CERTAIN_CAP_SHARE",
            "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ", "CascadeGains", "cascade_gains",
-           "CASCADE_LOOP_HZ"]
+           "CASCADE_LOOP_HZ", "rate_loop_gains"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -663,12 +663,23 @@ class CascadeGains:
     #: the rate loop's error filter modelled (Hz; 0: none): ArduCopter's yaw has one
     #: (``ATC_RAT_YAW_FLTE``, 2.5 Hz by default), on the rate P in the feedback path
     error_filter_hz: float = 0.0
+    #: the zero of the rate loop's integrator (rad/s; 0: no rate I): the rate PID is
+    #: ``Kd (1 + w_i / s)``, so rate I is ``Kd w_i`` (:attr:`rate_i`)
+    integrator_zero_rad_s: float = 0.0
+
+    @property
+    def rate_i(self) -> float:
+        """Rate I to write (normalised output per rad of rate error; 0: none)."""
+        return self.gains.Kd * self.integrator_zero_rad_s
 
     def note(self) -> str:
         f = (f"{self.target_filter_hz:g} Hz rate-target filter" if self.target_filter_hz > 0
              else "no rate-target filter")
         if self.error_filter_hz > 0:
             f += f", {self.error_filter_hz:g} Hz rate-error filter"
+        if self.integrator_zero_rad_s > 0:
+            f += (f", rate I {self.rate_i:.3g} (its zero at {self.integrator_zero_rad_s:.3g} "
+                  f"rad/s)")
         out = (f"predicted PM {self.pm_deg:.0f} deg at {self.wc_rad_s:.0f} rad/s on ArduCopter's "
                f"cascade ({f}, {CASCADE_LOOP_HZ:g} Hz loop, the identified delay kept)")
         if self.scale < 1.0:
@@ -678,24 +689,30 @@ class CascadeGains:
 
 
 def _cascade_pm(model: InnerModel, gains: PD, target_filter_hz: float,
-                w: np.ndarray, error_filter_hz: float = 0.0) -> tuple[float, float]:
+                w: np.ndarray, error_filter_hz: float = 0.0,
+                integrator_zero_rad_s: float = 0.0) -> tuple[float, float]:
     s = 1j * w
     g = inner_response(model.K, model.T_prop, model.T1, model.tau + 0.5 / CASCADE_LOOP_HZ, w)[0]
     f = 1.0 / (1.0 + s / (2 * np.pi * target_filter_hz)) if target_filter_hz > 0 else 1.0
     # the error filter low-passes the rate P's input, so the whole feedback path
     fe = 1.0 / (1.0 + s / (2 * np.pi * error_filter_hz)) if error_filter_hz > 0 else 1.0
-    m = margins(fe * (gains.Kc * f + gains.Kd * s) * g, w)
+    # rate I acts on the same (filtered) rate error as rate P: the PID is Kd (1 + w_i/s)
+    wi = integrator_zero_rad_s
+    integ = 1.0 + wi / s if wi > 0 else 1.0
+    m = margins(fe * integ * (gains.Kc * f + gains.Kd * s) * g, w)
     return (float(m.pm_deg) if m.stable else -math.inf), float(m.wc)
 
 
 def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
                   pm_min_deg: float = PM_ROBUST_DEG,
-                  error_filter_hz: float = 0.0) -> CascadeGains:
+                  error_filter_hz: float = 0.0,
+                  integrator_zero_rad_s: float = 0.0) -> CascadeGains:
     """The identified roll/pitch (or yaw) ``gains`` checked on ArduCopter's cascade (see
     :class:`CascadeGains`), on ``model`` with its identified delay (the ground station's
     delay left in: the onboard loop has less) plus half a loop period; scaled down together
     until they keep ``pm_min_deg`` where they do not. ``error_filter_hz``: the rate loop's
-    error filter (Hz; 0: none).
+    error filter (Hz; 0: none). ``integrator_zero_rad_s``: a rate I with its zero there
+    (rad/s; 0: none), kept at that frequency while the gains are scaled.
 
     Examples
     --------
@@ -707,20 +724,67 @@ def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     >>> c.scale < 1.0, round(c.pm_deg)
     (True, 40)
     """
-    w = frequency_grid(model.T_prop, model.T1, model.tau)
+    wi = max(float(integrator_zero_rad_s), 0.0)
+    w = frequency_grid(model.T_prop, model.T1, model.tau,
+                       extra_T=(1.0 / wi,) if wi > 0 else ())
     fe = error_filter_hz
-    pm0, wc0 = _cascade_pm(model, gains, target_filter_hz, w, fe)
+    pm0, wc0 = _cascade_pm(model, gains, target_filter_hz, w, fe, wi)
     if pm0 >= pm_min_deg:
-        return CascadeGains(gains, 1.0, pm0, pm0, target_filter_hz, wc0, fe)
+        return CascadeGains(gains, 1.0, pm0, pm0, target_filter_hz, wc0, fe, wi)
     lo, hi = 0.0, 1.0  # the largest factor that keeps the margin, to 0.1 %
     while hi - lo > 1e-3:
         mid = 0.5 * (lo + hi)
         pm_mid, _ = _cascade_pm(model, PD(gains.Kc * mid, gains.Kd * mid), target_filter_hz, w,
-                                fe)
+                                fe, wi)
         if pm_mid >= pm_min_deg:
             lo = mid
         else:
             hi = mid
     scaled = PD(gains.Kc * lo, gains.Kd * lo)
-    pm, wc = _cascade_pm(model, scaled, target_filter_hz, w, fe)
-    return CascadeGains(scaled, round(lo, 3), pm, pm0, target_filter_hz, wc, fe)
+    pm, wc = _cascade_pm(model, scaled, target_filter_hz, w, fe, wi)
+    return CascadeGains(scaled, round(lo, 3), pm, pm0, target_filter_hz, wc, fe, wi)
+
+
+def rate_loop_gains(model: InnerModel, gains: PD, target_filter_hz: float,
+                    error_filter_hz: float = 0.0, pm_min_deg: float = PM_ROBUST_DEG,
+                    decade: float = 0.0) -> CascadeGains:
+    """Roll/pitch gains for ArduCopter's cascade with a rate I (``decade`` > 0): its zero
+    ``decade`` times below the crossover the written P gains have on the cascade without it;
+    where the I's phase takes the margin below ``pm_min_deg``, the gains are scaled down
+    together (the zero following their crossover) to the largest factor that keeps it.
+    ``decade`` 0: no rate I (:func:`cascade_gains`).
+
+    >>> m = InnerModel(K=34.0, T_prop=0.0085, T1=0.095, tau=0.006)
+    >>> c = rate_loop_gains(m, PD(6.4, 0.21), 20.0, decade=10.0)
+    >>> c.rate_i > 0, c.pm_deg >= 15.0, round(c.integrator_zero_rad_s * 10 / cascade_gains(
+    ...     m, c.gains, 20.0).wc_rad_s, 3)
+    (True, True, 1.0)
+    """
+    c0 = cascade_gains(model, gains, target_filter_hz, pm_min_deg, error_filter_hz)
+    if not (decade > 0 and c0.scale > 0 and math.isfinite(c0.wc_rad_s)):
+        return c0
+    fe = error_filter_hz
+    w = frequency_grid(model.T_prop, model.T1, model.tau, extra_T=(10.0 * decade / c0.wc_rad_s,))
+
+    def at(k: float) -> tuple[PD, float, float]:
+        g = PD(gains.Kc * k, gains.Kd * k)
+        wi = _cascade_pm(model, g, target_filter_hz, w, fe)[1] / decade
+        return g, wi, _cascade_pm(model, g, target_filter_hz, w, fe, wi)[0]
+
+    g, wi, pm = at(1.0)
+    k = 1.0
+    if not pm >= pm_min_deg:
+        lo, hi = 0.0, c0.scale  # the largest factor that keeps the margin, to 0.1 %
+        while hi - lo > 1e-3:
+            mid = 0.5 * (lo + hi)
+            if at(mid)[2] >= pm_min_deg:
+                lo = mid
+            else:
+                hi = mid
+        if lo <= 0.0:
+            return c0  # no factor keeps the margin with an I: none written
+        k = round(lo, 3)
+        g, wi, pm = at(k)
+    pm0 = _cascade_pm(model, gains, target_filter_hz, w, fe, at(1.0)[1])[0]
+    wc = _cascade_pm(model, g, target_filter_hz, w, fe, wi)[1]
+    return CascadeGains(g, k, pm, pm0, target_filter_hz, wc, fe, wi)

@@ -44,7 +44,7 @@ from mrft_gcs.domains import D_ATT
 from mrft_gcs.errors import LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState, YawHold
 from mrft_gcs.flight.inair import OnboardCascade
-from mrft_gcs.flight.onboard import CascadeGains, cascade_gains
+from mrft_gcs.flight.onboard import CascadeGains, cascade_gains, rate_loop_gains
 from mrft_gcs.flight.phases.state import CycleSnapshot
 from mrft_gcs.flight.phases.yaw import YawRelay, YawState
 from mrft_gcs.flight.source import Setpoint
@@ -75,7 +75,8 @@ from mrft_gcs.telemetry import (
 __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignment",
            "check_feed_forward", "rate_path_refusal", "body_rates", "LINK_LOSS_GUARD",
            "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE", "TARGET_SET_PARAM",
-           "CHECK_PARAMS", "CHECK_SPAN_S", "INAIR_CHECK", "TUNE_YAW", "YawDesign",
+           "CHECK_PARAMS", "CHECK_SPAN_S", "INAIR_CHECK", "TUNE_YAW", "RATE_I_DECADE",
+           "YawDesign",
            "yaw_design", "yaw_names"]
 
 #: relative error of the measured ``k`` above which the rates are scaled to it
@@ -150,6 +151,13 @@ CHECK_PARAMS = {"ATC_ACCEL_R_MAX": 0.0, "ATC_ACCEL_P_MAX": 0.0, "ATC_INPUT_TC": 
 #: the in-air check's measured cycles span at least this on this path (s): crossovers of
 #: 60-90 rad/s give 3 cycles of 0.2-0.3 s, too few ATTITUDE_TARGET samples at 250 Hz
 CHECK_SPAN_S = 1.0
+#: roll/pitch: the written rate I's zero sits this factor below the written loop's crossover
+#: on the cascade (0: rate I written 0, the identified PD alone). With P alone the rate loop
+#: leaves a rate error wherever the body must be held against a torque or the target's
+#: rate feed-forward asks for a rate the drag resists; the I removes it at the cost of
+#: atan(1/10) = 6 deg of phase at the crossover (the gains scaled down where that takes
+#: the margin below 15 deg: :func:`~mrft_gcs.flight.onboard.rate_loop_gains`)
+RATE_I_DECADE = 10.0
 _ATTITUDE_TARGET_ID = 83
 _PID_TUNING_ID = 194
 _AXES = ("roll", "pitch", "yaw")
@@ -515,6 +523,7 @@ class RatePath:
         self.t_engaged: float | None = None
         self.zero_gain_s = math.nan
         self.staged: dict[str, float] = {}  # the tune's written values among test params
+        self.rate_i: dict[str, float] = {}  # roll/pitch rate I to write (name -> value)
         self.handed_over = False
         self.changes: tuple[ParamChange, ...] = ()
         self.yaw_note: str | None = None  # how yaw was held, where not the default hold
@@ -751,6 +760,7 @@ class RatePath:
         test = self.params.test_params
         if not self.handed_over:
             self.staged = {n: v for n, v in values.items() if n in test}
+            self.staged.update({n: v for n, v in self.rate_i.items() if n in self.staged})
             self.staged.update(self.yaw_staged)
         return {n: v for n, v in values.items() if n not in test}
 
@@ -836,6 +846,15 @@ class RatePath:
         name = self.params.rate_p[axis].removesuffix("P") + "FLTT"
         hz = self._final().get(name, 0.0)
         return float(hz) if math.isfinite(hz) and hz > 0 else 0.0
+
+    def roll_pitch_gains(self, model: InnerModel, gains: PD, axis: int) -> CascadeGains:
+        """The written gains of ``axis`` (0 roll, 1 pitch) on ArduCopter's cascade as it
+        flies them after the hand-over (:meth:`target_filter_hz`), with a rate I of
+        :data:`RATE_I_DECADE` (:func:`~mrft_gcs.flight.onboard.rate_loop_gains`), which
+        :meth:`split` writes in place of the I of 0 the PD mapping gives."""
+        c = rate_loop_gains(model, gains, self.target_filter_hz(axis), decade=RATE_I_DECADE)
+        self.rate_i[self.params.rate_p[axis].removesuffix("P") + "I"] = c.rate_i
+        return c
 
     def cascade(self, client: ParamClient, axis: int) -> OnboardCascade:
         """The onboard attitude cascade of ``axis`` (0 roll, 1 pitch) after the hand-over,
