@@ -53,6 +53,7 @@ figures behind each choice: docs/writing-gains.md.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -78,7 +79,7 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "robust_onboard_gains", "PM_ROBUST_DEG", "ROUND_TRIP_SLACK_S", "SideRetarget",
            "onboard_side_gains", "onboard_extra_delay_s", "CAP_SHARE", "CERTAIN_CAP_SHARE",
            "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ", "CascadeGains", "cascade_gains",
-           "CASCADE_LOOP_HZ", "rate_loop_gains"]
+           "CASCADE_LOOP_HZ", "rate_loop_gains", "RATE_I_LOWEST"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -679,7 +680,8 @@ class CascadeGains:
             f += f", {self.error_filter_hz:g} Hz rate-error filter"
         if self.integrator_zero_rad_s > 0:
             f += (f", rate I {self.rate_i:.3g} (its zero at {self.integrator_zero_rad_s:.3g} "
-                  f"rad/s)")
+                  f"rad/s, {self.wc_rad_s / self.integrator_zero_rad_s:.0f} x below the "
+                  f"crossover)")
         out = (f"predicted PM {self.pm_deg:.0f} deg at {self.wc_rad_s:.0f} rad/s on ArduCopter's "
                f"cascade ({f}, {CASCADE_LOOP_HZ:g} Hz loop, the identified delay kept)")
         if self.scale < 1.0:
@@ -700,7 +702,42 @@ def _cascade_pm(model: InnerModel, gains: PD, target_filter_hz: float,
     wi = integrator_zero_rad_s
     integ = 1.0 + wi / s if wi > 0 else 1.0
     m = margins(fe * integ * (gains.Kc * f + gains.Kd * s) * g, w)
-    return (float(m.pm_deg) if m.stable else -math.inf), float(m.wc)
+    # with a rate I the loop has two integrators: its phase starts at -180 deg, and below
+    # it where the drag pole lies under the I's zero, which the Nyquist count of margins()
+    # (written for one integrator) takes for an encirclement; the closed loop's poles decide
+    stable = (_cascade_poles_stable(model, gains, target_filter_hz, error_filter_hz, wi)
+              if wi > 0 else m.stable)
+    return (float(m.pm_deg) if stable else -math.inf), float(m.wc)
+
+
+#: order of the Pade approximation of the loop's delay in :func:`_cascade_poles_stable`
+_PADE_ORDER = 6
+
+
+def _cascade_poles_stable(model: InnerModel, gains: PD, target_filter_hz: float,
+                          error_filter_hz: float, integrator_zero_rad_s: float) -> bool:
+    """Whether the closed cascade of :func:`_cascade_pm` (with a rate I) has all its poles in
+    the left half plane, the delay as a Pade approximation of order :data:`_PADE_ORDER`."""
+    n = _PADE_ORDER
+    tau = model.tau + 0.5 / CASCADE_LOOP_HZ
+    c = [math.factorial(2 * n - k) * math.factorial(n)
+         / (math.factorial(2 * n) * math.factorial(k) * math.factorial(n - k))
+         for k in range(n + 1)]
+    pade_num = np.array([c[k] * (-tau) ** k for k in range(n, -1, -1)])
+    pade_den = np.array([c[k] * tau ** k for k in range(n, -1, -1)])
+
+    def lag(hz: float) -> np.ndarray:  # 1 + s / (2 pi hz), or 1
+        return np.array([1.0 / (2 * np.pi * hz), 1.0]) if hz > 0 else np.array([1.0])
+
+    ft, fe = lag(target_filter_hz), lag(error_filter_hz)
+    # (1 + w_i/s) (Kc / ft + Kd s) / fe * K pade / (s (Tp s + 1) (T1 s + 1))
+    ctrl = np.polyadd(gains.Kc * np.ones(1), np.polymul([gains.Kd, 0.0], ft))
+    num = model.K * np.polymul(np.polymul([1.0, integrator_zero_rad_s], ctrl), pade_num)
+    den = np.polymul(np.polymul([1.0, 0.0], ft), fe)
+    den = np.polymul(den, np.polymul([1.0, 0.0], np.polymul([model.T_prop, 1.0],
+                                                            [model.T1, 1.0])))
+    den = np.polymul(den, pade_den)
+    return bool(np.all(np.roots(np.polyadd(den, num)).real < 0))
 
 
 def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
@@ -745,46 +782,47 @@ def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     return CascadeGains(scaled, round(lo, 3), pm, pm0, target_filter_hz, wc, fe, wi)
 
 
+#: the lowest rate-I zero :func:`rate_loop_gains` moves to, as a share of the crossover
+RATE_I_LOWEST = 0.01
+
+
 def rate_loop_gains(model: InnerModel, gains: PD, target_filter_hz: float,
                     error_filter_hz: float = 0.0, pm_min_deg: float = PM_ROBUST_DEG,
                     decade: float = 0.0) -> CascadeGains:
-    """Roll/pitch gains for ArduCopter's cascade with a rate I (``decade`` > 0): its zero
-    ``decade`` times below the crossover the written P gains have on the cascade without it;
-    where the I's phase takes the margin below ``pm_min_deg``, the gains are scaled down
-    together (the zero following their crossover) to the largest factor that keeps it.
-    ``decade`` 0: no rate I (:func:`cascade_gains`).
+    """Roll/pitch gains for ArduCopter's cascade with a rate I (``decade`` > 0).
+
+    The P gains are those of :func:`cascade_gains` (the identified ones, scaled down where
+    they fall short of ``pm_min_deg`` without an I). The I's zero sits ``decade`` times below
+    their crossover on the cascade, or lower, down to :data:`RATE_I_LOWEST` of it, as far
+    as keeping ``pm_min_deg`` with the I needs; where even that lowest zero does not keep
+    it, no I (the P gains are never lowered for the I: a lower crossover with the same zero
+    costs more phase, not less). ``decade`` 0: no rate I.
 
     >>> m = InnerModel(K=34.0, T_prop=0.0085, T1=0.095, tau=0.006)
     >>> c = rate_loop_gains(m, PD(6.4, 0.21), 20.0, decade=10.0)
-    >>> c.rate_i > 0, c.pm_deg >= 15.0, round(c.integrator_zero_rad_s * 10 / cascade_gains(
-    ...     m, c.gains, 20.0).wc_rad_s, 3)
-    (True, True, 1.0)
+    >>> c.gains == PD(6.4, 0.21), c.rate_i > 0, c.pm_deg >= 15.0
+    (True, True, True)
+    >>> round(c.wc_rad_s / c.integrator_zero_rad_s)
+    10
     """
     c0 = cascade_gains(model, gains, target_filter_hz, pm_min_deg, error_filter_hz)
     if not (decade > 0 and c0.scale > 0 and math.isfinite(c0.wc_rad_s)):
         return c0
-    fe = error_filter_hz
-    w = frequency_grid(model.T_prop, model.T1, model.tau, extra_T=(10.0 * decade / c0.wc_rad_s,))
+    fe, g = error_filter_hz, c0.gains
+    lowest = RATE_I_LOWEST * c0.wc_rad_s
+    w = frequency_grid(model.T_prop, model.T1, model.tau, extra_T=(10.0 / lowest,))
 
-    def at(k: float) -> tuple[PD, float, float]:
-        g = PD(gains.Kc * k, gains.Kd * k)
-        wi = _cascade_pm(model, g, target_filter_hz, w, fe)[1] / decade
-        return g, wi, _cascade_pm(model, g, target_filter_hz, w, fe, wi)[0]
+    def pm(wi: float) -> float:
+        return _cascade_pm(model, g, target_filter_hz, w, fe, wi)[0]
 
-    g, wi, pm = at(1.0)
-    k = 1.0
-    if not pm >= pm_min_deg:
-        lo, hi = 0.0, c0.scale  # the largest factor that keeps the margin, to 0.1 %
-        while hi - lo > 1e-3:
+    wi = c0.wc_rad_s / decade
+    if not pm(wi) >= pm_min_deg:
+        if not pm(lowest) >= pm_min_deg:
+            return c0
+        lo, hi = math.log(lowest), math.log(wi)  # the highest zero that keeps it, to 1 %
+        while hi - lo > 0.01:
             mid = 0.5 * (lo + hi)
-            if at(mid)[2] >= pm_min_deg:
-                lo = mid
-            else:
-                hi = mid
-        if lo <= 0.0:
-            return c0  # no factor keeps the margin with an I: none written
-        k = round(lo, 3)
-        g, wi, pm = at(k)
-    pm0 = _cascade_pm(model, gains, target_filter_hz, w, fe, at(1.0)[1])[0]
-    wc = _cascade_pm(model, g, target_filter_hz, w, fe, wi)[1]
-    return CascadeGains(g, k, pm, pm0, target_filter_hz, wc, fe, wi)
+            lo, hi = (mid, hi) if pm(math.exp(mid)) >= pm_min_deg else (lo, mid)
+        wi = math.exp(lo)
+    p, wc = _cascade_pm(model, g, target_filter_hz, w, fe, wi)
+    return dataclasses.replace(c0, pm_deg=p, wc_rad_s=wc, integrator_zero_rad_s=wi)
