@@ -4,6 +4,8 @@
                                         [--baro-noise 0.2] [--gust 4] [--autotune]
                                         [--autotune-axes 3] [--actuation attitude|rate]
                                         [--scripting] [--json PATH]
+                                        [--compare JSON [--compare-run N] [--repeats N]
+                                         [--config NAME=BASE:P=V,...]]
 
 Starts ArduCopter SITL (:mod:`mrft_gcs.sitl.arducopter`: parameters wiped, an instance of
 its own; ``--scripting``: SCR_ENABLE 1, so that the rate path installs its link-loss guard),
@@ -24,11 +26,17 @@ where the hold began, largest tilt, throttle saturation (share of VFR_HUD sample
 noise for the whole run (tune included); ``--gust 4`` flies both holds in turbulent wind
 with an upward component, so that the altitude loop has something to reject. The hold
 after is called worse where altitude spread, its deviation, drift or saturation grew by
-more than 20 % (and 5 mm). ``--autotune`` first flies ArduPilot's own AUTOTUNE of roll and
-pitch (``--autotune-axes``: AUTOTUNE_AXES 3; 7 adds yaw) from a 3 m LOITER, saved by landing
-and disarming in AUTOTUNE with the simulated RC throttle low, holds on its gains the same
-way, and puts them back before the tool's runs (``--runs 0``: AUTOTUNE alone). ``--json``
-writes every figure, as far as the benchmark got.
+more than 20 % (and 5 mm), or roll/pitch followed their target less closely (rms against
+ATTITUDE_TARGET interpolated to each ATTITUDE's vehicle time, by more than 20 % and 0.01 deg);
+more lean spent holding position is reported beside it. ``--compare JSON`` flies no tune:
+LOITER holds on the values a run of an earlier ``--json`` wrote, split into stock, tuned,
+attitude only and position only (``--config`` adds sets), interleaved ``--repeats`` times,
+which separates what the attitude and the position gains each do. ``--autotune`` first
+flies ArduPilot's own AUTOTUNE of roll and pitch (``--autotune-axes``: AUTOTUNE_AXES 3; 7
+adds yaw) from a 3 m LOITER, saved by landing and disarming in AUTOTUNE with the simulated
+RC throttle low, holds on its gains the same way, and puts them back before the tool's
+runs (``--runs 0``: AUTOTUNE alone). ``--json`` writes every figure, as far as the
+benchmark got.
 """
 
 from __future__ import annotations
