@@ -430,3 +430,40 @@ def test_a_catch_sized_on_too_small_a_cycle_is_softened_until_it_hands_back():
     assert hand_back_s(5.0, 10**6) is None  # too stiff and left so: chatters throughout
     softened = hand_back_s(5.0, SequenceConfig().catch_chatter_flips)
     assert softened is not None and softened < 2.0
+
+
+def test_cycles_refused_as_too_small_are_retried_on_the_next_cycle_then_raised():
+    """A side relay whose cycles identification refused as too small for the noise runs on
+    and is tried again on its next cycle (before, the detection started over: three or more
+    periods, a second each, lost per refusal); two whole new sets refused raise h."""
+    from mrft_gcs.relay import MRFT
+
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.5), ATT_RELAY, ALT_RELAY)
+    t = seq.loops[Loop.Y]
+    t.state, t.h, t.band = LoopState.RELAY, 0.08, 1e-4
+    t.relay = MRFT(t.beta, t.h, band=t.band)
+    k = 0
+
+    def run(periods):  # 1 s cycles of 2 cm
+        nonlocal k
+        for _ in range(int(periods * 250)):
+            ts = 0.004 * k
+            t.status = t.detector.update(ts, t.h * np.sign(math.sin(2 * math.pi * ts) + 1e-9),
+                                         0.02 * math.sin(2 * math.pi * ts - 2.0))
+            k += 1
+
+    run(5.2)
+    assert [s.loop for s in seq.ready()] == [Loop.Y]
+    seen = t.status.cycles
+    seq.retry(Loop.Y, larger=True)
+    assert t.state is LoopState.RELAY and t.status.cycles == seen  # not started over
+    assert not seq.ready()  # the same cycles are not handed over again
+    run(1.0)
+    assert [s.loop for s in seq.ready()] == [Loop.Y]  # one period later
+    n = seq.config.cycle_rules(Loop.Y).identify_cycles
+    for _ in range(2 * n - 1):
+        seq.retry(Loop.Y, larger=True)
+        run(1.0)
+        assert seq.ready() and t.h == 0.08
+    seq.retry(Loop.Y, larger=True)
+    assert t.h > 0.08 and t.status.cycles == 0 and "too small" in seq.events[-1]

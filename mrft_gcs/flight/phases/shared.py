@@ -96,7 +96,8 @@ class Shared:
             return min(self.config.h_max[1], cap)
         return self.config.h_max[0 if loop in (Loop.ROLL, Loop.PITCH) else 2]
 
-    def raise_h(self, t: LoopTest, factor: float) -> bool:
+    def raise_h(self, t: LoopTest, factor: float,
+                why: str = "cycle too small for the measured noise") -> bool:
         """Raise a relay's amplitude (the oscillation is too small for the noise); start over.
 
         False if it is already as large as it may be (nothing changed).
@@ -110,7 +111,7 @@ class Shared:
         if relay is None or h <= t.h * 1.01:
             return False
         self.events.append(f"{t.loop.value}: relay amplitude raised from {t.h:.3g} to {h:.3g} "
-                           f"(cycle too small for the measured noise)")
+                           f"({why})")
         t.h = h
         relay.h[:] = h
         if t.loop is Loop.ALTITUDE:

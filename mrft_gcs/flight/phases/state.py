@@ -101,6 +101,10 @@ class LoopTest:
     unarmed: int = 0  # switches made before the threshold could arm (relay too small)
     raises: int = 0  # times the relay amplitude was raised
     switches: int = 0  # relay switches since the relay (re)started
+    #: cycles seen when identification last refused them (too small for the noise): the
+    #: next try waits for a newer cycle; and when the first of such refusals in a row was
+    retry_from: int = 0
+    retry_base: int = -1
     center: float = 0.0  # side relays: the position the relay oscillates about (m)
     settling: bool = False  # side relays: bringing the axis to rest before the relay starts
     presettle: bool = False  # side loops: held at rest while waiting for the altitude test
@@ -154,3 +158,4 @@ class LoopTest:
     def restart_detection(self) -> None:
         """Forget the cycles seen so far: the relay starts over."""
         self.watch.restart()
+        self.retry_from, self.retry_base = 0, -1
