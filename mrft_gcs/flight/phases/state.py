@@ -134,6 +134,13 @@ class LoopTest:
     catch_flips: int = 0  # roll/pitch: the catch's swings from one limit to the other
     catch_sign: float = 0.0  # and the side of the last limit it sat at
     bias_votes: list = field(default_factory=list)  # mean torque of the last periods
+    #: roll/pitch before sizing: the torque-bias fit is done (see attitude.py); the relay's
+    #: commands (t, u) since its start, the rates (t, rad/s) once off the ground, and the
+    #: relay switches seen
+    centred: bool = False
+    centre_cmd: list = field(default_factory=list)
+    centre_rate: list = field(default_factory=list)
+    centre_switches: int = 0
     #: roll/pitch before the first period: (t, relay state, de/dt)
     probe_rate: deque = field(default_factory=lambda: deque(maxlen=400))
 
