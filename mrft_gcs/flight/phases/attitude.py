@@ -90,42 +90,50 @@ def torque_bias_fit(t_cmd: np.ndarray, u_cmd: np.ndarray, t_s: np.ndarray, rate:
     t_cmd, u_cmd, t_s, rate = (np.asarray(a, float) for a in (t_cmd, u_cmd, t_s, rate))
     if t_s.size < 8:
         return None
-    best: tuple[float, np.ndarray, np.ndarray, float] | None = None
-    fits: list[tuple[float, float]] = []
     dt = np.diff(t_s)
-    for d in delays_s:
-        # the command acting at each sample: the last one given d earlier
-        k = np.clip(np.searchsorted(t_cmd, t_s - d + 1e-9, side="right") - 1, 0, None)
-        ud = u_cmd[k]
-        hi = ud > 0.5 * (ud.max() + ud.min())
-        if np.ptp(ud) <= 0 or min(hi.mean(), 1.0 - hi.mean()) < 0.25:
-            continue
-        for lag in lags_s:
-            m = ud
-            if lag > 0:
-                m = np.empty_like(ud)
-                m[0] = ud[0]
-                alpha = 1.0 - np.exp(-dt / lag)
-                for i in range(1, ud.size):
-                    m[i] = m[i - 1] + alpha[i - 1] * (ud[i - 1] - m[i - 1])
-            U = np.concatenate([[0.0], np.cumsum(m[:-1] * dt)])
-            cols = [np.ones_like(t_s), U, t_s - t_s[0]]
-            if angle is not None:  # rotational drag: its integral is the angle swept
-                cols.append(np.asarray(angle, float) - float(angle[0]))
-            a = np.column_stack(cols)
-            x, *_ = np.linalg.lstsq(a, rate, rcond=None)
-            res = rate - a @ x
-            sse = float(res @ res)
-            fits.append((sse, float(x[2] / x[1]) if x[1] > 0 else math.inf))
-            if best is None or sse < best[0]:
-                best = (sse, x, a, d)
-    if best is None:
+    # the command acting at each sample under each delay: the last one given d earlier
+    k = np.searchsorted(t_cmd, t_s[None, :] - np.asarray(delays_s)[:, None] + 1e-9,
+                        side="right") - 1
+    ud = u_cmd[np.clip(k, 0, None)]
+    hi = ud > 0.5 * (ud.max(axis=1) + ud.min(axis=1))[:, None]
+    ok = (np.ptp(ud, axis=1) > 0) & (np.minimum(hi.mean(axis=1), 1 - hi.mean(axis=1)) >= 0.25)
+    if not ok.any():
         return None
-    sse, x, a, d = best
+    ud, dl = ud[ok], np.asarray(delays_s)[ok]
+    # through each motor lag (first order; 0: none), all delays and lags at once
+    lags = np.asarray(lags_s, float)
+    alpha = np.where(lags[:, None] > 0, -np.expm1(-dt[None, :] / np.maximum(lags, 1e-9)[:, None]),
+                     1.0)
+    m = np.empty((lags.size, *ud.shape))
+    m[..., 0] = ud[None, :, 0]
+    for i in range(1, t_s.size):
+        prev = m[..., i - 1]
+        m[..., i] = np.where(lags[:, None] > 0,
+                             prev + alpha[:, i - 1, None] * (ud[None, :, i - 1] - prev),
+                             ud[None, :, i])
+    U = np.concatenate([np.zeros((*m.shape[:2], 1)), np.cumsum(m[..., :-1] * dt, axis=-1)],
+                       axis=-1).reshape(-1, t_s.size)
+    fixed = [np.ones_like(t_s), t_s - t_s[0]]
+    if angle is not None:  # rotational drag: its integral is the angle swept
+        fixed.append(np.asarray(angle, float) - float(angle[0]))
+    # columns (r0, K, K b[, drag]) of every candidate, least squares through the normal
+    # equations on unit-scaled columns
+    a = np.stack([np.broadcast_to(fixed[0], U.shape), U,
+                  *(np.broadcast_to(c, U.shape) for c in fixed[1:])], axis=-1)
+    scale = np.sqrt(np.einsum("cni,cni->ci", a, a)) + 1e-300
+    an = a / scale[:, None, :]
+    x = np.linalg.solve(np.einsum("cni,cnj->cij", an, an) + 1e-12 * np.eye(a.shape[-1]),
+                        np.einsum("cni,n->ci", an, rate)[..., None])[..., 0] / scale
+    res = rate[None, :] - np.einsum("cni,ci->cn", a, x)
+    sse_all = np.einsum("cn,cn->c", res, res)
+    b_all = np.where(x[:, 1] > 0, x[:, 2] / np.where(x[:, 1] > 0, x[:, 1], 1.0), np.inf)
+    c = int(np.argmin(sse_all))
+    sse, x, a = float(sse_all[c]), x[c], a[c]
+    d = float(dl[c % dl.size])
     # the delays and lags that fit nearly as well bound the bias too: a short record can
     # trade the bias against the delay (a model error the residuals do not show)
-    near = [b for e, b in fits if e <= _FIT_NEAR * sse]
-    spread = 0.5 * (max(near) - min(near))
+    near = b_all[sse_all <= _FIT_NEAR * sse]
+    spread = 0.5 * float(near.max() - near.min()) if np.isfinite(near).all() else math.inf
     var = float(np.sum((rate - rate.mean()) ** 2))
     if not x[1] > 0 or var <= 0:
         return None
