@@ -467,3 +467,25 @@ def test_cycles_refused_as_too_small_are_retried_on_the_next_cycle_then_raised()
         assert seq.ready() and t.h == 0.08
     seq.retry(Loop.Y, larger=True)
     assert t.h > 0.08 and t.status.cycles == 0 and "too small" in seq.events[-1]
+
+
+def test_altitude_relay_raise_keeps_every_motor_inside_its_range():
+    """A heavy vehicle hovering at 0.8 thrust: the altitude relay may not be raised past the
+    headroom left above hover, less the share of each motor the roll and pitch relays
+    running beside it take (half of each torque); clipped, its cycle turns lopsided."""
+    from mrft_gcs.relay import MRFT
+
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.8), ATT_RELAY, ALT_RELAY)
+    sh = seq.shared
+    alt = seq.loops[Loop.ALTITUDE]
+    alt.bias = 0.8
+    assert sh.h_max(Loop.ALTITUDE) == pytest.approx(0.2)  # 1 - 0.8 (was 0.25)
+    for lp in (Loop.ROLL, Loop.PITCH):
+        t = seq.loops[lp]
+        t.state, t.h, t.bias = LoopState.RELAY, 0.1, -0.03
+        t.relay = MRFT(t.beta, t.h, bias=t.bias)
+    assert sh.h_max(Loop.ALTITUDE) == pytest.approx(0.2 - 0.13)
+    alt.state, alt.h = LoopState.RELAY, 0.05
+    sh.takeoff.relay = MRFT(alt.beta, alt.h, bias=0.8)
+    assert sh.raise_h(alt, 2.0) and alt.h == pytest.approx(0.07)
+    assert not sh.raise_h(alt, 2.0)  # at its largest
