@@ -35,6 +35,8 @@ _FIT_DELAYS_S = tuple(0.01 * k for k in range(16))
 _FIT_LAGS_S = (0.0, 0.02, 0.04, 0.06, 0.08)
 #: fits within this factor of the best one's squared error count as fitting nearly as well
 _FIT_NEAR = 2.0
+#: relay switches after which the fit is no longer tried (the first period sizes the relay)
+_CENTRE_SWITCHES = 8
 
 
 @dataclass(frozen=True)
@@ -272,6 +274,9 @@ class AttitudeRelays:
         if n == t.centre_switches:
             return u
         t.centre_switches = n
+        if n > _CENTRE_SWITCHES:  # (a relay restarted again and again): its periods size it
+            t.centred = True
+            return u
         if len(t.centre_rate) < 8:
             return u
         tc, uc = np.array(cmd).T
@@ -281,6 +286,7 @@ class AttitudeRelays:
                 or fit.delay_s >= _FIT_DELAYS_S[-1] or not abs(fit.bias) < t.h):
             return u  # not yet pinned down: the next switch tries again
         t.centred = True
+        t.centre_cmd, t.centre_rate = [], []
         bias = -fit.bias
         if not (cfg.att_bias_min * t.h < abs(bias - t.bias) and abs(fit.bias) < t.h
                 and abs(bias) <= cfg.att_bias_max):
