@@ -489,3 +489,31 @@ def test_altitude_relay_raise_keeps_every_motor_inside_its_range():
     sh.takeoff.relay = MRFT(alt.beta, alt.h, bias=0.8)
     assert sh.raise_h(alt, 2.0) and alt.h == pytest.approx(0.07)
     assert not sh.raise_h(alt, 2.0)  # at its largest
+
+
+def test_driver_retries_cycles_too_small_on_the_next_cycle():
+    """The driver hands a CyclesTooSmall refusal to the sequence as one to retry on the next
+    cycle (the detection goes on); any other refusal starts the detection over."""
+    from mrft_gcs.errors import CyclesTooSmall, IdentificationError
+    from mrft_gcs.flight.driver import SequenceDriver
+    from mrft_gcs.relay import MRFT
+
+    for err, kept in ((CyclesTooSmall("too noisy"), True),
+                      (IdentificationError("not steady"), False)):
+        seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.5), ATT_RELAY, ALT_RELAY)
+        t = seq.loops[Loop.Y]
+        t.state, t.h, t.band = LoopState.RELAY, 0.08, 1e-4
+        t.relay = MRFT(t.beta, t.h, band=t.band)
+        for k in range(1300):  # 1 s cycles of 2 cm
+            ts = 0.004 * k
+            t.status = t.detector.update(ts, t.h * np.sign(math.sin(2 * math.pi * ts) + 1e-9),
+                                         0.02 * math.sin(2 * math.pi * ts - 2.0))
+
+        def refuse(loop, snap, inner, err=err):
+            raise err
+
+        drv = SequenceDriver(seq, refuse)
+        seen = t.status.cycles
+        drv.supervise()
+        assert t.state is LoopState.RELAY and drv.retries[-1][0] is Loop.Y
+        assert t.status.cycles == (seen if kept else 0)
