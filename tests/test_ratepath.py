@@ -126,10 +126,12 @@ def test_feed_forward_check_corrects_small_and_refuses_large_errors():
 
 # ---------------------------------------------------------------------- yaw
 def _fly_yaw(relay, K: float, T_prop: float, T1: float, tau: float, seconds: float,
-             disturbance: float = 0.0, until_ready: bool = True, disturbance_from_s=0.0):
+             disturbance: float = 0.0, until_ready: bool = True, disturbance_from_s=0.0,
+             drift_rad_s: float = 0.0):
     """A yaw plant ``K e^{-tau s} / (s (T_prop s + 1) (T1 s + 1))`` (normalised torque in,
     heading out) integrated at 1 kHz, sampled and commanded at 250 Hz as the stream does;
-    the heading set point is 0. Returns the headings seen (rad)."""
+    the heading set point is 0, and turns at ``drift_rad_s`` from ``disturbance_from_s``.
+    Returns the headings seen (rad)."""
     from collections import deque
 
     dt, every = 0.001, 4
@@ -138,7 +140,8 @@ def _fly_yaw(relay, K: float, T_prop: float, T1: float, tau: float, seconds: flo
     u, seen = 0.0, []
     for k in range(round(seconds / dt)):
         if k % every == 0:
-            u = relay.step(0.0, y, r, k * dt)
+            ref = drift_rad_s * max(0.0, k * dt - disturbance_from_s)
+            u = relay.step(ref, y, r, k * dt)
             seen.append(y)
             if until_ready and relay.snapshot is not None:
                 break
@@ -280,12 +283,49 @@ def test_yaw_relay_takes_the_torque_that_holds_the_heading_as_its_bias():
     from mrft_gcs.flight.phases.yaw import YawRelay, YawRules, YawState
 
     relay = YawRelay(YawHold(0.8, 0.2, limit=0.5), -0.7, YawRules(max_rebias=2))
-    _fly_yaw(relay, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.0)
+    _fly_yaw(relay, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.5)
     assert relay.state is YawState.READY, (relay.state, relay.why, relay.events)
     assert relay.rebiased >= 1 and any("relay bias" in e for e in relay.events)
     assert relay.bias == pytest.approx(-0.1, abs=0.02)
     snap = relay.take()
     assert abs(float(np.mean(snap.y))) < 0.5 * float(np.ptp(snap.y))
     off = YawRelay(YawHold(0.8, 0.2, limit=0.5), -0.7)
-    _fly_yaw(off, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.0)
+    _fly_yaw(off, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.5)
     assert off.state is YawState.HELD and off.rebiased == 0, (off.state, off.why)
+
+
+def _yaw_halves(share: float) -> tuple[object, np.ndarray]:
+    """A yaw relay fed a 0.3 s, 0.6 deg heading cycle whose centre moves off the set point at
+    3 deg/s (as ArduCopter SITL's did, 0.3-0.6 deg a cycle); the heading is given, not
+    flown, so that only the relay's switching is judged. Returns the relay and its
+    half-periods over the last 2 s."""
+    from mrft_gcs.flight.controllers import YawHold
+    from mrft_gcs.flight.phases.yaw import YawRelay, YawRules
+
+    relay = YawRelay(YawHold(1.35, 0.3, limit=0.5), -0.7,
+                     YawRules(centre_share=share, size_on_cycle=10**6, max_s=60.0))
+    A, w = math.radians(0.6), 2 * math.pi / 0.3
+    ts = np.arange(0.0, 8.0, 0.004)
+    us = []
+    for t in ts:
+        ta = max(0.0, t - 1.2)
+        y = A * math.sin(w * ta) - math.radians(3.0) * ta
+        us.append(relay.step(0.0, y, A * w * math.cos(w * ta), float(t)))
+    us = np.array(us)
+    sw = np.flatnonzero(np.diff(us) != 0)
+    sw = sw[ts[sw] > 6.0]
+    return relay, np.diff(ts[sw])
+
+
+def test_yaw_relay_zero_follows_a_cycle_that_drifts_off_its_set_point():
+    """A cycle that drifts off the set point leaves an MRFT about a fixed zero (its extremes
+    are measured from zero): once the cycle no longer crosses it, the relay switches
+    lopsided or not at all (here: not at all). The relay's zero follows the cycle, so it
+    keeps switching twice a cycle, once per period of the heading's cycle."""
+    relay, halves = _yaw_halves(0.5)
+    assert relay.max_zero_rad > math.radians(5.0), relay.max_zero_rad
+    periods = halves[:-1] + halves[1:]
+    assert halves.size >= 10 and np.all(np.abs(periods - 0.3) < 0.012), halves
+    fixed, halves = _yaw_halves(math.inf)
+    assert fixed.max_zero_rad == 0.0
+    assert halves.size < 10, halves
