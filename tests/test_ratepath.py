@@ -329,3 +329,61 @@ def test_yaw_relay_zero_follows_a_cycle_that_drifts_off_its_set_point():
     fixed, halves = _yaw_halves(math.inf)
     assert fixed.max_zero_rad == 0.0
     assert halves.size < 10, halves
+
+
+def test_report_and_table_carry_yaw_tuned_or_held():
+    """``loops.yaw`` in the report JSON (SPEC 4.3 keys, then yaw's own) and a yaw row in the
+    CLI's table: the written values, the gains the cascade closes and the predicted margin
+    where tuned; the reason, and nulls (never NaN), where held."""
+    import json
+
+    from rich.console import Console
+
+    from mrft_gcs.cli.tune import result_table
+    from mrft_gcs.flight.api import TuneResult
+    from mrft_gcs.flight.phases.yaw import YawOutcome
+    from mrft_gcs.flight.ratepath import yaw_design, yaw_names
+    from mrft_gcs.flight.report import report_dict
+    from mrft_gcs.identify import Identification
+    from mrft_gcs.loops import LoopKind
+    from mrft_gcs.pd_design import frequency_grid, optimal_pd
+    from mrft_gcs.plant import InnerModel, inner_response
+
+    m = InnerModel(*YAW_PLANT)
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    pd = optimal_pd(inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0], w).pd
+    ident = Identification(LoopKind.ATTITUDE, m, 3, 0.9, -0.7, 0.3, 0.31, 0.011, pd)
+    d = yaw_design(ident, yaw_names(load_profile("ardupilot").rate_path), 20.0, 2.5)
+    c = d.cascade
+    tuned = YawOutcome("tuned", None, -0.7, 0.3, 0.0, 0.0005, 0.31, 0.011, ident, c.gains,
+                       dict(d.values), c.pm_deg, c.wc_rad_s, 5.2, 0.05, 0.06, "yaw tuned ...")
+    held = YawOutcome("held", "no steady relay cycle within 8 s", -0.7, 0.3, 0.0, 0.0005,
+                      math.nan, math.nan, None, None, {}, math.nan, math.nan, math.nan, 0.2,
+                      0.0, "yaw held on its own gains: no steady relay cycle within 8 s")
+
+    def run(y):
+        r = TuneResult("udp:x", "ardupilot", "ardupilot", "rate", "now", 12.0, {}, (), None,
+                       "ok", yaw=y)
+        console = Console(width=300, record=True)
+        console.print(result_table(r))
+        rows = [ln for ln in console.export_text().splitlines() if "│ yaw" in ln]
+        return json.loads(json.dumps(report_dict(r), allow_nan=False))["loops"], rows
+
+    loops, rows = run(tuned)
+    y = loops["yaw"]
+    assert y["state"] == "tuned" and y["reason"] is None and y["class"] == 3
+    assert y["model"] == {"K": 20.0, "T_prop": 0.05, "T1": 1.0, "tau": 0.01}
+    assert y["written"]["ATC_ANG_YAW_P"] == pytest.approx(c.gains.Kc / c.gains.Kd)
+    assert y["written"]["ATC_RAT_YAW_P"] == pytest.approx(c.gains.Kd)
+    assert y["gains"] == {"Kc": pytest.approx(c.gains.Kc), "Kd": pytest.approx(c.gains.Kd)}
+    assert y["pm_predicted_deg"] == pytest.approx(c.pm_deg) and y["pm_predicted_deg"] >= 15
+    assert y["tuned_after_s"] == 5.2 and y["zero_moved_deg"] == pytest.approx(math.degrees(0.06))
+    assert len(rows) == 1 and "tuned" in rows[0] and "PM" in rows[0]
+    loops, rows = run(held)
+    y = loops["yaw"]
+    assert y["state"] == "held" and y["reason"] == "no steady relay cycle within 8 s"
+    assert y["gains"] is None and y["model"] is None and y["pm_predicted_deg"] is None
+    assert y["written"] == {} and y["period_s"] is None and y["tuned_after_s"] is None
+    assert len(rows) == 1 and "held" in rows[0] and "no steady relay cycle" in rows[0]
+    loops, rows = run(None)  # yaw not relay-tested: no entry, no row (as before)
+    assert "yaw" not in loops and rows == []

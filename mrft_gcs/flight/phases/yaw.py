@@ -29,10 +29,12 @@ from mrft_gcs.flight.config import SequenceConfig
 from mrft_gcs.flight.controllers import PDLoop, YawHold, wrap_pi
 from mrft_gcs.flight.cycles import CycleWatcher
 from mrft_gcs.flight.phases.state import CycleSnapshot
+from mrft_gcs.identify import Identification
 from mrft_gcs.loops import Loop
+from mrft_gcs.pd_design import PD
 from mrft_gcs.relay import MRFT
 
-__all__ = ["YawRules", "YawRelay", "YawState", "IDENTIFY_AS"]
+__all__ = ["YawRules", "YawRelay", "YawState", "YawOutcome", "IDENTIFY_AS"]
 
 #: the loop whose classifier identifies yaw (the attitude one: the same model structure)
 IDENTIFY_AS = Loop.ROLL
@@ -84,6 +86,58 @@ class YawRules:
     #: off centre as they came (identification reads the bias from the cycle)
     drift_share: float = 0.5
     max_rebias: int = 0
+
+
+@dataclass(frozen=True)
+class YawOutcome:
+    """What came of yaw's relay test on the rate path (the report's ``loops.yaw``).
+
+    Attributes
+    ----------
+    state : str
+        ``tuned`` (gains written) or ``held`` (the vehicle's own yaw gains kept).
+    reason : str or None
+        Why yaw was held (None where tuned).
+    beta, h, bias, band : float
+        The relay's settings (normalised yaw command; band in rad).
+    period_s, amplitude : float
+        Of the identified cycle (s, rad); NaN where none was identified.
+    identification : Identification or None
+        The attitude classifier's result on yaw's cycles.
+    gains : PD or None
+        The gains the autopilot closes with the written parameters (normalised yaw command
+        per rad and per rad/s: angle P times rate P, rate P); None where none are written.
+    written : dict
+        Parameter -> value written (empty where held).
+    pm_predicted_deg, crossover_rad_s : float
+        The written gains' phase margin and crossover on ArduCopter's yaw cascade as
+        modelled (NaN where none are written).
+    steady_after_s : float
+        Steady cycles after the take-off command (s; NaN: none came).
+    max_error_rad, zero_moved_rad : float
+        Largest heading error while the relay ran, and how far its zero followed the cycle
+        off the set point (rad).
+    note : str
+        The report's line on yaw.
+    """
+
+    state: str
+    reason: str | None
+    beta: float
+    h: float
+    bias: float
+    band: float
+    period_s: float
+    amplitude: float
+    identification: Identification | None
+    gains: PD | None
+    written: dict[str, float]
+    pm_predicted_deg: float
+    crossover_rad_s: float
+    steady_after_s: float
+    max_error_rad: float
+    zero_moved_rad: float
+    note: str
 
 
 class YawState(enum.Enum):
