@@ -653,7 +653,8 @@ class RatePath:
             when = (f"; steady cycles {relay.t_ready_s - relay.t_first_s:.1f} s after "
                     f"lift-off (relay from {relay.t_relay_s - relay.t_first_s:.1f} s, h "
                     f"{relay.h:.3g}, largest heading error "
-                    f"{math.degrees(relay.max_error_rad):.1f} deg)")
+                    f"{math.degrees(relay.max_error_rad):.1f} deg, its zero followed the cycle "
+                    f"up to {math.degrees(relay.max_zero_rad):.1f} deg off the set point)")
         ident, design = self.yaw_ident, self.yaw_written
         if relay.state is YawState.TUNED and ident is not None and design is not None:
             m, c = ident.model, design.cascade
