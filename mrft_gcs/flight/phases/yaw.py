@@ -44,10 +44,10 @@ IDENTIFY_AS = Loop.ROLL
 class YawRules:
     """How the yaw relay runs (angles in rad, torques normalised, times in s)."""
 
-    #: after the first airborne tick: the climb's own transient passes first, and the
-    #: vehicle's feet leave the ground (on ArduCopter SITL a relay started 0.5 s after
-    #: lift-off was seen turned by 0.02 deg in its first 0.4 s, then set free mid-swing)
-    start_after_s: float = 1.0
+    #: after the first airborne tick: the climb's own transient passes first. Not later: the
+    #: x/y tests that follow roll and pitch turn the heading too (ArduCopter SITL: its yaw
+    #: relay needed a mean 0.1 of torque from ~5.5 s after lift-off and lost its cycle)
+    start_after_s: float = 0.75
     #: first relay amplitude; sized once, within [h_min, h_max]
     h_start: float = 0.2
     h_min: float = 0.01
@@ -55,11 +55,11 @@ class YawRules:
     #: the heading swing the relay is sized towards
     amp_goal_rad: float = math.radians(1.5)
     #: resized where a cycle swings outside [1/ratio, ratio] x the goal: at once where it
-    #: swings past ``ratio`` x the goal, otherwise on cycle ``size_on_cycle`` (a relay
-    #: started from rest on a barely damped yaw grows over several cycles: its first one
-    #: swings a fraction of the steady swing, and sizing on it always asked for ``h_max``)
+    #: swings past ``ratio`` x the goal, otherwise on cycle ``size_on_cycle`` (the first
+    #: cycle of a relay started just after lift-off is no measure: ArduCopter SITL's swung
+    #: 0.01-0.4 deg against 0.6 on the next at the same h)
     resize_ratio: float = 1.8
-    size_on_cycle: int = 4
+    size_on_cycle: int = 2
     #: the relay's zero follows its cycle: where a cycle's centre lies further than this
     #: share of its swing from the relay's zero, the zero moves to that distance. Yaw barely
     #: damps its rate and the relay restores the heading only weakly (by 1 + beta), so a
