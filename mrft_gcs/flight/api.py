@@ -56,12 +56,14 @@ from mrft_gcs.flight.inair import (
     STRUCT_TIGHTEN_GAIN,
     STRUCT_TIGHTEN_LIVE,
     CheckPlan,
+    HoldLevel,
     InAirCheck,
     OnboardCascade,
     SquareWaveProbe,
     Verification,
     check_margin,
     plan_check,
+    probe_centre,
     redesigned_gains,
     side_behind_checked,
     structured_redesign,
@@ -551,6 +553,8 @@ class _Run:
         self.residuals = True
         #: the in-air check's set points while it runs (read on the stream's ticks)
         self.probe: SquareWaveProbe | None = None
+        #: the ground station's x/y hold command, averaged: where the check is centred
+        self.hold_level = HoldLevel(rate_hz)
         #: the mode the vehicle must stay in while the tool flies it (None: not watched)
         self.mode_watch: CustomMode | None = None
         self.seen_armed = False
@@ -847,6 +851,7 @@ class _Run:
             if on_ground:
                 return out
             assert s is not None and self.vehicle is not None
+            self.hold_level.update(seq.tilt_cmd)
             probe = self.probe
             if probe is not None and not probe.done and isinstance(out, (ActuatorTarget,
                                                                          AttitudeTarget)):
@@ -1226,7 +1231,7 @@ class _Run:
     def _probe(self, plans: dict) -> dict:
         """Fly the square waves of ``plans`` and return ``{loop: (plan, InAirCheck)}``."""
         assert self.streamer is not None
-        probe = SquareWaveProbe(plans)
+        probe = SquareWaveProbe(plans, self._probe_centre())
         # the heading held through the check: the one flown now (a fresh reader has none)
         s = self.vehicle.telemetry.latest() if self.vehicle is not None else None
         self.probe_yaw = s.yaw_rad if s is not None else (self.seq.yaw_ref if self.seq else 0.0)
@@ -1265,6 +1270,24 @@ class _Run:
                     source="none: ATTITUDE_TARGET did not cover the cycles (the set point "
                            "sent is shaped onboard before the loop)"))
         return out
+
+    def _probe_centre(self) -> tuple[float, float]:
+        """Roll and pitch set points (rad) about which the check flies: where the written
+        loops hold the vehicle level as the ground station's hover did. The x/y hold is off
+        through the check; about a plain level the written loops (no rate integrator) lean
+        by their torque bias over Kc, some 1 deg, and the vehicle drifts; the hold's command
+        then grows and the hover after the check starts on that step (14-17 deg of tilt seen
+        on a 66 g vehicle, more the longer the ground station waits before the hand-over)."""
+        seq = self.seq
+        level = self.hold_level.level or (0.0, 0.0)
+        if seq is None or self.act is not Actuation.TORQUE:
+            return level  # the hold's command already flies through the autopilot's loop
+        out = []
+        for lp, hold in zip(_ATTITUDE_LOOPS, level, strict=True):
+            pd, g = seq.loops[lp].pd, self.written.get(lp)
+            out.append(probe_centre(hold, pd.trim, g.Kc) if pd is not None and g is not None
+                       else hold)
+        return out[0], out[1]
 
     def _ask_setpoints(self, rate_hz: float) -> bool:
         """Ask for ATTITUDE_TARGET (the set point the vehicle tracks) at ``rate_hz``, or back
