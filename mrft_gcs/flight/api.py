@@ -1276,17 +1276,18 @@ class _Run:
         loops hold the vehicle level as the ground station's hover did. The x/y hold is off
         through the check; about a plain level the written loops (no rate integrator) lean
         by their torque bias over Kc, some 1 deg, and the vehicle drifts; the hold's command
-        then grows and the hover after the check starts on that step (14-17 deg of tilt seen
-        on a 66 g vehicle, more the longer the ground station waits before the hand-over)."""
+        then grows and the hover after the check starts on that step, caught by the hand-over
+        to position mode the later, the more it has tilted (docs/writing-gains.md)."""
         seq = self.seq
         level = self.hold_level.level or (0.0, 0.0)
         if seq is None or self.act is not Actuation.TORQUE:
             return level  # the hold's command already flies through the autopilot's loop
         out = []
+        lim = seq.config.max_tilt_cmd_rad  # as the hold's own command
         for lp, hold in zip(_ATTITUDE_LOOPS, level, strict=True):
             pd, g = seq.loops[lp].pd, self.written.get(lp)
-            out.append(probe_centre(hold, pd.trim, g.Kc) if pd is not None and g is not None
-                       else hold)
+            c = probe_centre(hold, pd.trim, g.Kc) if pd is not None and g is not None else hold
+            out.append(min(lim, max(-lim, c)))
         return out[0], out[1]
 
     def _ask_setpoints(self, rate_hz: float) -> bool:
