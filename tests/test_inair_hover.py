@@ -10,7 +10,6 @@ from flight_sim import ALT_RELAY, ATT_RELAY, fly, state_of
 
 from mrft_gcs.flight.inair import (
     CHECK_AMPLITUDE_RAD,
-    HoldLevel,
     SquareWaveProbe,
     plan_check,
     probe_centre,
@@ -40,14 +39,11 @@ def _check_then_pause(centred: bool, pause_s: float) -> dict[str, float]:
     v, _ = fly(seq, "qdrone", seed=1, max_s=40.0, hover_s=1.0, effects=EFFECTS)
     assert seq.phase is Phase.HOVER
     ap = v.autopilot
-    hold = HoldLevel(RATE_HZ)
-    for _ in range(int(0.5 * RATE_HZ)):  # the GCS hover, its hold averaged as the tool does
+    for _ in range(int(0.5 * RATE_HZ)):  # the GCS hover
         ap.set_actuator_controls(*_torque(seq.step(state_of(v))))
-        hold.update(seq.tilt_cmd)
         v.run(DT)
     plans, centre = {}, []
-    for lp, prefix, level in zip((Loop.ROLL, Loop.PITCH), ("MC_ROLL", "MC_PITCH"),
-                                 hold.level or (0.0, 0.0), strict=True):
+    for lp, prefix in zip((Loop.ROLL, Loop.PITCH), ("MC_ROLL", "MC_PITCH"), strict=True):
         ident = seq.loops[lp].identification
         assert ident is not None and isinstance(ident.model, InnerModel)
         g = ident.gains
@@ -58,7 +54,7 @@ def _check_then_pause(centred: bool, pause_s: float) -> dict[str, float]:
         plans[lp] = plan_check(ident.model, g, CHECK_AMPLITUDE_RAD)
         pd = seq.loops[lp].pd
         assert pd is not None
-        centre.append(probe_centre(level, pd.trim, g.Kc) if centred else 0.0)
+        centre.append(probe_centre(0.0, pd.trim, g.Kc) if centred else 0.0)
     probe = SquareWaveProbe(plans, (centre[0], centre[1]))
     yaw = state_of(v).yaw_rad
     while not probe.done:

@@ -56,7 +56,6 @@ from mrft_gcs.flight.inair import (
     STRUCT_TIGHTEN_GAIN,
     STRUCT_TIGHTEN_LIVE,
     CheckPlan,
-    HoldLevel,
     InAirCheck,
     OnboardCascade,
     SquareWaveProbe,
@@ -553,8 +552,6 @@ class _Run:
         self.residuals = True
         #: the in-air check's set points while it runs (read on the stream's ticks)
         self.probe: SquareWaveProbe | None = None
-        #: the ground station's x/y hold command, averaged: where the check is centred
-        self.hold_level = HoldLevel(rate_hz)
         #: the mode the vehicle must stay in while the tool flies it (None: not watched)
         self.mode_watch: CustomMode | None = None
         self.seen_armed = False
@@ -851,7 +848,6 @@ class _Run:
             if on_ground:
                 return out
             assert s is not None and self.vehicle is not None
-            self.hold_level.update(seq.tilt_cmd)
             probe = self.probe
             if probe is not None and not probe.done and isinstance(out, (ActuatorTarget,
                                                                          AttitudeTarget)):
@@ -1273,20 +1269,20 @@ class _Run:
 
     def _probe_centre(self) -> tuple[float, float]:
         """Roll and pitch set points (rad) about which the check flies: where the written
-        loops hold the vehicle level as the ground station's hover did. The x/y hold is off
-        through the check; about a plain level the written loops (no rate integrator) lean
-        by their torque bias over Kc, some 1 deg, and the vehicle drifts; the hold's command
-        then grows and the hover after the check starts on that step, caught by the hand-over
-        to position mode the later, the more it has tilted (docs/writing-gains.md)."""
+        loops hold the vehicle level. The x/y hold is off through the check; about a plain
+        level the written loops (no rate integrator) lean by their torque bias over Kc, some
+        1 deg, and the vehicle drifts; the hold's command then grows and the hover after the
+        check starts on that step, caught by the hand-over to position mode the later, the
+        more it has tilted (docs/writing-gains.md). Not the hold's own command: averaged, it
+        lags a hover still swinging, and a check centred on it flew the vehicle away."""
         seq = self.seq
-        level = self.hold_level.level or (0.0, 0.0)
         if seq is None or self.act is not Actuation.TORQUE:
-            return level  # the hold's command already flies through the autopilot's loop
+            return 0.0, 0.0  # the autopilot's own loop flew the hover: no trim to carry
         out = []
         lim = seq.config.max_tilt_cmd_rad  # as the hold's own command
-        for lp, hold in zip(_ATTITUDE_LOOPS, level, strict=True):
+        for lp in _ATTITUDE_LOOPS:
             pd, g = seq.loops[lp].pd, self.written.get(lp)
-            c = probe_centre(hold, pd.trim, g.Kc) if pd is not None and g is not None else hold
+            c = probe_centre(0.0, pd.trim, g.Kc) if pd is not None and g is not None else 0.0
             out.append(min(lim, max(-lim, c)))
         return out[0], out[1]
 

@@ -50,7 +50,7 @@ __all__ = ["PM_MIN_DEG", "PASS_PM_DEG", "AGREE_DEG", "MAX_STEADY_SE", "CHECK_HAR
            "square_wave", "harmonic_points", "check_margin", "redesigned_gains",
            "PM_HIGH_DEG", "CHECK_ROUNDS", "OnboardCascade", "side_behind_checked",
            "SIDE_PM_MIN_DEG", "STRUCT_TIGHTEN_GAIN", "STRUCT_TIGHTEN_LIVE",
-           "structured_redesign", "HOLD_AVERAGE_S", "HoldLevel", "probe_centre"]
+           "structured_redesign", "probe_centre"]
 
 #: the least phase margin the written loop must keep (deg), and what its check must measure:
 #: that plus the measurement's own error (live, 1-2.5 deg from the onboard truth)
@@ -88,9 +88,6 @@ CHECK_CYCLES = 3
 #: steady response to the square wave: a loop that oscillates on its own reads as any margin
 #: (in-process, a written loop at -1 deg: 0.35 and "27 deg"; steady loops 0.05-0.06)
 MAX_STEADY_SE = 0.15
-#: the ground station's x/y hold command is averaged over about this long (s) to centre the
-#: check's square waves: its tick-to-tick noise is some 1 deg on a small vehicle
-HOLD_AVERAGE_S = 0.25
 #: the least phase margin side gains re-designed behind checked attitude gains keep on the
 #: measured cascade (deg): the written side loops' robust margin
 SIDE_PM_MIN_DEG = 15.0
@@ -482,30 +479,6 @@ def probe_centre(hold_rad: float, trim: float, kc: float) -> float:
     0.02
     """
     return hold_rad + trim / kc if kc > 0 else hold_rad
-
-
-class HoldLevel:
-    """The ground station's x/y hold command (roll, pitch set points, rad), averaged.
-
-    ``update(cmd)`` on every set-point tick; ``level`` the exponential average over about
-    :data:`HOLD_AVERAGE_S` (the first tick's command until then).
-    """
-
-    def __init__(self, rate_hz: float, average_s: float = HOLD_AVERAGE_S) -> None:
-        self.alpha = min(1.0, 1.0 / max(average_s * rate_hz, 1.0))
-        self.reset()
-
-    def reset(self) -> None:
-        self.level: tuple[float, float] | None = None
-
-    def update(self, cmd: tuple[float, float]) -> tuple[float, float]:
-        if self.level is None:
-            self.level = (float(cmd[0]), float(cmd[1]))
-        else:
-            a = self.alpha
-            self.level = (self.level[0] + a * (cmd[0] - self.level[0]),
-                          self.level[1] + a * (cmd[1] - self.level[1]))
-        return self.level
 
 
 class SquareWaveProbe:
