@@ -62,6 +62,7 @@ from mrft_gcs.flight.inair import (
     Verification,
     check_margin,
     plan_check,
+    probe_centre,
     redesigned_gains,
     side_behind_checked,
     structured_redesign,
@@ -1229,7 +1230,7 @@ class _Run:
     def _probe(self, plans: dict) -> dict:
         """Fly the square waves of ``plans`` and return ``{loop: (plan, InAirCheck)}``."""
         assert self.streamer is not None
-        probe = SquareWaveProbe(plans)
+        probe = SquareWaveProbe(plans, self._probe_centre())
         # the heading held through the check: the one flown now (a fresh reader has none)
         s = self.vehicle.telemetry.latest() if self.vehicle is not None else None
         self.probe_yaw = s.yaw_rad if s is not None else (self.seq.yaw_ref if self.seq else 0.0)
@@ -1268,6 +1269,25 @@ class _Run:
                     source="none: ATTITUDE_TARGET did not cover the cycles (the set point "
                            "sent is shaped onboard before the loop)"))
         return out
+
+    def _probe_centre(self) -> tuple[float, float]:
+        """Roll and pitch set points (rad) about which the check flies: where the written
+        loops hold the vehicle level. The x/y hold is off through the check; about a plain
+        level the written loops (no rate integrator) lean by their torque bias over Kc, some
+        1 deg, and the vehicle drifts; the hold's command then grows and the hover after the
+        check starts on that step, caught by the hand-over to position mode the later, the
+        more it has tilted (docs/writing-gains.md). Not the hold's own command: averaged, it
+        lags a hover still swinging, and a check centred on it flew the vehicle away."""
+        seq = self.seq
+        if seq is None or self.act is not Actuation.TORQUE:
+            return 0.0, 0.0  # the autopilot's own loop flew the hover: no trim to carry
+        out = []
+        lim = seq.config.max_tilt_cmd_rad  # as the hold's own command
+        for lp in _ATTITUDE_LOOPS:
+            pd, g = seq.loops[lp].pd, self.written.get(lp)
+            c = probe_centre(0.0, pd.trim, g.Kc) if pd is not None and g is not None else 0.0
+            out.append(min(lim, max(-lim, c)))
+        return out[0], out[1]
 
     def _ask_setpoints(self, rate_hz: float) -> bool:
         """Ask for ATTITUDE_TARGET (the set point the vehicle tracks) at ``rate_hz``, or back
