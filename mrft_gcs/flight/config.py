@@ -130,6 +130,10 @@ class SequenceConfig:
     att_centre_r2: float = 0.9
     att_centre_se: float = 0.03
     att_centre_z_m: float = 0.02
+    #: ... and its h is lowered before the first period where the fit predicts a swing over
+    #: this (rad, per axis; 0: off): both relays swing at once, so 1.5 x
+    #: ``att_amp_max_rad`` keeps the tilt near 60 % of a 35 deg limit
+    att_pred_amp_rad: float = 0.18
     #: later periods may resize a relay this many times (each restarts its detection)
     att_max_resizes: int = 3
     #: a resized relay restarts once its axis is within this share of the expected cycle's

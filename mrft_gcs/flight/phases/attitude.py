@@ -5,10 +5,12 @@ on a first swing that tilts too far): h so that the axis swings about ``att_amp_
 the bias at the torque that holds the axis. Before that, from its second switch on, the relay
 is centred on the torque bias measured from its first swings (:func:`torque_bias_fit`): a
 CoM offset otherwise weakens every other push, and the swing that push must brake grows.
-Later periods resize a relay whose swing grew too large or whose mean torque moved off its
-bias. A relay that pushes the axis away before it is sized is turned round; a run-away is
-held by a damping PD until the axis is back inside its cycle
-(:meth:`~mrft_gcs.flight.phases.shared.Shared.watch`).
+Where the same fit predicts a cycle over ``att_pred_amp_rad`` (:func:`predicted_swing`), the
+push then starting brakes the swing under way harder and the relay takes a smaller h as the
+axis turns: both relays run at once, and their first swings add up. Later periods resize a
+relay whose swing grew too large or whose mean torque moved off its bias. A relay that
+pushes the axis away before it is sized is turned round; a run-away is held by a damping PD
+until the axis is back inside its cycle (:meth:`~mrft_gcs.flight.phases.shared.Shared.watch`).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from mrft_gcs.loops import Loop
 from mrft_gcs.profiles import Actuation
 from mrft_gcs.relay import MRFT
 
-__all__ = ["AttitudeRelays", "TorqueFit", "torque_bias_fit"]
+__all__ = ["AttitudeRelays", "TorqueFit", "predicted_swing", "torque_bias_fit"]
 
 #: loop delays (s) and motor lags (s, first order) the torque-bias fit tries: a link round
 #: trip and the telemetry, from a wired loopback to a slow radio; small to large motors
@@ -56,6 +58,10 @@ class TorqueFit:
         d, the loop delay that fits best (s).
     r2 : float
         Share of the rate's variance the fit explains.
+    lag_s : float
+        T, the motor lag (first order) that fits best (s).
+    drag : float
+        Rotational damping, ``y'' += -drag y'`` (1/s; 0 where no angle was fitted).
     """
 
     gain: float
@@ -63,6 +69,8 @@ class TorqueFit:
     bias_se: float
     delay_s: float
     r2: float
+    lag_s: float = 0.0
+    drag: float = 0.0
 
 
 def torque_bias_fit(t_cmd: np.ndarray, u_cmd: np.ndarray, t_s: np.ndarray, rate: np.ndarray,
@@ -144,7 +152,58 @@ def torque_bias_fit(t_cmd: np.ndarray, u_cmd: np.ndarray, t_s: np.ndarray, rate:
     g = np.zeros(x.size)
     g[1], g[2] = -x[2] / x[1] ** 2, 1.0 / x[1]
     se = max(math.sqrt(max(float(g @ cov @ g), 0.0)), spread)
-    return TorqueFit(float(x[1]), float(x[2] / x[1]), se, d, 1.0 - sse / var)
+    drag = max(-float(x[3]), 0.0) if x.size > 3 else 0.0
+    return TorqueFit(float(x[1]), float(x[2] / x[1]), se, d, 1.0 - sse / var,
+                     float(lags[c // dl.size]), drag)
+
+
+def predicted_swing(fit: TorqueFit, h: float, beta: float) -> tuple[float, float]:
+    """Period (s) and swing (rad) of the MRFT cycle a relay of amplitude ``h`` (normalised
+    torque) and parameter ``beta`` drives on the fitted axis (describing function).
+
+    The axis ``K e^(-s d) / (s (s + c) (T s + 1))`` oscillates where its phase lag past
+    -180 deg equals the MRFT's lead ``arcsin(-beta)``, at a swing ``4 h |W| / pi``.
+    (nan, nan) where there is no such frequency (no lead and no delay or lag).
+
+    Examples
+    --------
+    >>> f = TorqueFit(500.0, 0.0, 0.0, 0.03, 1.0)
+    >>> period, amp = predicted_swing(f, 0.06, -0.7)
+    >>> round(period, 3), round(amp, 3)
+    (0.243, 0.057)
+    """
+    phi = math.asin(-beta) + 0.5 * math.pi
+    a, d, lag = fit.drag, fit.delay_s, fit.lag_s
+
+    def lag_phase(w: float) -> float:
+        return (math.atan2(w, a) if a > 0 else 0.5 * math.pi) + w * d + math.atan(w * lag)
+
+    lo, hi = 1e-3, 1e4
+    if not lag_phase(lo) < phi < lag_phase(hi):
+        return math.nan, math.nan
+    for _ in range(100):  # bisection: the phase rises with the frequency
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if lag_phase(mid) < phi else (lo, mid)
+    w = math.sqrt(lo * hi)
+    mag = fit.gain / (w * math.hypot(w, a) * math.hypot(1.0, w * lag))
+    return 2.0 * math.pi / w, 4.0 * h * mag / math.pi
+
+
+def _swing_peak(fit: TorqueFit, hist: np.ndarray, t_s: float, y: float, rate: float,
+                u: float, horizon_s: float = 1.0, dt: float = 2e-3) -> tuple[float, float]:
+    """Angle (rad, as ``y``) and time (s) where the fitted axis next turns: from ``y``,
+    ``rate`` at ``t_s`` under the commands ``hist`` (t, u) so far, then ``u`` held."""
+    m = None
+    for i in range(int(horizon_s / dt)):
+        tc = t_s + i * dt - fit.delay_s
+        k = int(np.searchsorted(hist[:, 0], tc, side="right")) - 1
+        ud = u if tc >= t_s else float(hist[max(k, 0), 1])
+        m = ud if m is None or fit.lag_s <= 0 else m + (ud - m) * min(dt / fit.lag_s, 1.0)
+        w = rate + (fit.gain * (m + fit.bias) - fit.drag * rate) * dt
+        if w * rate < 0:
+            return y, t_s + i * dt
+        y, rate = y + rate * dt, w
+    return y, t_s + horizon_s
 
 
 class AttitudeRelays:
@@ -238,6 +297,9 @@ class AttitudeRelays:
                 t.pushed_away += 1
             if t.relay is not None and not t.sized and not t.centred:
                 u = self._centre(t, t_s, u, y, rate, new)
+            if math.isfinite(t.h_planned) and self._take_planned_h(t, t_s):
+                assert t.relay is not None
+                u = float(t.relay.bias[0] + t.relay.h[0] * t.relay.state[0])
             self.sh.feed(t, t_s, u, y, new)
             if new and t.relay is not None:
                 self._size(t, t_s, u, y, ref - y, -rate)
@@ -290,7 +352,7 @@ class AttitudeRelays:
         bias = -fit.bias
         if not (cfg.att_bias_min * t.h < abs(bias - t.bias) and abs(fit.bias) < t.h
                 and abs(bias) <= cfg.att_bias_max):
-            return u
+            return self._plan_h(t, fit, cmd, t_s, y, rate, u)
         self.sh.events.append(
             f"{t.loop.value}: relay centred on the torque bias of its first swings: bias "
             f"{t.bias:+.3g} -> {bias:+.3g} (fit: {fit.gain:.3g} rad/s^2 per unit torque, "
@@ -299,7 +361,71 @@ class AttitudeRelays:
         r.bias[:] = bias
         u = float(bias + r.h[0] * r.state[0])
         cmd.append((t_s, u))
-        return u
+        return self._plan_h(t, fit, cmd, t_s, y, rate, u)
+
+    def _plan_h(self, t: LoopTest, fit: TorqueFit, cmd: list, t_s: float, y: float,
+                rate: float, u: float) -> float:
+        """Before the first period: where the fit predicts a cycle swinging the axis over
+        ``att_pred_amp_rad`` at the starting h, plan the h that swings it that far (no
+        smaller than the noise band needs, nor ``h_att_floor``), taken as the axis next turns
+        (:meth:`_take_planned_h`). The push now starting brakes the swing under way: it is
+        raised (up to ``h_goal``) where the fitted model run forward (:func:`_swing_peak`)
+        carries that swing past 0.85 of that far from level (the set point of the take-off
+        relays). Returns this tick's output."""
+        cfg, r = self.sh.config, t.relay
+        assert r is not None
+        period, amp = predicted_swing(fit, t.h, t.beta)
+        if not (cfg.att_pred_amp_rad and amp > cfg.att_pred_amp_rad):
+            return u
+        per_h = amp / t.h
+        sigma = t.band / cfg.noise_band_sigmas if math.isfinite(t.band) else 0.0
+        h_noise = sigma / (0.7 * cfg.max_noise_ratio * per_h)
+        h = max(cfg.att_pred_amp_rad / per_h, min(h_noise, t.h), cfg.h_att_floor)
+        if not h < 0.95 * t.h:
+            return u
+        t.h_planned = h
+        st, bias = float(r.state[0]), float(r.bias[0])
+        hist = np.array(cmd[:-1]) if len(cmd) > 1 else np.array([(t_s, u)])
+
+        def peak(hb: float) -> float:
+            return _swing_peak(fit, hist, t_s, y, rate, bias + st * hb)[0]
+
+        lim = 0.85 * cfg.att_pred_amp_rad
+        hb = t.h
+        if abs(peak(hb)) > lim and abs(peak(t.h_goal)) < abs(peak(hb)):
+            lo, hi = t.h, t.h_goal
+            for _ in range(12):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if abs(peak(mid)) > lim else (lo, mid)
+            hb = hi
+            r.h[:] = hb
+        # the smaller h reaches the axis a delay and a lag after it is sent
+        t.t_h_planned_s = (_swing_peak(fit, hist, t_s, y, rate, bias + st * hb)[1]
+                           - fit.delay_s - fit.lag_s)
+        self.sh.events.append(
+            f"{t.loop.value}: the fit predicts a {amp:.3g} rad swing (period {period:.2f} s) "
+            f"at h {t.h:.3g}: h {h:.3g} from the next turn of the axis"
+            + (f", the swing under way braked at h {hb:.3g}" if hb != t.h else ""))
+        return float(bias + r.h[0] * st)
+
+    def _take_planned_h(self, t: LoopTest, t_s: float) -> bool:
+        """Take the planned h (:meth:`_plan_h`) a delay and a lag before the fit predicts the
+        axis turns: taken at a switch, a smaller push would brake the swing then starting
+        less and let it swing further; acting from the turn on, it only accelerates the
+        axis back less. True where taken (this tick's output changes)."""
+        r = t.relay
+        if r is None or t.sized:
+            t.h_planned = math.nan  # sized on a period or a swing first: that h holds
+            return False
+        if t_s < t.t_h_planned_s:
+            return False
+        h, t.h_planned = t.h_planned, math.nan
+        t.h = h
+        r.h[:] = h
+        # the first period is measured at the new h alone
+        t.probe, t.turns, t.turn_sign = [], [], 0.0
+        t.probe_rate.clear()
+        return True
 
     def _count_chatter(self, t: LoopTest, side: float) -> None:
         """The catch's output sits at its limit on ``side``: count swings from one limit to

@@ -141,6 +141,10 @@ class LoopTest:
     centre_cmd: list = field(default_factory=list)
     centre_rate: list = field(default_factory=list)
     centre_switches: int = 0
+    #: roll/pitch before the first period: the h the fit's predicted swing asks for, taken
+    #: at the next turn of the axis (nan: none)
+    h_planned: float = _NAN
+    t_h_planned_s: float = _NAN
     #: roll/pitch before the first period: (t, relay state, de/dt)
     probe_rate: deque = field(default_factory=lambda: deque(maxlen=400))
 
