@@ -12,7 +12,10 @@ runs in a process of its own, :mod:`mrft_gcs.identify.worker`, so that it never 
 up the stream); hover; write the gains
 as autopilot parameters (clamped into the profile's ``[param_ranges]``, a note per
 clamp; backup first, every value read back); switch to the autopilot's position
-mode so it flies on them; check a short hover.
+mode so it flies on them; check a short hover; where asked (``hold_compare_s``, the
+profile's ``[hold_compare]``), hold there on the written values and on the ones they replaced
+and keep the written set only where it holds at least as well
+(:mod:`mrft_gcs.flight.holdcompare`).
 
 Safety: every setpoint tick checks the limits (:mod:`mrft_gcs.flight.safety`);
 telemetry silent for 0.5 s stops the stream and lands (the streamer's watchdog);

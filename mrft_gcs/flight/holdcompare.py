@@ -379,13 +379,15 @@ def compare_holds(link: VehicleLink, changes: tuple[ParamChange, ...], seconds: 
     for rate_id in (ATTITUDE_TARGET_ID, VFR_HUD_ID):
         link.ask_message_interval(rate_id, STREAM_HZ)
     try:
+        # each set gets SETTLE_S before its hold, watched like the hold itself
+        fly_hold(link, SETTLE_S, monitor, f"the hold on the written gains in {mode}")
         after = fly_hold(link, seconds, monitor, f"the hold on the written gains in {mode}")
         if log:
             log(f"hold on the written gains: {after.line()}")
         client.write({n: o for n, (o, _) in swapped.items()}, backup_dir, label="hold-old")
-        time.sleep(SETTLE_S)
-        before = fly_hold(link, seconds, monitor, f"the hold on the values from before the "
-                          f"tune in {mode} (they stay written)")
+        where = f"the hold on the values from before the tune in {mode} (they stay written)"
+        fly_hold(link, SETTLE_S, monitor, where)
+        before = fly_hold(link, seconds, monitor, where)
         if log:
             log(f"hold on the values from before: {before.line()}")
         verdict = judge(before, after)
