@@ -761,8 +761,11 @@ class _Run:
                                 self.backup_dir, judge=self.hold_judge or judge_holds)
         except KeyboardInterrupt:
             self.link.land(wait_ack=False)
-            raise SafetyAbort("interrupted (Ctrl-C) in the hold comparison: landing "
-                              "commanded") from None
+            raise SafetyAbort(f"interrupted (Ctrl-C) in the hold comparison: landing "
+                              f"commanded (the values from before the tune: {self.backup})"
+                              ) from None
+        except SafetyAbort as err:
+            raise SafetyAbort(f"{err} (the values from before the tune: {self.backup})") from err
         self.hold_compare = cmp
         self.notes.append(cmp.line())
         if cmp.outcome == "reverted":
