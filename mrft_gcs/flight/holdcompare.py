@@ -240,6 +240,8 @@ class HoldComparison:
     #: the parameters set back to their old value for the hold before (name -> old, new)
     swapped: dict[str, tuple[float, float]] = field(default_factory=dict)
     load_avg_1min: float = math.nan
+    #: seconds the comparison flew, settling and parameter swaps included
+    duration_s: float = math.nan
 
     def as_dict(self) -> dict[str, object]:
         def num(x: float) -> float | None:
@@ -250,10 +252,12 @@ class HoldComparison:
                 "after": {k: num(v) for k, v in self.after.as_dict().items()},
                 "worse_in": list(self.verdict.worse_in), "judged": list(self.verdict.judged),
                 "reason": self.verdict.reason or None, "effort": self.verdict.effort or None,
-                "parameters": sorted(self.swapped), "load_avg_1min": num(self.load_avg_1min)}
+                "parameters": sorted(self.swapped), "load_avg_1min": num(self.load_avg_1min),
+                "duration_s": num(self.duration_s)}
 
     def line(self) -> str:
-        head = (f"hold comparison in {self.mode}, {self.seconds:g} s each: before the tune "
+        head = (f"hold comparison in {self.mode}, {self.seconds:g} s each ({self.duration_s:.1f} "
+                f"s in all): before the tune "
                 f"{self.before.line()}; written {self.after.line()}; ")
         if self.outcome == "kept":
             tail = "the written gains hold at least as well: kept"
@@ -376,6 +380,7 @@ def compare_holds(link: VehicleLink, changes: tuple[ParamChange, ...], seconds: 
     swapped = {c.name: (c.old, c.new) for c in changes
                if not math.isclose(c.old, c.new, rel_tol=1e-6, abs_tol=1e-9)}
     client = ParamClient(link)
+    t0 = time.monotonic()
     for rate_id in (ATTITUDE_TARGET_ID, VFR_HUD_ID):
         link.ask_message_interval(rate_id, STREAM_HZ)
     try:
@@ -398,4 +403,4 @@ def compare_holds(link: VehicleLink, changes: tuple[ParamChange, ...], seconds: 
             link.ask_message_interval(rate_id, 0.0)
     return HoldComparison(mode, seconds, after, before, verdict,
                           "kept" if verdict.kept else "reverted", swapped,
-                          os.getloadavg()[0])
+                          os.getloadavg()[0], time.monotonic() - t0)
