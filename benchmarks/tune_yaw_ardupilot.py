@@ -1,6 +1,7 @@
 """Yaw on ArduCopter's rate path: tune all loops and yaw, and compare the heading hold.
 
     python benchmarks/tune_yaw_ardupilot.py [--runs 2] [--instance N] [--hold-s 8]
+                                            [--no-before] [--no-after] [--trace DIR]
 
 Starts ArduCopter SITL (parameters wiped, :mod:`tune_ardupilot`'s recipe), then per run:
 *before* (the vehicle's own gains) and *after* (the gains the tune wrote, restored after):
@@ -9,7 +10,9 @@ standard deviation), then in GUIDED a 45 deg heading step (MAV_CMD_CONDITION_YAW
 90 deg/s): overshoot past the new heading, time to stay within 2 deg, the error left; land.
 Between them ``tune(actuation="rate")``: what yaw identified and wrote, the zero-gain window,
 the time from take-off. One line per figure; nothing is written to disk but the SITL's run
-folder (a temporary one).
+folder (a temporary one), except with ``--trace DIR``: per run, the yaw relay's every tick
+(``yaw-runN.npz``: time, heading error, yaw rate, output, state, cycles seen, amplitude,
+period) and the tune's .tlog (``yaw-runN.tlog``), to see why a cycle did or did not come.
 """
 
 from __future__ import annotations
@@ -29,6 +32,8 @@ from tune_ardupilot import GUIDED, LOITER, Observer  # noqa: E402
 
 from mrft_gcs.errors import MrftError  # noqa: E402
 from mrft_gcs.flight.api import tune  # noqa: E402
+from mrft_gcs.flight.controllers import wrap_pi  # noqa: E402
+from mrft_gcs.flight.phases.yaw import YawRelay, YawState  # noqa: E402
 from mrft_gcs.link import VehicleLink  # noqa: E402
 from mrft_gcs.params import ParamClient  # noqa: E402
 from mrft_gcs.sitl.arducopter import ArduCopterSitl, free_instance, why_not  # noqa: E402
@@ -84,12 +89,50 @@ def line(name: str, f: dict[str, float]) -> str:
             f"error at the end {f['step_error_end_deg']:.2f} deg")
 
 
+_STATES = list(YawState)
+
+
+class YawTrace:
+    """Records every :meth:`YawRelay.step` (the real relay, wrapped while a run flies)."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[float, ...]] = []
+        self._step = YawRelay.step
+
+    def __enter__(self) -> YawTrace:
+        step, rows = self._step, self.rows
+
+        def traced(relay: YawRelay, ref: float, y: float, rate: float,
+                   t_s: float = math.nan) -> float:
+            u = step(relay, ref, y, rate, t_s)
+            st = relay.watch.status
+            rows.append((time.monotonic(), t_s, wrap_pi(ref - y), rate, u,
+                         _STATES.index(relay.state), st.cycles, st.amplitude, st.period_s,
+                         relay.h, relay.bias))
+            return u
+
+        YawRelay.step = traced  # type: ignore[method-assign]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        YawRelay.step = self._step  # type: ignore[method-assign]
+
+    def save(self, path: Path) -> None:
+        np.savez(path, rows=np.asarray(self.rows, float).reshape(-1, 11),
+                 columns=np.array(["mono_s", "t_s", "e_rad", "rate_rad_s", "u", "state",
+                                   "cycles", "amplitude_rad", "period_s", "h", "bias"]),
+                 states=np.array([s.value for s in _STATES]))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=1)
     ap.add_argument("--instance", type=int, default=None)
     ap.add_argument("--hold-s", type=float, default=8.0)
     ap.add_argument("--no-before", action="store_true", help="skip the holds before")
+    ap.add_argument("--no-after", action="store_true", help="skip the holds after")
+    ap.add_argument("--trace", type=Path, default=None,
+                    help="folder for each run's yaw relay trace (.npz) and .tlog")
     args = ap.parse_args()
     reason = why_not()
     if reason is not None:
@@ -102,13 +145,19 @@ def main() -> int:
             if not args.no_before:
                 print(line("before", yaw_figures(obs, args.hold_s)), flush=True)
             t = time.monotonic()
-            try:
-                result = tune(sitl.serial0, "ardupilot", backup_dir=tmp,
-                              heartbeat_timeout_s=10, actuation="rate")
-                status, error = result.status, ""
-            except MrftError as err:
-                result = err.partial_result
-                status, error = result.status, str(err)
+            tlog = args.trace / f"yaw-run{run}.tlog" if args.trace else None
+            if args.trace:
+                args.trace.mkdir(parents=True, exist_ok=True)
+            with YawTrace() as trace:
+                try:
+                    result = tune(sitl.serial0, "ardupilot", backup_dir=tmp, tlog_path=tlog,
+                                  heartbeat_timeout_s=10, actuation="rate")
+                    status, error = result.status, ""
+                except MrftError as err:
+                    result = err.partial_result
+                    status, error = result.status, str(err)
+            if args.trace:
+                trace.save(args.trace / f"yaw-run{run}.npz")
             written = {c.name: f"{c.old:.4g}->{c.new:.4g}" for c in result.parameters
                        if "YAW" in c.name}
             print(f"run {run}: tune {status} in {time.monotonic() - t:.1f} s "
@@ -121,7 +170,8 @@ def main() -> int:
             obs.land_and_wait()
             if not result.backup:
                 continue
-            print(line("after", yaw_figures(obs, args.hold_s)), flush=True)
+            if not args.no_after:
+                print(line("after", yaw_figures(obs, args.hold_s)), flush=True)
             with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
                 ParamClient(link).restore(result.backup, tmp)
     return 0

@@ -39,6 +39,7 @@ __all__ = [
     "SafetyAbort",
     "IdentificationError",
     "SetpointNotCrossed",
+    "CyclesTooSmall",
     "MissingDependency",
     "FleetError",
 ]
@@ -112,6 +113,11 @@ class IdentificationError(MrftError):
 class SetpointNotCrossed(IdentificationError):
     """The relay cycles do not cross the set point every half-cycle: the relay is biased
     too far for the test; a live tune starts the relay over from the set point."""
+
+
+class CyclesTooSmall(IdentificationError):
+    """The relay cycles are too small for the measurement noise to identify from; a live
+    tune raises the relay amplitude (within its limit) before it waits for new cycles."""
 
 
 class MissingDependency(MrftError):

@@ -336,6 +336,40 @@ def _heading_hold(connection: str, seconds: float) -> tuple[float, float]:
     return float(np.degrees(np.ptp(np.unwrap(a[:, 0])))), float(np.degrees(a[:, 1].std()))
 
 
+def _check_yaw_report(result, note: str, written: dict) -> None:
+    """The report's ``loops.yaw`` (JSON as written) and the CLI's table say what the tune
+    did to yaw: tuned with the written values, gains and margin, or held with the reason."""
+    import tempfile
+    from pathlib import Path
+
+    from rich.console import Console
+
+    from mrft_gcs.cli.tune import result_table
+    from mrft_gcs.flight.report import write_report
+
+    with tempfile.TemporaryDirectory() as tmp:
+        y = json.loads(write_report(result, Path(tmp) / "r.json").read_text())["loops"]["yaw"]
+    console = Console(width=400, record=True)
+    console.print(result_table(result))
+    row = [ln for ln in console.export_text().splitlines() if ln.strip("│ ").startswith("yaw")]
+    assert len(row) == 1, console.export_text()
+    assert y["note"] == note and y["beta"] < 0 and y["h"] > 0
+    if note.startswith("yaw tuned on the rate path"):
+        assert y["state"] == "tuned" and y["reason"] is None and "tuned" in row[0]
+        for n, v in y["written"].items():
+            assert written[n].new == pytest.approx(v, rel=1e-5), n
+        ang, rate = y["written"]["ATC_ANG_YAW_P"], y["written"]["ATC_RAT_YAW_P"]
+        assert y["gains"]["Kd"] == pytest.approx(rate, rel=1e-4)
+        assert y["gains"]["Kc"] == pytest.approx(ang * rate, rel=1e-4)
+        assert y["pm_predicted_deg"] >= 15.0 - 1e-6 and y["crossover_rad_s"] > 0
+        assert y["model"]["T1"] > 0 and y["period_s"] > 0
+        assert 0 < y["steady_after_s"] == y["tuned_after_s"] < result.duration_s
+    else:
+        assert y["state"] == "held" and y["reason"] and y["reason"] in note
+        assert y["written"] == {} and y["gains"] is None and y["pm_predicted_deg"] is None
+        assert "held" in row[0]
+
+
 def _check_yaw(result, before: dict[str, float], serial1: str) -> None:
     """Yaw on the rate path: relay-tested, identified and written into ArduCopter's yaw
     cascade with a predicted margin of at least 15 deg there, or held on its own gains with
@@ -358,6 +392,7 @@ def _check_yaw(result, before: dict[str, float], serial1: str) -> None:
     else:
         assert note.startswith("yaw held on its own gains: "), note
         assert not set(yaw) & set(written), sorted(written)
+    _check_yaw_report(result, note, written)
     p2p, rate_sd = _heading_hold(serial1, 3.0)
     print(f"  yaw hold after the hand-over (LOITER): heading p2p {p2p:.2f} deg, yaw rate "
           f"std {rate_sd:.2f} deg/s")

@@ -147,3 +147,46 @@ def test_relay_that_cannot_turn_the_axis_is_doubled():
     assert any("could not turn the axis back" in e for e in seq.events), seq.events
     assert roll.sized and roll.bias == pytest.approx(-0.07, abs=0.02), seq.events
     assert max(tilt for _, _, tilt, _ in rec) < 30.0
+
+
+def test_relay_centred_on_the_torque_bias_before_its_first_period():
+    """A CoM offset weakens every other push of a relay biased at zero, and the swing that
+    push must brake grows (an 82 g vehicle: 30 deg before its first period was measured).
+    The relay is centred on the torque bias fitted to its first swings, at a switch, before
+    the first period sizes it: that period swings less than the uncentred one."""
+    af = load_airframe("qdrone")
+    af = dataclasses.replace(af, torque_bias=com_bias(af, 0.0, 0.006))
+    swing = {}
+    for r2 in (0.9, 0.0):  # 0: the centring off
+        seq, _, _ = fly_first(af, 1.5, att_centre_r2=r2)
+        t = seq.loops[Loop.ROLL]
+        first = next(e for e in seq.events if e.startswith("roll: relay sized on its first"))
+        swing[r2] = float(first.split("(")[1].split(" rad")[0])
+        if r2:
+            assert t.centred and "roll: relay centred" in seq.events[0]
+            assert t.bias == pytest.approx(-af.torque_bias[0], rel=0.15)
+    assert swing[0.9] < 0.8 * swing[0.0], swing
+
+
+def test_torque_bias_fit_with_motor_lag_and_noise():
+    """The fit recovers gain and bias behind a delay and a motor lag, from noisy rates; a
+    record on one relay level alone pins nothing down (K and b cannot be told apart)."""
+    import numpy as np
+
+    from mrft_gcs.flight.phases.attitude import torque_bias_fit
+
+    rng = np.random.default_rng(1)
+    t = np.arange(-0.2, 0.5, 0.004)
+    u = np.where((t < 0.0) | (t >= 0.25), -0.06, 0.06)
+    ud = np.interp(t - 0.04, t, u)
+    m = np.empty_like(ud)
+    m[0] = ud[0]
+    for i in range(1, t.size):  # 50 ms motors
+        m[i] = m[i - 1] + (1 - math.exp(-0.004 / 0.05)) * (ud[i - 1] - m[i - 1])
+    rate = np.concatenate([[0.0], np.cumsum(300.0 * (m[:-1] - 0.015) * 0.004)])
+    rate += rng.normal(0, 0.05, t.size)
+    f = torque_bias_fit(t, u, t[50:], rate[50:])
+    assert f is not None and f.bias == pytest.approx(-0.015, abs=0.002)
+    assert f.gain == pytest.approx(300, rel=0.1) and f.bias_se < 0.002
+    one = torque_bias_fit(t, u, t[52:100], rate[52:100])
+    assert one is None or one.bias_se > 0.1 * 0.06

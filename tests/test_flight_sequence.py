@@ -430,3 +430,90 @@ def test_a_catch_sized_on_too_small_a_cycle_is_softened_until_it_hands_back():
     assert hand_back_s(5.0, 10**6) is None  # too stiff and left so: chatters throughout
     softened = hand_back_s(5.0, SequenceConfig().catch_chatter_flips)
     assert softened is not None and softened < 2.0
+
+
+def test_cycles_refused_as_too_small_are_retried_on_the_next_cycle_then_raised():
+    """A side relay whose cycles identification refused as too small for the noise runs on
+    and is tried again on its next cycle (before, the detection started over: three or more
+    periods, a second each, lost per refusal); two whole new sets refused raise h."""
+    from mrft_gcs.relay import MRFT
+
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.5), ATT_RELAY, ALT_RELAY)
+    t = seq.loops[Loop.Y]
+    t.state, t.h, t.band = LoopState.RELAY, 0.08, 1e-4
+    t.relay = MRFT(t.beta, t.h, band=t.band)
+    k = 0
+
+    def run(periods):  # 1 s cycles of 2 cm
+        nonlocal k
+        for _ in range(int(periods * 250)):
+            ts = 0.004 * k
+            t.status = t.detector.update(ts, t.h * np.sign(math.sin(2 * math.pi * ts) + 1e-9),
+                                         0.02 * math.sin(2 * math.pi * ts - 2.0))
+            k += 1
+
+    run(5.2)
+    assert [s.loop for s in seq.ready()] == [Loop.Y]
+    seen = t.status.cycles
+    seq.retry(Loop.Y, larger=True)
+    assert t.state is LoopState.RELAY and t.status.cycles == seen  # not started over
+    assert not seq.ready()  # the same cycles are not handed over again
+    run(1.0)
+    assert [s.loop for s in seq.ready()] == [Loop.Y]  # one period later
+    n = seq.config.cycle_rules(Loop.Y).identify_cycles
+    for _ in range(2 * n - 1):
+        seq.retry(Loop.Y, larger=True)
+        run(1.0)
+        assert seq.ready() and t.h == 0.08
+    seq.retry(Loop.Y, larger=True)
+    assert t.h > 0.08 and t.status.cycles == 0 and "too small" in seq.events[-1]
+
+
+def test_altitude_relay_raise_keeps_every_motor_inside_its_range():
+    """A heavy vehicle hovering at 0.8 thrust: the altitude relay may not be raised past the
+    headroom left above hover, less the share of each motor the roll and pitch relays
+    running beside it take (half of each torque); clipped, its cycle turns lopsided."""
+    from mrft_gcs.relay import MRFT
+
+    seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.8), ATT_RELAY, ALT_RELAY)
+    sh = seq.shared
+    alt = seq.loops[Loop.ALTITUDE]
+    alt.bias = 0.8
+    assert sh.h_max(Loop.ALTITUDE) == pytest.approx(0.2)  # 1 - 0.8 (was 0.25)
+    for lp in (Loop.ROLL, Loop.PITCH):
+        t = seq.loops[lp]
+        t.state, t.h, t.bias = LoopState.RELAY, 0.1, -0.03
+        t.relay = MRFT(t.beta, t.h, bias=t.bias)
+    assert sh.h_max(Loop.ALTITUDE) == pytest.approx(0.2 - 0.13)
+    alt.state, alt.h = LoopState.RELAY, 0.05
+    sh.takeoff.relay = MRFT(alt.beta, alt.h, bias=0.8)
+    assert sh.raise_h(alt, 2.0) and alt.h == pytest.approx(0.07)
+    assert not sh.raise_h(alt, 2.0)  # at its largest
+
+
+def test_driver_retries_cycles_too_small_on_the_next_cycle():
+    """The driver hands a CyclesTooSmall refusal to the sequence as one to retry on the next
+    cycle (the detection goes on); any other refusal starts the detection over."""
+    from mrft_gcs.errors import CyclesTooSmall, IdentificationError
+    from mrft_gcs.flight.driver import SequenceDriver
+    from mrft_gcs.relay import MRFT
+
+    for err, kept in ((CyclesTooSmall("too noisy"), True),
+                      (IdentificationError("not steady"), False)):
+        seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.5), ATT_RELAY, ALT_RELAY)
+        t = seq.loops[Loop.Y]
+        t.state, t.h, t.band = LoopState.RELAY, 0.08, 1e-4
+        t.relay = MRFT(t.beta, t.h, band=t.band)
+        for k in range(1300):  # 1 s cycles of 2 cm
+            ts = 0.004 * k
+            t.status = t.detector.update(ts, t.h * np.sign(math.sin(2 * math.pi * ts) + 1e-9),
+                                         0.02 * math.sin(2 * math.pi * ts - 2.0))
+
+        def refuse(loop, snap, inner, err=err):
+            raise err
+
+        drv = SequenceDriver(seq, refuse)
+        seen = t.status.cycles
+        drv.supervise()
+        assert t.state is LoopState.RELAY and drv.retries[-1][0] is Loop.Y
+        assert t.status.cycles == (seen if kept else 0)

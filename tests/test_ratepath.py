@@ -126,10 +126,12 @@ def test_feed_forward_check_corrects_small_and_refuses_large_errors():
 
 # ---------------------------------------------------------------------- yaw
 def _fly_yaw(relay, K: float, T_prop: float, T1: float, tau: float, seconds: float,
-             disturbance: float = 0.0, until_ready: bool = True, disturbance_from_s=0.0):
+             disturbance: float = 0.0, until_ready: bool = True, disturbance_from_s=0.0,
+             drift_rad_s: float = 0.0):
     """A yaw plant ``K e^{-tau s} / (s (T_prop s + 1) (T1 s + 1))`` (normalised torque in,
     heading out) integrated at 1 kHz, sampled and commanded at 250 Hz as the stream does;
-    the heading set point is 0. Returns the headings seen (rad)."""
+    the heading set point is 0, and turns at ``drift_rad_s`` from ``disturbance_from_s``.
+    Returns the headings seen (rad)."""
     from collections import deque
 
     dt, every = 0.001, 4
@@ -138,7 +140,8 @@ def _fly_yaw(relay, K: float, T_prop: float, T1: float, tau: float, seconds: flo
     u, seen = 0.0, []
     for k in range(round(seconds / dt)):
         if k % every == 0:
-            u = relay.step(0.0, y, r, k * dt)
+            ref = drift_rad_s * max(0.0, k * dt - disturbance_from_s)
+            u = relay.step(ref, y, r, k * dt)
             seen.append(y)
             if until_ready and relay.snapshot is not None:
                 break
@@ -280,12 +283,107 @@ def test_yaw_relay_takes_the_torque_that_holds_the_heading_as_its_bias():
     from mrft_gcs.flight.phases.yaw import YawRelay, YawRules, YawState
 
     relay = YawRelay(YawHold(0.8, 0.2, limit=0.5), -0.7, YawRules(max_rebias=2))
-    _fly_yaw(relay, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.0)
+    _fly_yaw(relay, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.5)
     assert relay.state is YawState.READY, (relay.state, relay.why, relay.events)
     assert relay.rebiased >= 1 and any("relay bias" in e for e in relay.events)
     assert relay.bias == pytest.approx(-0.1, abs=0.02)
     snap = relay.take()
     assert abs(float(np.mean(snap.y))) < 0.5 * float(np.ptp(snap.y))
     off = YawRelay(YawHold(0.8, 0.2, limit=0.5), -0.7)
-    _fly_yaw(off, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.0)
+    _fly_yaw(off, *YAW_PLANT, seconds=15.0, disturbance=0.1, disturbance_from_s=2.5)
     assert off.state is YawState.HELD and off.rebiased == 0, (off.state, off.why)
+
+
+def _yaw_halves(share: float) -> tuple[object, np.ndarray]:
+    """A yaw relay fed a 0.3 s, 0.6 deg heading cycle whose centre moves off the set point at
+    3 deg/s (as ArduCopter SITL's did, 0.3-0.6 deg a cycle); the heading is given, not
+    flown, so that only the relay's switching is judged. Returns the relay and its
+    half-periods over the last 2 s."""
+    from mrft_gcs.flight.controllers import YawHold
+    from mrft_gcs.flight.phases.yaw import YawRelay, YawRules
+
+    relay = YawRelay(YawHold(1.35, 0.3, limit=0.5), -0.7,
+                     YawRules(centre_share=share, size_on_cycle=10**6, max_s=60.0))
+    A, w = math.radians(0.6), 2 * math.pi / 0.3
+    ts = np.arange(0.0, 8.0, 0.004)
+    us = []
+    for t in ts:
+        ta = max(0.0, t - 1.2)
+        y = A * math.sin(w * ta) - math.radians(3.0) * ta
+        us.append(relay.step(0.0, y, A * w * math.cos(w * ta), float(t)))
+    us = np.array(us)
+    sw = np.flatnonzero(np.diff(us) != 0)
+    sw = sw[ts[sw] > 6.0]
+    return relay, np.diff(ts[sw])
+
+
+def test_yaw_relay_zero_follows_a_cycle_that_drifts_off_its_set_point():
+    """A cycle that drifts off the set point leaves an MRFT about a fixed zero (its extremes
+    are measured from zero): once the cycle no longer crosses it, the relay switches
+    lopsided or not at all (here: not at all). The relay's zero follows the cycle, so it
+    keeps switching twice a cycle, once per period of the heading's cycle."""
+    relay, halves = _yaw_halves(0.5)
+    assert relay.max_zero_rad > math.radians(5.0), relay.max_zero_rad
+    periods = halves[:-1] + halves[1:]
+    assert halves.size >= 10 and np.all(np.abs(periods - 0.3) < 0.012), halves
+    fixed, halves = _yaw_halves(math.inf)
+    assert fixed.max_zero_rad == 0.0
+    assert halves.size < 10, halves
+
+
+def test_report_and_table_carry_yaw_tuned_or_held():
+    """``loops.yaw`` in the report JSON (SPEC 4.3 keys, then yaw's own) and a yaw row in the
+    CLI's table: the written values, the gains the cascade closes and the predicted margin
+    where tuned; the reason, and nulls (never NaN), where held."""
+    import json
+
+    from rich.console import Console
+
+    from mrft_gcs.cli.tune import result_table
+    from mrft_gcs.flight.api import TuneResult
+    from mrft_gcs.flight.phases.yaw import YawOutcome
+    from mrft_gcs.flight.ratepath import yaw_design, yaw_names
+    from mrft_gcs.flight.report import report_dict
+    from mrft_gcs.identify import Identification
+    from mrft_gcs.loops import LoopKind
+    from mrft_gcs.pd_design import frequency_grid, optimal_pd
+    from mrft_gcs.plant import InnerModel, inner_response
+
+    m = InnerModel(*YAW_PLANT)
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    pd = optimal_pd(inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0], w).pd
+    ident = Identification(LoopKind.ATTITUDE, m, 3, 0.9, -0.7, 0.3, 0.31, 0.011, pd)
+    d = yaw_design(ident, yaw_names(load_profile("ardupilot").rate_path), 20.0, 2.5)
+    c = d.cascade
+    tuned = YawOutcome("tuned", None, -0.7, 0.3, 0.0, 0.0005, 0.31, 0.011, ident, c.gains,
+                       dict(d.values), c.pm_deg, c.wc_rad_s, 5.2, 0.05, 0.06, "yaw tuned ...")
+    held = YawOutcome("held", "no steady relay cycle within 8 s", -0.7, 0.3, 0.0, 0.0005,
+                      math.nan, math.nan, None, None, {}, math.nan, math.nan, math.nan, 0.2,
+                      0.0, "yaw held on its own gains: no steady relay cycle within 8 s")
+
+    def run(y):
+        r = TuneResult("udp:x", "ardupilot", "ardupilot", "rate", "now", 12.0, {}, (), None,
+                       "ok", yaw=y)
+        console = Console(width=300, record=True)
+        console.print(result_table(r))
+        rows = [ln for ln in console.export_text().splitlines() if "│ yaw" in ln]
+        return json.loads(json.dumps(report_dict(r), allow_nan=False))["loops"], rows
+
+    loops, rows = run(tuned)
+    y = loops["yaw"]
+    assert y["state"] == "tuned" and y["reason"] is None and y["class"] == 3
+    assert y["model"] == {"K": 20.0, "T_prop": 0.05, "T1": 1.0, "tau": 0.01}
+    assert y["written"]["ATC_ANG_YAW_P"] == pytest.approx(c.gains.Kc / c.gains.Kd)
+    assert y["written"]["ATC_RAT_YAW_P"] == pytest.approx(c.gains.Kd)
+    assert y["gains"] == {"Kc": pytest.approx(c.gains.Kc), "Kd": pytest.approx(c.gains.Kd)}
+    assert y["pm_predicted_deg"] == pytest.approx(c.pm_deg) and y["pm_predicted_deg"] >= 15
+    assert y["tuned_after_s"] == 5.2 and y["zero_moved_deg"] == pytest.approx(math.degrees(0.06))
+    assert len(rows) == 1 and "tuned" in rows[0] and "PM" in rows[0]
+    loops, rows = run(held)
+    y = loops["yaw"]
+    assert y["state"] == "held" and y["reason"] == "no steady relay cycle within 8 s"
+    assert y["gains"] is None and y["model"] is None and y["pm_predicted_deg"] is None
+    assert y["written"] == {} and y["period_s"] is None and y["tuned_after_s"] is None
+    assert len(rows) == 1 and "held" in rows[0] and "no steady relay cycle" in rows[0]
+    loops, rows = run(None)  # yaw not relay-tested: no entry, no row (as before)
+    assert "yaw" not in loops and rows == []

@@ -53,6 +53,15 @@ def result_table(result: TuneResult) -> Table:
         table.add_row(lp.value, lr.state, model, str(ident.class_index) if ident else "-",
                       _f(lr.period_s), _f(lr.gains.Kc) if lr.gains else "-",
                       _f(lr.gains.Kd) if lr.gains else "-", check, lr.note or "")
+    if (y := result.yaw) is not None:  # relay-tested on the rate path
+        ident = y.identification
+        model = ", ".join(f"{k} {v:.3g}" for k, v in ident.model.as_dict().items()) if ident \
+            else "-"
+        pm = f"PM {y.pm_predicted_deg:.0f} deg predicted" if y.gains else "-"
+        table.add_row("yaw", y.state, model, str(ident.class_index) if ident else "-",
+                      _f(y.period_s), _f(y.gains.Kc) if y.gains else "-",
+                      _f(y.gains.Kd) if y.gains else "-", pm,
+                      y.reason or ", ".join(f"{k} {v:.4g}" for k, v in y.written.items()))
     return table
 
 

@@ -86,6 +86,7 @@ from mrft_gcs.flight.onboard import (
     robust_onboard_gains,
 )
 from mrft_gcs.flight.phases.yaw import IDENTIFY_AS as YAW_IDENTIFY_AS
+from mrft_gcs.flight.phases.yaw import YawOutcome
 from mrft_gcs.flight.ratepath import CHECK_SPAN_S as RATE_CHECK_SPAN_S
 from mrft_gcs.flight.ratepath import GCS_PD_SCALE as RATE_GCS_PD_SCALE
 from mrft_gcs.flight.ratepath import INAIR_CHECK as RATE_INAIR_CHECK
@@ -266,7 +267,9 @@ class TuneResult:
     firmware: Firmware | None = None
     #: the hover on the written gains after the hand-over (None: not reached)
     hover_check: HoverCheck | None = None
-    #: the holds on the written and the old values after it (None: not flown)
+    #: yaw's relay test on the rate path (None: yaw was not relay-tested)
+    yaw: YawOutcome | None = None
+    #: the holds on the written and the old values after the hover check (None: not flown)
     hold_compare: HoldComparison | None = None
 
 
@@ -641,6 +644,7 @@ class _Run:
                         + ([tilt_note(seq.max_tilt_by_phase)]
                            if seq and seq.max_tilt_by_phase else [])),
             firmware=self.firmware, hover_check=self.hover_check,
+            yaw=self.rate.yaw_outcome(seq.t_start_s if seq else math.nan) if self.rate else None,
             hold_compare=self.hold_compare)
 
     def _verification(self, lp: Loop, status: str) -> Verification | None:

@@ -124,6 +124,12 @@ class SequenceConfig:
     #: a larger mean torque is no centre-of-mass offset (3 % of the arm is 0.01-0.05) but a
     #: disturbed period, and is not taken as the bias
     att_bias_max: float = 0.1
+    #: roll/pitch: before it is sized, the relay is centred on the torque bias fitted to its
+    #: first swings (from lift-off by ``att_centre_z_m``) where the fit explains this share
+    #: of the rate's variance (0: off) and pins the bias within ``att_centre_se`` of h
+    att_centre_r2: float = 0.9
+    att_centre_se: float = 0.03
+    att_centre_z_m: float = 0.02
     #: later periods may resize a relay this many times (each restarts its detection)
     att_max_resizes: int = 3
     #: a resized relay restarts once its axis is within this share of the expected cycle's

@@ -9,7 +9,8 @@ does around it, in two parts:
   stream's thread, so it never waits for identification.
 - :meth:`~SequenceDriver.supervise`, as often as the caller likes: steady cycles are
   identified (the identification callable), a refused identification waits for the next
-  cycles (cycles that miss the set point start the relay over), a numerical failure is
+  cycles (cycles that miss the set point start the relay over, cycles too small for the
+  noise raise its amplitude first), a numerical failure is
   retried up to :data:`NUMERIC_RETRIES` times, side tests start with relay settings from
   their attitude identification, and a relay that never settles stops the test.
 
@@ -25,7 +26,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 
-from mrft_gcs.errors import IdentificationError, SetpointNotCrossed
+from mrft_gcs.errors import CyclesTooSmall, IdentificationError, SetpointNotCrossed
 from mrft_gcs.flight.controllers import FlightState, wrap_pi
 from mrft_gcs.flight.safety import RELAY_GUARD_LEAD_S, SafetyMonitor
 from mrft_gcs.flight.sequence import (
@@ -242,7 +243,8 @@ class SequenceDriver:
         except IdentificationError as err:
             self.notes.append(f"{snap.loop.value}: identification retried ({err})")
             self.retries.append((snap.loop, str(err)))
-            seq.retry(snap.loop, restart=isinstance(err, SetpointNotCrossed))
+            seq.retry(snap.loop, restart=isinstance(err, SetpointNotCrossed),
+                      larger=isinstance(err, CyclesTooSmall))
             return None
         except (ValueError, ArithmeticError) as err:
             # a numerical failure inside identification (numpy's LinAlgError is a

@@ -46,7 +46,7 @@ from mrft_gcs.flight.controllers import FlightState, YawHold
 from mrft_gcs.flight.inair import OnboardCascade
 from mrft_gcs.flight.onboard import CascadeGains, cascade_gains, rate_loop_gains
 from mrft_gcs.flight.phases.state import CycleSnapshot
-from mrft_gcs.flight.phases.yaw import YawRelay, YawState
+from mrft_gcs.flight.phases.yaw import YawOutcome, YawRelay, YawState
 from mrft_gcs.flight.source import Setpoint
 from mrft_gcs.identify import Identification
 from mrft_gcs.link.failsafe import rate_path_guard
@@ -662,7 +662,8 @@ class RatePath:
             when = (f"; steady cycles {relay.t_ready_s - relay.t_first_s:.1f} s after "
                     f"lift-off (relay from {relay.t_relay_s - relay.t_first_s:.1f} s, h "
                     f"{relay.h:.3g}, largest heading error "
-                    f"{math.degrees(relay.max_error_rad):.1f} deg)")
+                    f"{math.degrees(relay.max_error_rad):.1f} deg, its zero followed the cycle "
+                    f"up to {math.degrees(relay.max_zero_rad):.1f} deg off the set point)")
         ident, design = self.yaw_ident, self.yaw_written
         if relay.state is YawState.TUNED and ident is not None and design is not None:
             m, c = ident.model, design.cascade
@@ -683,6 +684,31 @@ class RatePath:
                              f"held it on the vehicle's own yaw gains, which are restored"
                              f"{when}")
         self.notes.extend(relay.events)
+
+    def yaw_outcome(self, t_start_s: float) -> YawOutcome | None:
+        """Yaw's relay test for the report (None: yaw was not relay-tested); ``t_start_s``
+        the take-off command's vehicle time."""
+        relay = self.yaw
+        if relay is None:
+            return None
+        ident, design = self.yaw_ident, self.yaw_written
+        tuned = (relay.state is YawState.TUNED and design is not None and bool(design.values)
+                 and self.handed_over)
+        c = design.cascade if tuned and design is not None else None
+        why = (relay.why if relay.state is YawState.HELD and relay.why else
+               "the tune stopped before its gains were written" if relay.state is YawState.TUNED
+               else "the tune stopped before its relay cycle was steady")
+        return YawOutcome(
+            state="tuned" if tuned else "held", reason=None if tuned else why,
+            beta=relay.beta, h=relay.h, bias=relay.bias, band=relay.rules.band_rad,
+            period_s=ident.period_s if ident else math.nan,
+            amplitude=ident.amplitude if ident else math.nan, identification=ident,
+            gains=c.gains if c is not None else None,
+            written=dict(design.values) if tuned and design is not None else {},
+            pm_predicted_deg=c.pm_deg if c is not None else math.nan,
+            crossover_rad_s=c.wc_rad_s if c is not None else math.nan,
+            steady_after_s=relay.t_ready_s - t_start_s, max_error_rad=relay.max_error_rad,
+            zero_moved_rad=relay.max_zero_rad, note=self.yaw_note or "")
 
     def require_aligned(self, timeout_s: float = 1.5) -> Alignment:
         """Before the take-off: the onboard target must sit on the body (ATTITUDE_TARGET

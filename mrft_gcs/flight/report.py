@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from mrft_gcs.flight.api import SCHEMA, LoopResult, TuneResult
+from mrft_gcs.flight.phases.yaw import YawOutcome
 
 __all__ = ["report_dict", "write_report", "SCHEMA"]
 
@@ -59,6 +60,37 @@ def _loop(lr: LoopResult) -> dict[str, Any]:
     }
 
 
+def _yaw(y: YawOutcome) -> dict[str, Any]:
+    """``loops.yaw``: the keys of every loop (``state`` ``tuned`` or ``held``), then yaw's
+    own: ``reason`` (why held; null where tuned), ``written`` (parameter -> value),
+    ``pm_predicted_deg`` and ``crossover_rad_s`` on ArduCopter's yaw cascade, and
+    ``steady_after_s`` (from the take-off command), ``max_error_deg`` and
+    ``zero_moved_deg`` of its relay."""
+    ident = y.identification
+    return {
+        "state": y.state,
+        "model": {k: _num(v) for k, v in ident.model.as_dict().items()} if ident else None,
+        "class": int(ident.class_index) if ident else None,
+        "confidence": _num(ident.confidence) if ident else None,
+        "beta": _num(y.beta), "h": _num(y.h), "bias": _num(y.bias), "band": _num(y.band),
+        "period_s": _num(y.period_s), "amplitude": _num(y.amplitude),
+        "gains": {"Kc": _num(y.gains.Kc), "Kd": _num(y.gains.Kd)} if y.gains else None,
+        "tuned_after_s": _num(y.steady_after_s) if y.state == "tuned" else None,
+        "residual": {"rms_before": None, "rms_after": None, "effect": None,
+                     "effect_params": {}},
+        # yaw's written gains are checked by the hover after the hand-over only
+        "verification": None,
+        "note": y.note or None,
+        "reason": y.reason,
+        "written": {k: _num(v) for k, v in y.written.items()},
+        "pm_predicted_deg": _num(y.pm_predicted_deg),
+        "crossover_rad_s": _num(y.crossover_rad_s),
+        "steady_after_s": _num(y.steady_after_s),
+        "max_error_deg": _num(math.degrees(y.max_error_rad)),
+        "zero_moved_deg": _num(math.degrees(y.zero_moved_rad)),
+    }
+
+
 def report_dict(result: TuneResult) -> dict[str, Any]:
     """The report as plain JSON types (keys in README's report schema order, extras after)."""
     st = result.stream
@@ -71,7 +103,8 @@ def report_dict(result: TuneResult) -> dict[str, Any]:
                     "firmware": result.firmware.as_dict() if result.firmware else None},
         "started": result.started,
         "duration_s": _num(result.duration_s),
-        "loops": {lp.value: _loop(lr) for lp, lr in result.loops.items()},
+        "loops": {lp.value: _loop(lr) for lp, lr in result.loops.items()}
+        | ({"yaw": _yaw(result.yaw)} if result.yaw is not None else {}),
         "parameters": [{"name": c.name, "old": _num(c.old), "new": _num(c.new)}
                        for c in result.parameters],
         "backup": result.backup,

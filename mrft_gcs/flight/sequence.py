@@ -238,7 +238,8 @@ class TuningSequence:
         with self._lock:
             cfg = self.config
             for t in self.loops.values():
-                if t.state is LoopState.RELAY and t.status.steady:
+                if (t.state is LoopState.RELAY and t.status.steady
+                        and t.status.cycles > t.retry_from):
                     sigma = t.band / cfg.noise_band_sigmas
                     if (sigma > cfg.max_noise_ratio * t.status.amplitude
                             and self.shared.raise_h(t, sigma / (0.7 * cfg.max_noise_ratio
@@ -263,16 +264,31 @@ class TuningSequence:
                     out.append(t.snapshot)
         return out
 
-    def retry(self, loop: Loop, restart: bool = False) -> None:
+    def retry(self, loop: Loop, restart: bool = False, larger: bool = False) -> None:
         """Identification failed on this cycle: keep the relay going and wait for the next.
 
         ``restart``: the cycles were not a proper MRFT oscillation (a slow, lopsided mode
         the relay can lock into); the relay starts over, x and y after settling again.
+        ``larger``: the cycles were too small for the noise; the relay runs on and the next
+        cycle is tried with the last ones (starting the detection over costs its steady
+        periods again, a second or more on a side axis, for cycles like these). Once two whole
+        new sets of cycles were refused too, the amplitude is what fails: it is raised
+        (``h_raise``, within ``h_max``) and the detection starts over. A raise at once was
+        slower: its first cycles, still growing, were refused as well.
         """
         with self._lock:
             t = self.loops[loop]
             if t.state is LoopState.IDENTIFYING:
                 t.state = LoopState.RELAY
+                if larger:
+                    n = self.config.cycle_rules(loop).identify_cycles
+                    if t.retry_base < 0:
+                        t.retry_base = t.status.cycles
+                    if t.status.cycles - t.retry_base < 2 * n or not self.shared.raise_h(
+                            t, self.config.h_raise, "identification refused two whole new "
+                            "sets of cycles as too small for the noise"):
+                        t.retry_from = t.status.cycles
+                        return
                 t.restart_detection()
                 relay = self.shared.relay_of(t)
                 if restart and relay is not None:

@@ -45,7 +45,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 
 from mrft_gcs.domains import D_SIDE
-from mrft_gcs.errors import IdentificationError
+from mrft_gcs.errors import CyclesTooSmall, IdentificationError
 from mrft_gcs.features import cycle_features, rising_switches
 from mrft_gcs.identify.closed_loop import closed_loop_points
 from mrft_gcs.identify.harmonics import (
@@ -336,7 +336,7 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, til
             "LOCAL_POSITION_NED faster (at least 30 samples per cycle)")
     if pts.spread[1] > FIT_MAX_SD[1]:
         # The classifier alone was measured unsafe here (phase margins down to 4 deg).
-        raise IdentificationError(
+        raise CyclesTooSmall(
             f"the side relay cycles are too noisy to measure their 3rd harmonic (spread "
             f"{pts.spread[1]:.2f} in log units, need <= {FIT_MAX_SD[1]}): raise the side relay "
             "amplitude or let it run longer, then retry")
@@ -357,7 +357,7 @@ def _fit_side(t, u, y, beta, b: SideBundle, inner: Identification, c: float, til
         # the check above reads the cycle-to-cycle spread; the fit weighs each harmonic by
         # its whole error (with the noise and timing terms), which can be over the limit
         # when the spread is just under it: a refusal to retry on, not a crash
-        raise IdentificationError(
+        raise CyclesTooSmall(
             f"the side relay cycles are too noisy to measure their 3rd harmonic (error "
             f"{fit_pts.sd[1]:.3f} in log units with noise and timing, need <= "
             f"{USABLE_SD}; {exc}): raise the side relay amplitude or let it run longer, "

@@ -2,15 +2,19 @@
 
 Each relay starts at lift-off at ``h_att_start`` and is sized on its first period (or at once
 on a first swing that tilts too far): h so that the axis swings about ``att_amp_max_rad``,
-the bias at the torque that holds the axis. Later periods resize a relay whose swing grew
-too large or whose mean torque moved off its bias. A relay that pushes the axis away before
-it is sized is turned round; a run-away is held by a damping PD until the axis is back inside
-its cycle (:meth:`~mrft_gcs.flight.phases.shared.Shared.watch`).
+the bias at the torque that holds the axis. Before that, from its second switch on, the relay
+is centred on the torque bias measured from its first swings (:func:`torque_bias_fit`): a
+CoM offset otherwise weakens every other push, and the swing that push must brake grows.
+Later periods resize a relay whose swing grew too large or whose mean torque moved off its
+bias. A relay that pushes the axis away before it is sized is turned round; a run-away is
+held by a damping PD until the axis is back inside its cycle
+(:meth:`~mrft_gcs.flight.phases.shared.Shared.watch`).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -23,7 +27,124 @@ from mrft_gcs.loops import Loop
 from mrft_gcs.profiles import Actuation
 from mrft_gcs.relay import MRFT
 
-__all__ = ["AttitudeRelays"]
+__all__ = ["AttitudeRelays", "TorqueFit", "torque_bias_fit"]
+
+#: loop delays (s) and motor lags (s, first order) the torque-bias fit tries: a link round
+#: trip and the telemetry, from a wired loopback to a slow radio; small to large motors
+_FIT_DELAYS_S = tuple(0.01 * k for k in range(16))
+_FIT_LAGS_S = (0.0, 0.02, 0.04, 0.06, 0.08)
+#: fits within this factor of the best one's squared error count as fitting nearly as well
+_FIT_NEAR = 2.0
+#: relay switches after which the fit is no longer tried (the first period sizes the relay)
+_CENTRE_SWITCHES = 8
+
+
+@dataclass(frozen=True)
+class TorqueFit:
+    """An attitude axis as a double integrator behind a delay: ``y'' = K (u(t - d) + b)``.
+
+    Attributes
+    ----------
+    gain : float
+        K, angular acceleration per unit of normalised torque (rad/s^2).
+    bias : float
+        b, the torque the vehicle adds to the command (normalised; a CoM offset, a trim).
+    bias_se : float
+        Uncertainty of ``bias`` (normalised torque): its standard error from the residuals,
+        or half its spread over the delays and lags that fit nearly as well, the larger.
+    delay_s : float
+        d, the loop delay that fits best (s).
+    r2 : float
+        Share of the rate's variance the fit explains.
+    """
+
+    gain: float
+    bias: float
+    bias_se: float
+    delay_s: float
+    r2: float
+
+
+def torque_bias_fit(t_cmd: np.ndarray, u_cmd: np.ndarray, t_s: np.ndarray, rate: np.ndarray,
+                    angle: np.ndarray | None = None, delays_s: tuple[float, ...] = _FIT_DELAYS_S,
+                    lags_s: tuple[float, ...] = _FIT_LAGS_S) -> TorqueFit | None:
+    """Fit the axis' rate to the relay's torque: ``rate(t) = r0 + K int(m(s) + b) ds``, ``m``
+    the command ``u(t - d)`` through a first-order lag ``T`` (the motors).
+
+    Linear least squares in ``(r0, K, K b)`` for each delay ``d`` of ``delays_s`` and lag
+    ``T`` of ``lags_s``, the best kept; the integral form needs no differentiated (noisy)
+    rate. Each relay level must act for a quarter of the samples or more (a fit on one
+    level alone cannot tell K from b). ``t_cmd``, ``u_cmd``:
+    the commands (s, normalised torque; each held until the next); ``t_s``, ``rate``: the
+    rate samples fitted (s, rad/s), within the commands' span. None with fewer than 8
+    samples, a command that does not change over them, or no positive K.
+
+    Examples
+    --------
+    >>> t = np.arange(-0.1, 0.4, 0.004)
+    >>> u = np.where(t < 0.0, -0.06, np.where(t < 0.2, 0.06, -0.06))
+    >>> ud = np.interp(t - 0.03, t, u)  # acting 30 ms later
+    >>> rate = np.concatenate([[0.0], np.cumsum(500.0 * (ud[:-1] + 0.02) * 0.004)])
+    >>> f = torque_bias_fit(t, u, t[25:], rate[25:])
+    >>> round(f.gain, -1), round(f.bias, 2), round(f.delay_s, 2), f.bias_se < 1e-3
+    (500.0, 0.02, 0.03, True)
+    """
+    t_cmd, u_cmd, t_s, rate = (np.asarray(a, float) for a in (t_cmd, u_cmd, t_s, rate))
+    if t_s.size < 8:
+        return None
+    dt = np.diff(t_s)
+    # the command acting at each sample under each delay: the last one given d earlier
+    k = np.searchsorted(t_cmd, t_s[None, :] - np.asarray(delays_s)[:, None] + 1e-9,
+                        side="right") - 1
+    ud = u_cmd[np.clip(k, 0, None)]
+    hi = ud > 0.5 * (ud.max(axis=1) + ud.min(axis=1))[:, None]
+    ok = (np.ptp(ud, axis=1) > 0) & (np.minimum(hi.mean(axis=1), 1 - hi.mean(axis=1)) >= 0.25)
+    if not ok.any():
+        return None
+    ud, dl = ud[ok], np.asarray(delays_s)[ok]
+    # through each motor lag (first order; 0: none), all delays and lags at once
+    lags = np.asarray(lags_s, float)
+    alpha = np.where(lags[:, None] > 0, -np.expm1(-dt[None, :] / np.maximum(lags, 1e-9)[:, None]),
+                     1.0)
+    m = np.empty((lags.size, *ud.shape))
+    m[..., 0] = ud[None, :, 0]
+    for i in range(1, t_s.size):
+        prev = m[..., i - 1]
+        m[..., i] = np.where(lags[:, None] > 0,
+                             prev + alpha[:, i - 1, None] * (ud[None, :, i - 1] - prev),
+                             ud[None, :, i])
+    U = np.concatenate([np.zeros((*m.shape[:2], 1)), np.cumsum(m[..., :-1] * dt, axis=-1)],
+                       axis=-1).reshape(-1, t_s.size)
+    fixed = [np.ones_like(t_s), t_s - t_s[0]]
+    if angle is not None:  # rotational drag: its integral is the angle swept
+        fixed.append(np.asarray(angle, float) - float(angle[0]))
+    # columns (r0, K, K b[, drag]) of every candidate, least squares through the normal
+    # equations on unit-scaled columns
+    a = np.stack([np.broadcast_to(fixed[0], U.shape), U,
+                  *(np.broadcast_to(c, U.shape) for c in fixed[1:])], axis=-1)
+    scale = np.sqrt(np.einsum("cni,cni->ci", a, a)) + 1e-300
+    an = a / scale[:, None, :]
+    x = np.linalg.solve(np.einsum("cni,cnj->cij", an, an) + 1e-12 * np.eye(a.shape[-1]),
+                        np.einsum("cni,n->ci", an, rate)[..., None])[..., 0] / scale
+    res = rate[None, :] - np.einsum("cni,ci->cn", a, x)
+    sse_all = np.einsum("cn,cn->c", res, res)
+    b_all = np.where(x[:, 1] > 0, x[:, 2] / np.where(x[:, 1] > 0, x[:, 1], 1.0), np.inf)
+    c = int(np.argmin(sse_all))
+    sse, x, a = float(sse_all[c]), x[c], a[c]
+    d = float(dl[c % dl.size])
+    # the delays and lags that fit nearly as well bound the bias too: a short record can
+    # trade the bias against the delay (a model error the residuals do not show)
+    near = b_all[sse_all <= _FIT_NEAR * sse]
+    spread = 0.5 * float(near.max() - near.min()) if np.isfinite(near).all() else math.inf
+    var = float(np.sum((rate - rate.mean()) ** 2))
+    if not x[1] > 0 or var <= 0:
+        return None
+    # the bias' standard error by the delta method on b = (K b) / K
+    cov = sse / max(t_s.size - x.size, 1) * np.linalg.pinv(a.T @ a)
+    g = np.zeros(x.size)
+    g[1], g[2] = -x[2] / x[1] ** 2, 1.0 / x[1]
+    se = max(math.sqrt(max(float(g @ cov @ g), 0.0)), spread)
+    return TorqueFit(float(x[1]), float(x[2] / x[1]), se, d, 1.0 - sse / var)
 
 
 class AttitudeRelays:
@@ -115,6 +236,8 @@ class AttitudeRelays:
                 r.switches += 1
                 u = float(r.bias[0] + r.h[0] * r.state[0])
                 t.pushed_away += 1
+            if t.relay is not None and not t.sized and not t.centred:
+                u = self._centre(t, t_s, u, y, rate, new)
             self.sh.feed(t, t_s, u, y, new)
             if new and t.relay is not None:
                 self._size(t, t_s, u, y, ref - y, -rate)
@@ -123,6 +246,59 @@ class AttitudeRelays:
                     and st.amplitude > 0):
                 t.cycle = (st.period_s, st.amplitude)
         t.u = u
+        return u
+
+    def _centre(self, t: LoopTest, t_s: float, u: float, y: float, rate: float,
+                new: bool) -> float:
+        """Before the relay is sized: at each switch, centre it on the torque bias fitted to
+        its swings so far (:func:`torque_bias_fit`); returns this tick's output.
+
+        Commands are recorded from the relay's start, rates once the vehicle is
+        ``att_centre_z_m`` off the ground (the ground carries torque until then). A fit is
+        taken where it explains ``att_centre_r2`` of the rate and pins the bias within
+        ``att_centre_se`` of h; the relay then takes it as its bias where it is over
+        ``att_bias_min`` of h off the relay's, under h and within ``att_bias_max``. The
+        relay is not restarted: the new bias acts from this switch on, on the push that
+        brakes the swing now starting.
+        """
+        cfg, r, sh = self.sh.config, t.relay, self.sh
+        assert r is not None
+        if not cfg.att_centre_r2:
+            return u
+        cmd = t.centre_cmd
+        if not cmd or cmd[-1][1] != u:
+            cmd.append((t_s, u))
+        if new and sh.z_f - sh.origin[2] > cfg.att_centre_z_m:
+            t.centre_rate.append((t_s, rate, y))
+        n = int(r.switches[0])
+        if n == t.centre_switches:
+            return u
+        t.centre_switches = n
+        if n > _CENTRE_SWITCHES:  # (a relay restarted again and again): its periods size it
+            t.centred = True
+            return u
+        if len(t.centre_rate) < 8:
+            return u
+        tc, uc = np.array(cmd).T
+        tr, wr, yr = np.array(t.centre_rate).T
+        fit = torque_bias_fit(tc, uc, tr, wr, yr)
+        if (fit is None or fit.r2 < cfg.att_centre_r2 or fit.bias_se > cfg.att_centre_se * t.h
+                or fit.delay_s >= _FIT_DELAYS_S[-1] or not abs(fit.bias) < t.h):
+            return u  # not yet pinned down: the next switch tries again
+        t.centred = True
+        t.centre_cmd, t.centre_rate = [], []
+        bias = -fit.bias
+        if not (cfg.att_bias_min * t.h < abs(bias - t.bias) and abs(fit.bias) < t.h
+                and abs(bias) <= cfg.att_bias_max):
+            return u
+        self.sh.events.append(
+            f"{t.loop.value}: relay centred on the torque bias of its first swings: bias "
+            f"{t.bias:+.3g} -> {bias:+.3g} (fit: {fit.gain:.3g} rad/s^2 per unit torque, "
+            f"{1e3 * fit.delay_s:.0f} ms, R^2 {fit.r2:.2f})")
+        t.bias = bias
+        r.bias[:] = bias
+        u = float(bias + r.h[0] * r.state[0])
+        cmd.append((t_s, u))
         return u
 
     def _count_chatter(self, t: LoopTest, side: float) -> None:

@@ -93,10 +93,20 @@ class Shared:
             # the thrust must stay clear of zero: u = bias -+ h
             bias = self.loops[Loop.ALTITUDE].bias
             cap = 0.8 * bias if 0 < bias < 1 else self.config.h_max[1]
+            if 0 < bias < 1:
+                # and every motor clear of zero and of full while the roll and pitch relays
+                # run beside it: a torque of 1 is half the motors full, half at zero, so each
+                # motor carries half of each torque; a clipped push makes the cycle lopsided
+                share = 0.5 * sum(abs(t.bias) + t.h for t in (self.loops[Loop.ROLL],
+                                                                self.loops[Loop.PITCH])
+                                  if t.state in (LoopState.RELAY, LoopState.IDENTIFYING)
+                                  and t.relay is not None)
+                cap = min(cap, min(bias, 1.0 - bias) - share)
             return min(self.config.h_max[1], cap)
         return self.config.h_max[0 if loop in (Loop.ROLL, Loop.PITCH) else 2]
 
-    def raise_h(self, t: LoopTest, factor: float) -> bool:
+    def raise_h(self, t: LoopTest, factor: float,
+                why: str = "cycle too small for the measured noise") -> bool:
         """Raise a relay's amplitude (the oscillation is too small for the noise); start over.
 
         False if it is already as large as it may be (nothing changed).
@@ -110,7 +120,7 @@ class Shared:
         if relay is None or h <= t.h * 1.01:
             return False
         self.events.append(f"{t.loop.value}: relay amplitude raised from {t.h:.3g} to {h:.3g} "
-                           f"(cycle too small for the measured noise)")
+                           f"({why})")
         t.h = h
         relay.h[:] = h
         if t.loop is Loop.ALTITUDE:

@@ -101,6 +101,10 @@ class LoopTest:
     unarmed: int = 0  # switches made before the threshold could arm (relay too small)
     raises: int = 0  # times the relay amplitude was raised
     switches: int = 0  # relay switches since the relay (re)started
+    #: cycles seen when identification last refused them (too small for the noise): the
+    #: next try waits for a newer cycle; and when the first of such refusals in a row was
+    retry_from: int = 0
+    retry_base: int = -1
     center: float = 0.0  # side relays: the position the relay oscillates about (m)
     settling: bool = False  # side relays: bringing the axis to rest before the relay starts
     presettle: bool = False  # side loops: held at rest while waiting for the altitude test
@@ -130,6 +134,13 @@ class LoopTest:
     catch_flips: int = 0  # roll/pitch: the catch's swings from one limit to the other
     catch_sign: float = 0.0  # and the side of the last limit it sat at
     bias_votes: list = field(default_factory=list)  # mean torque of the last periods
+    #: roll/pitch before sizing: the torque-bias fit is done (see attitude.py); the relay's
+    #: commands (t, u) since its start, the rates (t, rad/s) once off the ground, and the
+    #: relay switches seen
+    centred: bool = False
+    centre_cmd: list = field(default_factory=list)
+    centre_rate: list = field(default_factory=list)
+    centre_switches: int = 0
     #: roll/pitch before the first period: (t, relay state, de/dt)
     probe_rate: deque = field(default_factory=lambda: deque(maxlen=400))
 
@@ -154,3 +165,4 @@ class LoopTest:
     def restart_detection(self) -> None:
         """Forget the cycles seen so far: the relay starts over."""
         self.watch.restart()
+        self.retry_from, self.retry_base = 0, -1

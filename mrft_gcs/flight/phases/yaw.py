@@ -6,8 +6,9 @@ starts, and wherever it gives up, the heading is held by the hold it was given (
 path: the vehicle's own yaw gains). The relay starts :attr:`YawRules.start_after_s` after the
 first airborne tick (once the heading is at rest), next to the altitude and roll/pitch
 relays (the zero-gain window of the rate path closes only once yaw is done too); it is sized
-once on its first cycle towards :attr:`YawRules.amp_goal_rad`, and a cycle centred off its
-set point takes the cycle's mean torque as its bias and starts over from the set point. A
+once towards :attr:`YawRules.amp_goal_rad` (on cycle :attr:`YawRules.size_on_cycle`, or
+sooner where a cycle swings too far), and its zero follows a cycle that drifts off the set
+point (:attr:`YawRules.centre_share`), so that it stays an MRFT cycle. A
 heading error beyond :attr:`YawRules.abort_rad` or no steady cycle within
 :attr:`YawRules.max_s` hands yaw back to the hold, with the reason (:attr:`YawRelay.why`).
 
@@ -28,10 +29,12 @@ from mrft_gcs.flight.config import SequenceConfig
 from mrft_gcs.flight.controllers import PDLoop, YawHold, wrap_pi
 from mrft_gcs.flight.cycles import CycleWatcher
 from mrft_gcs.flight.phases.state import CycleSnapshot
+from mrft_gcs.identify import Identification
 from mrft_gcs.loops import Loop
+from mrft_gcs.pd_design import PD
 from mrft_gcs.relay import MRFT
 
-__all__ = ["YawRules", "YawRelay", "YawState", "IDENTIFY_AS"]
+__all__ = ["YawRules", "YawRelay", "YawState", "YawOutcome", "IDENTIFY_AS"]
 
 #: the loop whose classifier identifies yaw (the attitude one: the same model structure)
 IDENTIFY_AS = Loop.ROLL
@@ -41,16 +44,30 @@ IDENTIFY_AS = Loop.ROLL
 class YawRules:
     """How the yaw relay runs (angles in rad, torques normalised, times in s)."""
 
-    #: after the first airborne tick: the climb's own transient passes first
-    start_after_s: float = 0.5
-    #: first relay amplitude; sized once on the first cycles, within [h_min, h_max]
+    #: after the first airborne tick: the climb's own transient passes first. Not later: the
+    #: x/y tests that follow roll and pitch turn the heading too (ArduCopter SITL: its yaw
+    #: relay needed a mean 0.1 of torque from ~5.5 s after lift-off and lost its cycle)
+    start_after_s: float = 0.75
+    #: first relay amplitude; sized once, within [h_min, h_max]
     h_start: float = 0.2
     h_min: float = 0.01
     h_max: float = 0.3
     #: the heading swing the relay is sized towards
     amp_goal_rad: float = math.radians(1.5)
-    #: resized where the first cycles swing outside [1/ratio, ratio] x the goal
+    #: resized where a cycle swings outside [1/ratio, ratio] x the goal: at once where it
+    #: swings past ``ratio`` x the goal, otherwise on cycle ``size_on_cycle`` (the first
+    #: cycle of a relay started just after lift-off is no measure: ArduCopter SITL's swung
+    #: 0.01-0.4 deg against 0.6 on the next at the same h)
     resize_ratio: float = 1.8
+    size_on_cycle: int = 2
+    #: the relay's zero follows its cycle: where a cycle's centre lies further than this
+    #: share of its swing from the relay's zero, the zero moves to that distance. Yaw barely
+    #: damps its rate and the relay restores the heading only weakly (by 1 + beta), so a
+    #: turn left from the start carries the cycle off the set point; a cycle that no longer
+    #: crosses its zero is no MRFT (the relay's extremes are measured from zero) and drifts
+    #: on until far off (ArduCopter SITL: 0.3-0.5 deg a cycle, 3-3.4 deg off in 4 s). The
+    #: share left keeps some of the relay's pull back towards the set point
+    centre_share: float = 0.5
     #: a heading error that ends the test (back to the hold)
     abort_rad: float = math.radians(25.0)
     #: seconds from the relay's due start without a steady cycle that end the test
@@ -60,7 +77,7 @@ class YawRules:
     #: the relay (re)starts once the hold brought the heading this near its set point, this
     #: slowly turning
     settle_rad: float = math.radians(1.0)
-    settle_rate_rad_s: float = math.radians(5.0)
+    settle_rate_rad_s: float = math.radians(2.0)
     settle_max_s: float = 1.5
     #: a cycle off its set point whose centre moved this share of its swing since the cycle
     #: before has drifted; re-biased at most this many times. Off by default: on ArduCopter
@@ -69,6 +86,58 @@ class YawRules:
     #: off centre as they came (identification reads the bias from the cycle)
     drift_share: float = 0.5
     max_rebias: int = 0
+
+
+@dataclass(frozen=True)
+class YawOutcome:
+    """What came of yaw's relay test on the rate path (the report's ``loops.yaw``).
+
+    Attributes
+    ----------
+    state : str
+        ``tuned`` (gains written) or ``held`` (the vehicle's own yaw gains kept).
+    reason : str or None
+        Why yaw was held (None where tuned).
+    beta, h, bias, band : float
+        The relay's settings (normalised yaw command; band in rad).
+    period_s, amplitude : float
+        Of the identified cycle (s, rad); NaN where none was identified.
+    identification : Identification or None
+        The attitude classifier's result on yaw's cycles.
+    gains : PD or None
+        The gains the autopilot closes with the written parameters (normalised yaw command
+        per rad and per rad/s: angle P times rate P, rate P); None where none are written.
+    written : dict
+        Parameter -> value written (empty where held).
+    pm_predicted_deg, crossover_rad_s : float
+        The written gains' phase margin and crossover on ArduCopter's yaw cascade as
+        modelled (NaN where none are written).
+    steady_after_s : float
+        Steady cycles after the take-off command (s; NaN: none came).
+    max_error_rad, zero_moved_rad : float
+        Largest heading error while the relay ran, and how far its zero followed the cycle
+        off the set point (rad).
+    note : str
+        The report's line on yaw.
+    """
+
+    state: str
+    reason: str | None
+    beta: float
+    h: float
+    bias: float
+    band: float
+    period_s: float
+    amplitude: float
+    identification: Identification | None
+    gains: PD | None
+    written: dict[str, float]
+    pm_predicted_deg: float
+    crossover_rad_s: float
+    steady_after_s: float
+    max_error_rad: float
+    zero_moved_rad: float
+    note: str
 
 
 class YawState(enum.Enum):
@@ -114,6 +183,8 @@ class YawRelay:
         self.t_relay_s = math.nan
         self.t_ready_s = math.nan  # steady cycles handed over
         self.max_error_rad = 0.0  # largest heading error while the relay ran
+        self.zero_rad = 0.0  # the relay's zero: its heading error where it cycles about
+        self.max_zero_rad = 0.0  # the largest |zero_rad| (how far the cycle was followed)
         self.events: list[str] = []
         self._t_last_s = -math.inf
         self._t_settle_s = math.nan  # the hold began to settle the heading
@@ -167,12 +238,14 @@ class YawRelay:
                 self._give_up(f"the heading swung {math.degrees(abs(e)):.0f} deg off during "
                               f"its relay (limit {math.degrees(r.abort_rad):.0f})")
                 return self.hold.step(ref, y, rate)
-            u = float(self.relay.step(e)[0])
+            u = float(self.relay.step(e - self.zero_rad)[0])
             if t_s <= self._t_last_s:  # ticks between telemetry samples repeat the state
                 return u
             self._t_last_s = t_s
             cycles = self.watch.status.cycles
             status = self.watch.update(t_s, u, -e)
+            if status.cycles > cycles:
+                self._follow(e, status.amplitude)
             if self.state is YawState.RELAY:
                 if self._size(status.cycles, status.amplitude):
                     return self.hold.step(ref, y, rate)
@@ -193,6 +266,7 @@ class YawRelay:
         cycles 1-2 deg off their set point)."""
         self.bias = self.hold.trim
         self.relay = MRFT(self.beta, self.h, bias=self.bias, band=self.rules.band_rad)
+        self.zero_rad = 0.0
         self.watch.restart()
         self.state, self._t_settle_s, self._centre = YawState.RELAY, math.nan, math.nan
         if not math.isfinite(self.t_relay_s):
@@ -234,20 +308,45 @@ class YawRelay:
         self.state, self.relay = YawState.SETTLE, None
         return True
 
+    def _follow(self, e: float, amp: float) -> None:
+        """At a cycle boundary (the relay just switched up, heading error ``e``): the
+        relay's zero moved to within :attr:`YawRules.centre_share` of the last cycle's swing
+        from its centre, and the relay's state as if it had switched about that zero."""
+        relay, share = self.relay, self.rules.centre_share
+        # re-biasing (where on) answers an off-centre cycle instead, while it may
+        if relay is None or not (share >= 0 and amp > 0) or self.rebiased < self.rules.max_rebias:
+            return
+        _, _, ys = self.watch.last_cycles(1)
+        if ys.size < 2 or not relay.state[0] > 0:
+            return
+        off = -0.5 * float(np.max(ys) + np.min(ys)) - self.zero_rad  # centre from the zero
+        if abs(off) <= share * amp:
+            return
+        self.zero_rad += off - math.copysign(share * amp, off)
+        self.max_zero_rad = max(self.max_zero_rad, abs(self.zero_rad))
+        # what the relay set on its switch up, measured from the new zero (its extreme
+        # starts at the switch, or at zero where the switch came below it)
+        x = e - self.zero_rad
+        relay.ext[:] = max(x, 0.0)
+        relay.entry[:] = x
+
     def _size(self, cycles: int, amp: float) -> bool:
-        """Once, on the first complete cycle: h towards the goal swing (the swing is
-        proportional to h), the relay restarted from the hold. True: restarted."""
+        """Once: h towards the goal swing (the swing is proportional to h), the relay
+        restarted from the hold; on the first cycle that swings too far, or on cycle
+        :attr:`YawRules.size_on_cycle`. True: restarted."""
         r = self.rules
         if self.resized or cycles < 1 or not amp > 0:
             return False
-        self.resized = True
         ratio = r.amp_goal_rad / amp
+        if cycles < r.size_on_cycle and ratio >= 1.0 / r.resize_ratio:
+            return False  # still growing, and not too far yet
+        self.resized = True
         if 1.0 / r.resize_ratio <= ratio <= r.resize_ratio:
             return False
         h = min(r.h_max, max(r.h_min, self.h * ratio))
         if abs(h - self.h) < 0.01 * self.h:
             return False
-        self.events.append(f"yaw: relay sized on its first cycle ({math.degrees(amp):.2g} deg "
+        self.events.append(f"yaw: relay sized on its cycle {cycles} ({math.degrees(amp):.2g} deg "
                            f"at h {self.h:.3g}): amplitude {self.h:.3g} -> {h:.3g}")
         self.h = h
         self.state, self.relay = YawState.SETTLE, None
