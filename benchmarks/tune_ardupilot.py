@@ -36,7 +36,10 @@ flies ArduPilot's own AUTOTUNE of roll and pitch (``--autotune-axes``: AUTOTUNE_
 adds yaw) from a 3 m LOITER, saved by landing and disarming in AUTOTUNE with the simulated
 RC throttle low, holds on its gains the same way, and puts them back before the tool's
 runs (``--runs 0``: AUTOTUNE alone). ``--json`` writes every figure, as far as the
-benchmark got.
+benchmark got. The figures and the verdict are the tool's own
+(:mod:`mrft_gcs.flight.holdcompare`), which flies the same comparison after its hand-over
+(``--hold-compare``, the profile's 8 s by default: its holds go in each run's
+``hold_compare``; a tune that reverted gets no *after* hold here).
 """
 
 from __future__ import annotations
@@ -59,6 +62,8 @@ from pymavlink import mavutil
 
 from mrft_gcs.errors import MrftError
 from mrft_gcs.flight.api import tune
+from mrft_gcs.flight.holdcompare import WORSE_SLACK, effort_in, synced_error, worse_in  # noqa: F401
+from mrft_gcs.flight.holdcompare import hold_figures as figures_of
 from mrft_gcs.link import VehicleLink
 from mrft_gcs.params import ParamClient
 from mrft_gcs.sitl.arducopter import ArduCopterSitl, free_instance, why_not
@@ -141,51 +146,9 @@ class Observer:
         return hold_figures(data)
 
 
-def synced_error(att_t: np.ndarray, tgt_t: np.ndarray) -> np.ndarray:
-    """Roll/pitch minus the target interpolated to each ATTITUDE's own vehicle time (rad,
-    shape (n, 2)); ATTITUDE samples outside the target's time span are left out. Pairing each
-    ATTITUDE with the latest ATTITUDE_TARGET instead counts the target's motion since that
-    message as error: up to one stream period of it, more the faster the target moves."""
-    if len(att_t) < 2 or len(tgt_t) < 2:
-        return np.zeros((0, 2))
-    order = np.argsort(tgt_t[:, 0], kind="stable")
-    tt, tr, tp = tgt_t[order, 0], tgt_t[order, 1], tgt_t[order, 2]
-    keep = (att_t[:, 0] >= tt[0]) & (att_t[:, 0] <= tt[-1])
-    t = att_t[keep, 0]
-    return np.column_stack((att_t[keep, 1] - np.interp(t, tt, tr),
-                            att_t[keep, 2] - np.interp(t, tt, tp)))
-
-
-def _rms_deg(x: np.ndarray) -> float:
-    return float(np.degrees(np.sqrt(np.mean(np.sum(x**2, axis=1))))) if len(x) else math.nan
-
-
 def hold_figures(data: dict[str, np.ndarray]) -> dict[str, float]:
-    pos, att, thr, err = data["pos"], data["att"], data["thr"], data["err"]
-    z = pos[:, 2]
-    tilt = np.degrees(np.arccos(np.cos(att[:, 0]) * np.cos(att[:, 1])))
-    sync = synced_error(data.get("att_t", np.zeros((0, 3))), data.get("tgt_t", np.zeros((0, 3))))
-    tgt = data.get("tgt_t", np.zeros((0, 3)))
-    rate = (np.diff(tgt[:, 1:], axis=0) / np.maximum(np.diff(tgt[:, 0]), 1e-3)[:, None]
-            if len(tgt) > 2 else np.zeros((0, 2)))
-    hf = (sync - np.column_stack([np.convolve(sync[:, k], np.ones(13) / 13, mode="same")
-                                  for k in range(2)]))[6:-6] if len(sync) > 13 else sync
-    return {"alt_spread_m": float(z.max() - z.min()), "alt_std_m": float(z.std()),
-            "max_climb_m_s": float(np.abs(pos[:, 3]).max()),
-            "max_drift_m": float(np.hypot(pos[:, 0] - pos[0, 0], pos[:, 1] - pos[0, 1]).max()),
-            "max_tilt_deg": float(tilt.max()),
-            # the rocking about the mean lean (a steady wind leans the vehicle by degrees)
-            "tilt_std_deg": float(np.degrees(np.hypot(att[:, 0].std(), att[:, 1].std()))),
-            # roll/pitch against ATTITUDE_TARGET: what the attitude gains alone answer for
-            "att_err_rms_deg": _rms_deg(err),
-            # ... against the target at the same vehicle time, and its part above ~2 Hz
-            # (less a 0.5 s running mean); how fast the target itself moved (rms, deg/s)
-            "att_err_sync_rms_deg": _rms_deg(sync),
-            "att_err_hf_rms_deg": _rms_deg(hf),
-            "target_rate_rms_deg_s": _rms_deg(rate),
-            "throttle_saturated": float(np.mean((thr[:, 0] <= 0) | (thr[:, 0] >= 100)))
-            if len(thr) else math.nan,
-            "throttle_std_pct": float(thr[:, 0].std()) if len(thr) else math.nan}
+    """The hold's figures (:func:`mrft_gcs.flight.holdcompare.hold_figures`) as a dict."""
+    return figures_of(data).as_dict()
 
 
 def line(name: str, f: dict[str, float]) -> str:
@@ -275,35 +238,6 @@ def run_autotune(obs: Observer, serial0: str, rc_port: int, tmp: str, axes: int 
             "messages": messages}
 
 
-#: what each judged hold figure may grow by on top of 20 % before it counts as worse
-WORSE_SLACK = {"alt_spread_m": 0.005, "alt_std_m": 0.005, "max_drift_m": 0.005,
-               "throttle_saturated": 0.0, "att_err_sync_rms_deg": 0.01}
-
-
-def worse_in(before: dict[str, float], after: dict[str, float]) -> list[str]:
-    """The hold figures that grew by more than 20 % (and :data:`WORSE_SLACK`) from
-    ``before`` to ``after``.
-
-    A hold is judged on how far altitude and position wander, on throttle saturation and on
-    how closely roll/pitch follow their target (at the same vehicle time). A stiffer loop
-    answers gusts with faster, smaller corrections, so its climb-rate peaks are reported but
-    not held against it; likewise the tilt: holding position in gusts takes lean, and a
-    position loop that gives way less leans more (:func:`effort_in` says so)."""
-    return [k for k, slack in WORSE_SLACK.items()
-            if k in before and k in after and after[k] > 1.2 * before[k] + slack]
-
-
-def effort_in(before: dict[str, float], after: dict[str, float]) -> str:
-    """A line on the lean spent to hold position, where it grew by more than 20 %."""
-    b, a = before.get("tilt_std_deg", math.nan), after.get("tilt_std_deg", math.nan)
-    if not a > 1.2 * b:
-        return ""
-    return (f"more lean spent holding position: tilt std {b:.2f} -> {a:.2f} deg, the target "
-            f"moving {before.get('target_rate_rms_deg_s', math.nan):.1f} -> "
-            f"{after.get('target_rate_rms_deg_s', math.nan):.1f} deg/s rms, drift "
-            f"{before['max_drift_m']:.2f} -> {after['max_drift_m']:.2f} m")
-
-
 def tune_run(run: int, serial0: str, obs: Observer, hold: Callable[[], dict[str, float]],
              args: argparse.Namespace, tmp: str) -> dict[str, object]:
     """One run of the tool: hold before, tune, hold after on the written gains, restore."""
@@ -312,7 +246,7 @@ def tune_run(run: int, serial0: str, obs: Observer, hold: Callable[[], dict[str,
     t = time.monotonic()
     try:
         result = tune(serial0, args.profile, backup_dir=tmp, heartbeat_timeout_s=10,
-                      actuation=args.actuation)
+                      actuation=args.actuation, hold_compare_s=args.hold_compare)
         status, error = result.status, ""
     except MrftError as err:
         if err.partial_result is None:
@@ -339,10 +273,14 @@ def tune_run(run: int, serial0: str, obs: Observer, hold: Callable[[], dict[str,
         "status": status, "error": error, "total_s": total_s,
         "from_takeoff_s": result.duration_s, "load_avg_1min": load, "loops_tuned": tuned,
         "written": {c.name: [c.old, c.new] for c in result.parameters},
-        "hover_check": str(result.hover_check), "notes": notes, "before": before}
+        "hover_check": str(result.hover_check), "notes": notes, "before": before,
+        "hold_compare": result.hold_compare.as_dict() if result.hold_compare else None}
+    if result.hold_compare is not None:
+        print(f"run {run}: {result.hold_compare.line()}", flush=True)
     obs.land_and_wait()
-    if not result.backup:
-        return row
+    if not result.backup or (result.hold_compare is not None
+                             and result.hold_compare.outcome == "reverted"):
+        return row  # reverted: the vehicle holds its own values again, nothing to hold on
     after = hold()
     print(line("after", after), flush=True)
     worse = worse_in(before, after)
@@ -438,6 +376,9 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=1, metavar="N")
     ap.add_argument("--config", action="append", default=[], metavar="NAME=BASE:P=V,...",
                     help="with --compare: another set, BASE's with these values on top")
+    ap.add_argument("--hold-compare", type=float, default=None, metavar="S",
+                    help="the tool's own hold comparison after its hand-over (s each; 0 off; "
+                    "default the profile's)")
     ap.add_argument("--json", type=Path, help="write the figures here")
     args = ap.parse_args()
     # a timeout's TERM unwinds like an error: the SITL is stopped and --json still written

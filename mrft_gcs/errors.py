@@ -12,7 +12,8 @@ Exit codes (documented in README):
 1     unexpected internal error (a bug: please report it)
 2     bad usage or bad input file (profile, fleet file, log)
 3     link problem: wrong connection string, silent vehicle
-4     parameter write failed (rolled back where possible)
+4     parameter write failed (rolled back where possible), or the written
+      gains held worse than the old ones and were reverted
 5     safety abort (limit hit, telemetry lost, Ctrl-C): landed
 6     identification failed (no steady oscillation, no relay test)
 7     missing optional dependency (install the named extra)
@@ -34,6 +35,7 @@ __all__ = [
     "InputFileError",
     "LinkError",
     "ParameterError",
+    "GainsReverted",
     "SafetyAbort",
     "IdentificationError",
     "SetpointNotCrossed",
@@ -84,6 +86,11 @@ class ParameterError(MrftError):
     """A parameter that could not be written or did not read back."""
 
     exit_code = 4
+
+
+class GainsReverted(ParameterError):
+    """The written gains held worse in the autopilot's own hold mode than the values they
+    replaced: those values were written back (read back) and the vehicle holds on them."""
 
 
 class SafetyAbort(MrftError):

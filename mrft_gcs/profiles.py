@@ -217,6 +217,9 @@ class AutopilotProfile:
     test_params: Mapping[str, float] = field(default_factory=dict)
     #: the body-rate path (None: the autopilot has none, or the profile does not say)
     rate_path: RatePathParams | None = None
+    #: seconds of each hold in the comparison of the written gains with the old ones after
+    #: the hand-over (``[hold_compare] seconds``, :mod:`mrft_gcs.flight.holdcompare`; 0: off)
+    hold_compare_s: float = 0.0
 
     def fits_version(self, version: tuple[int, ...] | None) -> bool:
         """True if ``version`` is in :attr:`versions` (or either is unknown)."""
@@ -422,7 +425,9 @@ def parse_profile(data: Mapping[str, Any], source: str = "<profile>") -> Autopil
         safety=safety, roll=angle("roll"), pitch=angle("pitch"), side=side,
         altitude=altitude, source=source, versions=_versions(ap, w),
         alternatives=tuple(alternatives), test_params=_test_params(data, source),
-        rate_path=_rate_path(data, source))
+        rate_path=_rate_path(data, source),
+        hold_compare_s=_nonnegative(data.get("hold_compare", {}), "seconds",
+                                    f"{source} [hold_compare]", 0.0))
     return replace(prof, param_ranges=_ranges(data, source, prof.parameter_names()))
 
 

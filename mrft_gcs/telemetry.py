@@ -30,6 +30,7 @@ __all__ = [
     "AttitudeSetpoint",
     "RateTarget",
     "PidTuning",
+    "ThrottleReport",
     "StatusText",
     "Heartbeat",
     "ParamValue",
@@ -140,6 +141,15 @@ class PidTuning:
     p: float
     i: float
     d: float
+
+
+@dataclass(frozen=True, slots=True)
+class ThrottleReport:
+    """The throttle the vehicle's motors get (MAVLink VFR_HUD ``throttle``, 0-100 %). ``t_s``
+    is the vehicle time of the latest ATTITUDE or LOCAL_POSITION_NED (VFR_HUD has none)."""
+
+    t_s: float
+    throttle_pct: float
 
 
 @dataclass(frozen=True, slots=True)

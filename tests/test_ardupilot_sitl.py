@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 
 from mrft_gcs.cli import main
-from mrft_gcs.errors import LinkError, MrftError, SafetyAbort
+from mrft_gcs.errors import GainsReverted, LinkError, MrftError, SafetyAbort
 from mrft_gcs.flight.api import tune
+from mrft_gcs.flight.holdcompare import WORSE_SLACK, judge_holds
 from mrft_gcs.flight.ratepath import INAIR_CHECK
 from mrft_gcs.link import VehicleLink, measure_link, require_relay_capable
 from mrft_gcs.link.firmware import detect_firmware
@@ -152,7 +153,10 @@ def test_tune_on_arducopter_writes_altitude_x_y_and_gates_ok_on_the_hover(copter
     PILOT_THR_FILT, restored after), so its cycle is long and tall enough to identify, and
     the altitude gains are matched to ArduCopter's cascade at the crossover: written and read
     back with x and y. Status ok only with the hover check in LOITER passed (otherwise the
-    tune must fail on it, land and say so). Then restore."""
+    tune must fail on it, land and say so). Then the profile's hold comparison (8 s in
+    LOITER on the written values, 8 s on the old ones): both holds measured in every judged
+    figure; the written values stay only where they held at least as well, else the old
+    ones are back (status error:4:GainsReverted). Then restore."""
     serial0, _, _ = copter
     with VehicleLink.connect(serial0, timeout_s=10) as link:
         thr_filt = ParamClient(link).read("PILOT_THR_FILT").value
@@ -166,14 +170,30 @@ def test_tune_on_arducopter_writes_altitude_x_y_and_gates_ok_on_the_hover(copter
     except SafetyAbort as err:
         result = err.partial_result
         assert "hover check on the written gains in LOITER failed" in str(err), err
+    except GainsReverted as err:
+        result = err.partial_result
+        assert "held worse in LOITER" in str(err), err
     alt = result.loops[Loop.ALTITUDE]
     print(f"tune {result.status} after {time.monotonic() - t:.1f} s, {result.duration_s:.1f} s "
           f"from take-off (load {os.getloadavg()[0]:.1f}); altitude cycle {alt.period_s:.3f} s "
           f"{alt.amplitude * 100:.1f} cm, {alt.identification.model if alt.identification else ''}"
           f"; {result.link.line() if result.link else ''}; {result.hover_check}")
+    cmp = result.hold_compare
+    print(cmp.line() if cmp else "no hold comparison")
     try:
         assert result.hover_check is not None
-        assert result.hover_check.passed == (result.status == "ok"), result.hover_check
+        assert result.hover_check.passed == (result.status in ("ok", "error:4:GainsReverted"))
+        if result.hover_check.passed:  # then both holds were flown and judged
+            assert cmp is not None and cmp.seconds == 8.0 and cmp.mode == "LOITER"
+            assert set(cmp.verdict.judged) == set(WORSE_SLACK), cmp.verdict
+            assert (cmp.outcome == "kept") == (result.status == "ok") == (not cmp.verdict.worse_in)
+            assert cmp.before.samples > 8 * 10 and cmp.after.samples > 8 * 10, cmp
+            from mrft_gcs.flight.report import report_dict
+
+            rep = report_dict(result)["hold_compare"]
+            assert rep["outcome"] == cmp.outcome and rep["before"]["alt_spread_m"] is not None
+            assert set(rep["parameters"]) == {c.name for c in result.parameters
+                                              if c.old != pytest.approx(c.new)}
         # through the filter: cycles of ~0.6 s and centimetres, not 0.08 s and 0.6 mm
         assert alt.period_s > 0.3 and alt.amplitude > 0.005, (alt.period_s, alt.amplitude)
         assert any("PILOT_THR_FILT 0 -> 2" in n for n in result.notes), result.notes
@@ -182,11 +202,68 @@ def test_tune_on_arducopter_writes_altitude_x_y_and_gates_ok_on_the_hover(copter
                 "PSC_ACCZ_P", "PSC_ACCZ_I"} <= set(written)
         # the cascade match, not the 42-61 / 150-227 of the fast-loop mapping
         assert 1 < written["PSC_POSZ_P"] < 20 and 3 < written["PSC_VELZ_P"] < 50, written
+        if result.status != "ok":  # reverted: the values from before are on the vehicle
+            written = {c.name: c.old for c in result.parameters}
         with VehicleLink.connect(serial0, timeout_s=10) as link:
             client = ParamClient(link)
             back = client.read_many(written)
             assert {n: p.value for n, p in back.items()} == pytest.approx(written)
             assert client.read("PILOT_THR_FILT").value == thr_filt  # test parameter restored
+    finally:
+        with VehicleLink.connect(serial0, timeout_s=10) as link:
+            link.land()
+            if result.backup:
+                ParamClient(link).restore(result.backup, tmp_path)
+
+
+def test_hold_comparison_reverts_and_says_why(copter, tmp_path):
+    """The revert path flown: a tune whose hold on the written values is judged with its
+    altitude spread made worse (a judge that inflates the written hold's figure before the
+    real verdict) puts back the value from before the tune of every parameter it changed
+    (read back), stays hovering on them, raises GainsReverted (exit code 4) naming the figure,
+    and its report carries both holds and the reason."""
+    import dataclasses
+
+    from mrft_gcs.flight.report import report_dict
+
+    serial0, _, _ = copter
+
+    def bad_written(before, after):
+        return judge_holds(before, dataclasses.replace(
+            after, alt_spread_m=3 * after.alt_spread_m + 0.05))
+
+    t = time.monotonic()
+    try:
+        with pytest.raises(GainsReverted) as info:
+            tune(serial0, "ardupilot", backup_dir=tmp_path, heartbeat_timeout_s=10,
+                 hold_compare_s=3.0, hold_judge=bad_written)
+    except LinkError as err:
+        if "telemetry arrives at" not in str(err):
+            raise
+        pytest.skip(f"the SITL fell behind real time on this host: {err}")
+    err = info.value
+    result = err.partial_result
+    try:
+        cmp = result.hold_compare
+        print(f"reverted after {time.monotonic() - t:.1f} s: {err}\n{cmp.line()}")
+        assert err.exit_code == 4 and result.status == "error:4:GainsReverted"
+        assert "altitude spread" in str(err) and "back on the vehicle" in str(err)
+        assert cmp.outcome == "reverted" and cmp.verdict.worse_in == ("alt_spread_m",)
+        assert cmp.seconds == 3.0 and cmp.before.samples > 30 and cmp.after.samples > 30
+        rep = report_dict(result)
+        assert rep["status"] == "error:4:GainsReverted"
+        assert rep["hold_compare"]["outcome"] == "reverted"
+        assert "altitude spread" in rep["hold_compare"]["reason"]
+        assert rep["hold_compare"]["before"]["throttle_saturated"] is not None
+        old = {c.name: c.old for c in result.parameters}
+        assert {"PSC_POSZ_P", "PSC_VELZ_P", "PSC_POSXY_P"} <= set(old), old
+        assert set(cmp.swapped) <= set(old)
+        with VehicleLink.connect(serial0, timeout_s=10) as link:
+            assert link.heartbeat.armed  # still hovering in LOITER, on the old values
+            back = {n: p.value for n, p in ParamClient(link).read_many(old).items()}
+        assert back == pytest.approx(old)
+        assert list(tmp_path.glob("params-hold-old-*.params"))
+        assert not list(tmp_path.glob("params-hold-new-*.params"))
     finally:
         with VehicleLink.connect(serial0, timeout_s=10) as link:
             link.land()
@@ -337,8 +414,9 @@ def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path
     result = None
     try:
         try:
+            # the hold comparison is flown on the attitude path's tune above
             result = tune(serial0, "ardupilot", actuation="rate", backup_dir=tmp_path,
-                          heartbeat_timeout_s=10)
+                          heartbeat_timeout_s=10, hold_compare_s=0)
         except LinkError as err:
             if "telemetry arrives at" not in str(err):
                 raise

@@ -119,6 +119,13 @@ def tune_command(
                                              "backup and the .tlog")] = Path("."),
     timeout: Annotated[float, typer.Option("--timeout", help="seconds to wait for a heartbeat")]
     = 5.0,
+    hold_compare: Annotated[float | None, typer.Option(
+        "--hold-compare", min=0.0, metavar="SECONDS",
+        help="after the hand-over, hold SECONDS in the position mode (LOITER/POSCTL) on the "
+        "written gains, then as long on the values they replaced, and keep the written ones "
+        "only if they hold at least as well (altitude spread, drift, throttle saturation, "
+        "attitude tracking); else put the old values back and exit 4 saying which figure "
+        "was worse. 0 = off; default the profile's (ardupilot: 8, px4 and sitl: off)")] = None,
 ) -> None:
     """Take off, run the relay tests, identify every loop, write the PD gains, hover.
 
@@ -151,6 +158,7 @@ def tune_command(
             result = tune(connect, prof, actuation=actuation, limits=limits, z_ref_m=altitude,
                           dry_link=dry_link, baud=baud, signing_key=signing_key,
                           backup_dir=backup_dir, heartbeat_timeout_s=timeout, loops=wanted,
+                          hold_compare_s=hold_compare,
                           on_progress=lambda snap: live.update(progress_table(snap)))
     except MrftError as err:
         if err.partial_result is not None:

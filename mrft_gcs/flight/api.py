@@ -12,7 +12,10 @@ runs in a process of its own, :mod:`mrft_gcs.identify.worker`, so that it never 
 up the stream); hover; write the gains
 as autopilot parameters (clamped into the profile's ``[param_ranges]``, a note per
 clamp; backup first, every value read back); switch to the autopilot's position
-mode so it flies on them; check a short hover.
+mode so it flies on them; check a short hover; where asked (``hold_compare_s``, the
+profile's ``[hold_compare]``), hold there on the written values and on the ones they replaced
+and keep the written set only where it holds at least as well
+(:mod:`mrft_gcs.flight.holdcompare`).
 
 Safety: every setpoint tick checks the limits (:mod:`mrft_gcs.flight.safety`);
 telemetry silent for 0.5 s stops the stream and lands (the streamer's watchdog);
@@ -36,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from mrft_gcs.errors import (
+    GainsReverted,
     IdentificationError,
     LinkError,
     MrftError,
@@ -46,6 +50,13 @@ from mrft_gcs.errors import (
 )
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.flight.driver import NUMERIC_RETRIES, SequenceDriver  # noqa: F401 - re-exported
+from mrft_gcs.flight.holdcompare import (
+    HoldComparison,
+    HoldFigures,
+    HoldVerdict,
+    compare_holds,
+    judge_holds,
+)
 from mrft_gcs.flight.hover import HoverCheck, check_hover_states
 from mrft_gcs.flight.inair import (
     CHECK_AMPLITUDE_RAD,
@@ -259,6 +270,8 @@ class TuneResult:
     hover_check: HoverCheck | None = None
     #: yaw's relay test on the rate path (None: yaw was not relay-tested)
     yaw: YawOutcome | None = None
+    #: the holds on the written and the old values after the hover check (None: not flown)
+    hold_compare: HoldComparison | None = None
 
 
 #: the latest state from the link (kept under its old name for the code below)
@@ -394,7 +407,10 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
          relay: dict[LoopKind, RelaySettings] | None = None,
          gcs_delay_s: float | None = None,
          config: SequenceConfig | None = None, residuals: bool = True,
-         loops: Collection[str | Loop] | None = None) -> TuneResult:
+         loops: Collection[str | Loop] | None = None,
+         hold_compare_s: float | None = None,
+         hold_judge: Callable[[HoldFigures, HoldFigures], HoldVerdict] | None = None
+         ) -> TuneResult:
     """Tune the vehicle at ``connection`` from take-off; returns what was done.
 
     Parameters
@@ -451,11 +467,23 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
         vehicle with them (torque path: all three; attitude path: altitude), but only
         the requested ones are written. Roll or pitch on the attitude path, or an
         unknown name, is a :class:`~mrft_gcs.errors.UsageError`.
+    hold_compare_s : float, optional
+        After the hand-over and its hover check, hold this long (s) in the position mode on
+        the written gains, then on the values they replaced, and keep the set that holds at
+        least as well (:func:`mrft_gcs.flight.holdcompare.compare_holds`); 0: off. Default:
+        the profile's ``[hold_compare] seconds`` (ArduPilot 8 s, others off).
+    hold_judge : callable, optional
+        ``judge(before, after) -> HoldVerdict`` in place of
+        :func:`~mrft_gcs.flight.holdcompare.judge_holds` (for tests).
 
     Raises
     ------
     LinkError, ParameterError, IdentificationError, SafetyAbort, UsageError
         With ``partial_result`` (a :class:`TuneResult`) when the flight had started.
+    GainsReverted
+        The written gains held worse than the values they replaced, which were written back
+        (a :class:`~mrft_gcs.errors.ParameterError`, exit code 4; ``partial_result``
+        carries both holds).
     """
     prof = load_profile(profile) if isinstance(profile, str | os.PathLike) else profile
     act = parse_actuation(actuation) if actuation is not None else prof.actuation
@@ -482,6 +510,8 @@ def tune(connection: str, profile: str | AutopilotProfile = "px4", *,
     run.config = config or SequenceConfig()
     run.residuals = residuals
     run.requested = wanted
+    run.hold_compare_s = hold_compare_s
+    run.hold_judge = hold_judge
     try:
         return run.execute(dry_link, own_worker=identifier is None)
     except MrftError as err:
@@ -565,6 +595,10 @@ class _Run:
         self.hover_check: HoverCheck | None = None
         #: the body-rate path's state (None: another path), :mod:`mrft_gcs.flight.ratepath`
         self.rate: RatePath | None = None
+        #: seconds of each hold of the comparison (None: the profile's), and its outcome
+        self.hold_compare_s: float | None = None
+        self.hold_judge: Callable[[HoldFigures, HoldFigures], HoldVerdict] | None = None
+        self.hold_compare: HoldComparison | None = None
 
     @property
     def monitor(self) -> SafetyMonitor | None:
@@ -611,7 +645,8 @@ class _Run:
                         + ([tilt_note(seq.max_tilt_by_phase)]
                            if seq and seq.max_tilt_by_phase else [])),
             firmware=self.firmware, hover_check=self.hover_check,
-            yaw=self.rate.yaw_outcome(seq.t_start_s if seq else math.nan) if self.rate else None)
+            yaw=self.rate.yaw_outcome(seq.t_start_s if seq else math.nan) if self.rate else None,
+            hold_compare=self.hold_compare)
 
     def _verification(self, lp: Loop, status: str) -> Verification | None:
         """The in-air check of ``lp``; a written loop it does not measure is checked by the
@@ -709,9 +744,41 @@ class _Run:
                 self.rate.restore_rest(client)
                 self.rate.close()
             self._restore_test_params(client, test_backup)
+        self._compare_holds()
         if self.residuals:
             self._residuals()
         return self.result("ok")
+
+    def _compare_holds(self) -> None:
+        """The written set against the one it replaced, each held in the position mode
+        (:mod:`mrft_gcs.flight.holdcompare`); the old set stays where the written one held
+        worse (:class:`GainsReverted`)."""
+        seconds = self.prof.hold_compare_s if self.hold_compare_s is None else self.hold_compare_s
+        if not seconds > 0:
+            return
+        if not self.changes:
+            self.notes.append("hold comparison not flown: the tune wrote nothing")
+            return
+        assert self.monitor is not None
+        mode = self.prof.modes["position"].name
+        try:
+            cmp = compare_holds(self.link, self.changes, seconds, self.monitor, mode,
+                                self.backup_dir, judge=self.hold_judge or judge_holds)
+        except KeyboardInterrupt:
+            self.link.land(wait_ack=False)
+            raise SafetyAbort(f"interrupted (Ctrl-C) in the hold comparison: landing "
+                              f"commanded (the values from before the tune: {self.backup})"
+                              ) from None
+        except SafetyAbort as err:
+            raise SafetyAbort(f"{err} (the values from before the tune: {self.backup})") from err
+        self.hold_compare = cmp
+        self.notes.append(cmp.line())
+        if cmp.outcome == "reverted":
+            raise GainsReverted(
+                f"the written gains held worse in {mode} than the values they replaced: "
+                f"{cmp.verdict.reason}; those values are back on the vehicle (read back) and "
+                f"it hovers on them in {mode}; the report has both holds and the identified "
+                f"models")
 
     def _set_test_params(self, client: ParamClient) -> Path | None:
         """The profile's ``test_params`` (e.g. ArduCopter's throttle filter, so that the

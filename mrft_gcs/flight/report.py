@@ -116,6 +116,8 @@ def report_dict(result: TuneResult) -> dict[str, Any]:
         "hover_check": None if result.hover_check is None else {
             k: (_num(v) if isinstance(v, float) else v)
             for k, v in result.hover_check.as_dict().items()},
+        # the written set held against the one it replaced (None: not flown)
+        "hold_compare": None if result.hold_compare is None else result.hold_compare.as_dict(),
         "limits": None if lim is None else {k: _num(v) for k, v in vars(lim).items()},
         "stream": None if st is None else {
             "rate_hz_target": _num(st.rate_hz_target), "rate_hz": _num(st.rate_hz_achieved),

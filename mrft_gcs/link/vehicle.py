@@ -49,6 +49,7 @@ from mrft_gcs.telemetry import (
     RateTarget,
     Sample,
     StatusText,
+    ThrottleReport,
     is_finite_sample,
 )
 
@@ -138,7 +139,7 @@ class FtpFrame:
 #: answers that go to subscribers only, never into the telemetry queue
 _REPLIES = (CommandAck, AutopilotVersion, TimesyncReply, FtpFrame)
 Event = (Sample | CommandAck | ParamReport | AutopilotVersion | TimesyncReply | AttitudeSetpoint
-         | PidTuning | FtpFrame)
+         | PidTuning | ThrottleReport | FtpFrame)
 
 
 @dataclass
@@ -407,7 +408,7 @@ class VehicleLink:
         if isinstance(event, _REPLIES):
             self._publish(event)
             return
-        if isinstance(event, AttitudeSetpoint | PidTuning):  # for subscribers; not telemetry
+        if isinstance(event, AttitudeSetpoint | PidTuning | ThrottleReport):  # subscribers only
             if is_finite_sample(event):  # type: ignore[arg-type]
                 self._publish(event)
             return
@@ -448,6 +449,8 @@ class VehicleLink:
         if kind == "PID_TUNING":
             return PidTuning(time.monotonic(), int(m.axis), m.desired, m.achieved, m.FF, m.P,
                              m.I, m.D)
+        if kind == "VFR_HUD":
+            return ThrottleReport(self._boot_s, float(m.throttle))
         if kind == "LOCAL_POSITION_NED":
             self._boot_s = m.time_boot_ms * 1e-3
             return LocalPosition(self._boot_s, m.x, m.y, m.z, m.vx, m.vy, m.vz)
