@@ -501,3 +501,5 @@ def test_rate_path_writes_a_rate_i_that_holds_level_against_a_torque():
     edge = rate_loop_gains(sitl, PD(1.3 * 6.4, 1.3 * 0.21), 20.0, decade=RATE_I_DECADE)
     assert edge.rate_i == 0.0 and edge.gains == cascade_gains(
         sitl, PD(1.3 * 6.4, 1.3 * 0.21), 20.0).gains
+    assert edge.integrator_refused and "no rate I (even with its zero 100 x" in edge.note()
+    assert "no rate I" not in rate_loop_gains(sitl, PD(6.4, 0.21), 20.0, decade=0.0).note()

@@ -667,6 +667,8 @@ class CascadeGains:
     #: the zero of the rate loop's integrator (rad/s; 0: no rate I): the rate PID is
     #: ``Kd (1 + w_i / s)``, so rate I is ``Kd w_i`` (:attr:`rate_i`)
     integrator_zero_rad_s: float = 0.0
+    #: a rate I was asked for but none keeps the margin (:func:`rate_loop_gains`)
+    integrator_refused: bool = False
 
     @property
     def rate_i(self) -> float:
@@ -682,6 +684,9 @@ class CascadeGains:
             f += (f", rate I {self.rate_i:.3g} (its zero at {self.integrator_zero_rad_s:.3g} "
                   f"rad/s, {self.wc_rad_s / self.integrator_zero_rad_s:.0f} x below the "
                   f"crossover)")
+        elif self.integrator_refused:
+            f += (f", no rate I (even with its zero {1 / RATE_I_LOWEST:.0f} x below the "
+                  f"crossover it takes the margin under the floor)")
         out = (f"predicted PM {self.pm_deg:.0f} deg at {self.wc_rad_s:.0f} rad/s on ArduCopter's "
                f"cascade ({f}, {CASCADE_LOOP_HZ:g} Hz loop, the identified delay kept)")
         if self.scale < 1.0:
@@ -818,7 +823,7 @@ def rate_loop_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     wi = c0.wc_rad_s / decade
     if not pm(wi) >= pm_min_deg:
         if not pm(lowest) >= pm_min_deg:
-            return c0
+            return dataclasses.replace(c0, integrator_refused=True)
         lo, hi = math.log(lowest), math.log(wi)  # the highest zero that keeps it, to 1 %
         while hi - lo > 0.01:
             mid = 0.5 * (lo + hi)
