@@ -102,6 +102,18 @@ def test_verdict_names_the_worse_figure_and_reports_extra_lean():
     assert judge_holds(before, dataclasses.replace(before, alt_spread_m=0.08 * 1.2 + 0.004)).kept
 
 
+def test_tracking_is_judged_per_unit_of_the_targets_motion():
+    """The gusty ArduCopter attitude-path run: its own attitude loop lagging a target that
+    the tuned position loop moves 5 x faster is not worse tracking; more lag on the same
+    target is."""
+    before = HoldFigures(**dict(BASE, att_err_sync_rms_deg=0.032, target_rate_rms_deg_s=1.5))
+    faster = dataclasses.replace(before, att_err_sync_rms_deg=0.147, target_rate_rms_deg_s=7.8)
+    assert judge_holds(before, faster).kept
+    lagging = dataclasses.replace(faster, target_rate_rms_deg_s=3.0)
+    v = judge_holds(before, lagging)
+    assert not v.kept and v.worse_in == ("att_err_sync_rms_deg",)
+
+
 def test_a_figure_the_telemetry_cannot_give_is_not_judged():
     """No VFR_HUD or ATTITUDE_TARGET (e.g. a vehicle that does not send them): NaN there,
     judged on the rest."""

@@ -173,11 +173,26 @@ def worse_in(before: Mapping[str, float], after: Mapping[str, float]) -> list[st
     not held against it; likewise the tilt: holding position in gusts takes lean, and a
     position loop that gives way less leans more (:func:`effort_in` says so).
 
+    The tracking error counts only where it also grew per unit of the target's motion
+    (``target_rate_rms_deg_s``, where both holds have it): a stiffer position loop moves the
+    target faster, and the same attitude loop then lags it by more degrees but no more
+    time (reported by :func:`effort_in`, not held against the tune).
+
     >>> worse_in({"alt_spread_m": 0.08}, {"alt_spread_m": 0.11})
     ['alt_spread_m']
+    >>> b = {"att_err_sync_rms_deg": 0.03, "target_rate_rms_deg_s": 1.5}
+    >>> worse_in(b, {"att_err_sync_rms_deg": 0.15, "target_rate_rms_deg_s": 7.8})
+    []
+    >>> worse_in(b, {"att_err_sync_rms_deg": 0.15, "target_rate_rms_deg_s": 1.5})
+    ['att_err_sync_rms_deg']
     """
-    return [k for k, slack in WORSE_SLACK.items()
-            if k in before and k in after and after[k] > 1.2 * before[k] + slack]
+    out = [k for k, slack in WORSE_SLACK.items()
+           if k in before and k in after and after[k] > 1.2 * before[k] + slack]
+    k, r = "att_err_sync_rms_deg", "target_rate_rms_deg_s"
+    rb, ra = before.get(r, math.nan), after.get(r, math.nan)
+    if k in out and rb > 0 and ra > 0 and not after[k] / ra > 1.2 * before[k] / rb:
+        out.remove(k)
+    return out
 
 
 def effort_in(before: Mapping[str, float], after: Mapping[str, float]) -> str:
