@@ -15,7 +15,13 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from flight_sim import ALT_RELAY, ATT_RELAY, SIDE_RELAY, truth_identifier  # noqa: E402
+from flight_sim import (  # noqa: E402
+    ALT_RELAY,
+    ATT_RELAY,
+    SIDE_RELAY,
+    again_if_host_stalled,
+    truth_identifier,
+)
 
 from mrft_gcs.cli import main  # noqa: E402
 from mrft_gcs.errors import SafetyAbort  # noqa: E402
@@ -39,14 +45,17 @@ def _truth(vehicle):
 
 @pytest.fixture(scope="module")
 def tuned(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("tune")
-    with SitlProcess(vehicle="qdrone", port=None, seed=3) as sitl:
-        result = tune(sitl.connection_string, "sitl", backup_dir=folder, relay=RELAY,
-                      identifier=_truth("qdrone"), hover_check_s=2.0)
-        with VehicleLink.connect(sitl.connection_string) as link:
-            readback = ParamClient(link).read_many([c.name for c in result.parameters])
-            mode = link.heartbeat.custom_mode
-    return result, readback, mode, folder
+    def flight():
+        folder = tmp_path_factory.mktemp("tune")  # each flight its own backups
+        with SitlProcess(vehicle="qdrone", port=None, seed=3) as sitl:
+            result = tune(sitl.connection_string, "sitl", backup_dir=folder, relay=RELAY,
+                          identifier=_truth("qdrone"), hover_check_s=2.0)
+            with VehicleLink.connect(sitl.connection_string) as link:
+                readback = ParamClient(link).read_many([c.name for c in result.parameters])
+                mode = link.heartbeat.custom_mode
+        return result, readback, mode, folder
+
+    return again_if_host_stalled(flight)
 
 
 def test_tune_over_udp_report_and_readback(tuned):
@@ -319,11 +328,13 @@ def bundled(tmp_path_factory):
     why = _bundled_ready()
     if why:
         pytest.skip(why)
-    folder = tmp_path_factory.mktemp("bundled")
-    with SitlProcess(vehicle="qdrone", port=None, seed=6) as sitl:
-        result = tune(sitl.connection_string, "sitl", backup_dir=folder,
-                      tlog_path=folder / "session.tlog")
-    return result, folder
+    def flight():
+        folder = tmp_path_factory.mktemp("bundled")  # each flight its own backups and log
+        with SitlProcess(vehicle="qdrone", port=None, seed=6) as sitl:
+            return tune(sitl.connection_string, "sitl", backup_dir=folder,
+                        tlog_path=folder / "session.tlog"), folder
+
+    return again_if_host_stalled(flight)
 
 
 def test_tune_with_bundled_classifiers(bundled):
