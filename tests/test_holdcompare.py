@@ -191,4 +191,6 @@ def test_tune_over_udp_flies_both_holds(tmp_path, force_revert):
         with VehicleLink.connect(sitl.connection_string) as link:
             back = {n: p.value for n, p in ParamClient(link).read_many(want).items()}
         assert back == pytest.approx(want)
-        assert report_dict(result)["hold_compare"]["outcome"] == cmp.outcome
+        rep = report_dict(result)
+        assert rep["hold_compare"]["outcome"] == cmp.outcome
+        assert {p["name"]: p["on_vehicle"] for p in rep["parameters"]} == pytest.approx(back)

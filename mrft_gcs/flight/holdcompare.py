@@ -258,6 +258,13 @@ class HoldComparison:
     #: seconds the comparison flew, settling and parameter swaps included
     duration_s: float = math.nan
 
+    def on_vehicle(self, name: str, written: float) -> float:
+        """The value of parameter ``name`` on the vehicle after the comparison (read back):
+        the old one where the written set was reverted, else ``written``."""
+        if self.outcome == "reverted" and name in self.swapped:
+            return self.swapped[name][0]
+        return written
+
     def as_dict(self) -> dict[str, object]:
         def num(x: float) -> float | None:
             return x if math.isfinite(x) else None

@@ -105,7 +105,10 @@ def report_dict(result: TuneResult) -> dict[str, Any]:
         "duration_s": _num(result.duration_s),
         "loops": {lp.value: _loop(lr) for lp, lr in result.loops.items()}
         | ({"yaw": _yaw(result.yaw)} if result.yaw is not None else {}),
-        "parameters": [{"name": c.name, "old": _num(c.old), "new": _num(c.new)}
+        # on_vehicle: the value there now (the old one after a hold comparison reverted)
+        "parameters": [{"name": c.name, "old": _num(c.old), "new": _num(c.new),
+                        "on_vehicle": _num(c.new if result.hold_compare is None
+                                           else result.hold_compare.on_vehicle(c.name, c.new))}
                        for c in result.parameters],
         "backup": result.backup,
         "status": result.status,
