@@ -321,6 +321,22 @@ def test_a_slow_link_on_a_short_onboard_delay_is_taken_out_up_to_the_cap():
     assert out[CAP_SHARE].J_pct <= 10.0 and out[CAP_SHARE].pm_deg >= PM_ROBUST_DEG
 
 
+def test_a_measured_gcs_delay_goes_out_whole_on_a_short_onboard_delay():
+    # a 10 ms link each way in front of 2 ms onboard: the least plausible GCS delay (21.5 ms)
+    # is over 3/4 of the identified 27.9 ms; measured on a synced clock it is 23.5 ms, and the
+    # 2 ms between them left on the written gains cost 3 deg more margin than needed
+    m = (178.0, 0.027, 0.42)
+    ident = identified(*m, 0.002, 0.0259)
+    rt = {meas: robust_onboard_gains(ident, GcsDelay(0.0235, 0.0215, 0.0275, 0.0235, meas,
+                                                     "" if meas else "not measured", 0.0209))
+          for meas in (True, False)}
+    assert rt[False].delay_s == pytest.approx(0.0215)  # not measured: only the sure part
+    assert rt[True].delay_s == pytest.approx(0.0235)
+    truth = {meas: pm_deg(r.gains, *m, 0.002) for meas, r in rt.items()}
+    assert PM_ROBUST_DEG <= truth[True] < truth[False] - 2.0
+    assert rt[True].pm_deg >= PM_ROBUST_DEG  # checked at the least plausible GCS delay
+
+
 def test_side_gains_keep_their_margin_behind_an_unseen_rate_target_filter():
     # an ArduPilot-like cascade low-passes the angle P's rate target (FLTT): its closed
     # attitude loop is slower than the written PD predicts, and x is flown behind it

@@ -164,7 +164,8 @@ def test_the_measured_link_goes_out_beyond_the_share_cap():
     old = robust_onboard_gains(ident, gcs, certain_share=0.0)
     new = robust_onboard_gains(ident, gcs)
     assert old.delay_s == pytest.approx(CAP_SHARE * m.tau)
-    assert new.delay_s == pytest.approx(gcs.lo_s) and new.pm_deg >= PM_ROBUST_DEG
+    # measured: up to the estimate (held back only as far as the margin at lo needs)
+    assert gcs.lo_s < new.delay_s <= gcs.estimate_s and new.pm_deg >= PM_ROBUST_DEG - 1e-6
     assert new.gains.Kc > old.gains.Kc
 
 

@@ -394,9 +394,10 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     have and the ground station cannot see (s; the position loop's sample-and-hold, see
     :func:`onboard_extra_delay_s`): the margin check takes all of it (more delay onboard,
     held back further; below 0, the gains of a loop with more delay than identified). The
-    re-target is never more than ``cap_share`` of the identified delay, or the least
-    plausible GCS delay (``gcs.lo_s``: measured, so certain) up to ``certain_share`` of it
-    where that is more: a slow link's measured latency does not stay in the written gains.
+    re-target is never more than ``cap_share`` of the identified delay, or the measured GCS
+    delay (``gcs.estimate_s`` where ``gcs.measured``, else the least plausible, ``gcs.lo_s``)
+    up to ``certain_share`` of it where that is more: a slow link's measured latency does not
+    stay in the written gains.
 
     Examples
     --------
@@ -420,9 +421,11 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     extra = max(float(onboard_extra_s), 0.0)
     if not isinstance(m, InnerModel) or not (gcs.estimate_s > 0 or extra > 0):
         return Retarget(ident.gains, 0.0, math.nan, gcs)
-    # the least plausible GCS delay is measured (the link's timed round trip, the ages): it
-    # goes out up to certain_share of the identified delay whatever cap_share says
-    cap = max(cap_share * m.tau, min(gcs.lo_s, certain_share * m.tau))
+    # a measured GCS delay (the ages on a synced clock), else the least plausible one (the
+    # link's timed round trip), goes out up to certain_share of the identified delay whatever
+    # cap_share says; the margin is still checked at the least plausible
+    certain = gcs.estimate_s if gcs.measured else gcs.lo_s
+    cap = max(cap_share * m.tau, min(certain, certain_share * m.tau))
     lo_d = min(gcs.lo_s, cap) - extra  # the most onboard delay: tau - lo_d
     tau_on = max(m.tau - lo_d, 1e-6)
     d = min(gcs.estimate_s, cap)
