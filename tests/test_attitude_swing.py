@@ -95,3 +95,32 @@ def test_a_swing_the_fit_predicts_too_large_is_braked_and_the_relay_lowered(monk
     tilt_on = on["max_tilt_by_phase"]["take-off"]
     tilt_off = off["max_tilt_by_phase"]["take-off"]
     assert tilt_on < tilt_off - 2.0 and tilt_on < 21.0, (tilt_on, tilt_off)
+
+
+def test_a_catch_held_at_rest_off_its_set_point_takes_the_torque_bias_and_hands_back():
+    """The relay's run-away catch (a PD without I) on an axis with a torque bias the relay
+    lacked can sit at rest just outside the envelope it hands back in: the vehicle leans
+    there for good and drifts off. At rest for a cycle, its torque becomes the relay's
+    bias, and the catch hands the axis back to the relay."""
+    from flight_sim import ALT_RELAY, ATT_RELAY
+
+    from mrft_gcs.flight.phases.state import LoopState
+    from mrft_gcs.loops import Loop
+
+    seq = TuningSequence(SequenceConfig(), ATT_RELAY, ALT_RELAY)
+    t = seq.loops[Loop.ROLL]
+    t.h, t.state, t.relay = 0.028, LoopState.RELAY, MRFT(-0.7, 0.028)
+    t.catch, t.cycle, t.t_catch_s = (0.094, 0.0124), (0.528, 0.12), -10.0
+    gain, b_true, dt = 300.0, 0.021, 0.004  # rad/s^2 per unit torque; the CoM's torque
+    y, rate, held = -0.3, 0.0, 0.0  # comes to rest at -b/Kc = -0.22 rad, outside 0.12
+    for k in range(int(4.0 / dt)):
+        u = seq.attitude.step(Loop.ROLL, 0.0, y, rate, k * dt, True, True)
+        rate += gain * (u - b_true) * dt
+        y += rate * dt
+        if t.catch is None:
+            break
+        held = k * dt
+    assert t.catch is None, (y, t.bias)
+    assert t.bias == pytest.approx(b_true, rel=0.05)
+    assert held < 2.5
+    assert any("held at rest off its set point" in e for e in seq.events), seq.events

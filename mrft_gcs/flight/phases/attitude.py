@@ -269,6 +269,7 @@ class AttitudeRelays:
                     t.from_rest = t.catch_release < 1.0
                     t.catch, t.catch_release = None, 1.0
                     t.catch_flips, t.catch_sign = 0, 0.0
+                    t.t_rest_s = math.nan
                 else:
                     kc, kd = t.catch
                     lim = self.sh.config.catch_torque_factor * t.h
@@ -277,6 +278,7 @@ class AttitudeRelays:
                         self._count_chatter(t, math.copysign(1.0, raw))
                     # about the relay's bias: the torque that holds the axis (a CoM offset)
                     u = t.bias + min(lim, max(-lim, raw))
+                    self._rest_bias(t, t_s, u, rate, t.cycle)
                     t.u = u
                     return u
             before = float(t.relay.state[0])
@@ -309,6 +311,29 @@ class AttitudeRelays:
                 t.cycle = (st.period_s, st.amplitude)
         t.u = u
         return u
+
+    def _rest_bias(self, t: LoopTest, t_s: float, u: float, rate: float,
+                   cycle: tuple[float, float]) -> None:
+        """A catch that holds the axis at rest outside its hand-back envelope holds it on the
+        torque bias it lacks (its PD has no I): after a cycle's period at rest, that torque
+        is the relay's bias, or the catch never hands back and the vehicle drifts on its
+        lean (a 7 deg lean for 10 s went 5 m)."""
+        period, amp = cycle
+        if not (abs(rate) < 0.1 * 2 * math.pi * amp / period):
+            t.t_rest_s = math.nan
+            return
+        if math.isnan(t.t_rest_s):
+            t.t_rest_s = t_s
+            return
+        if (t_s - t.t_rest_s < period or abs(u) > self.sh.config.att_bias_max
+                or abs(u - t.bias) < 1e-9):
+            return
+        self.sh.events.append(f"{t.loop.value}: held at rest off its set point by the catch: "
+                              f"bias {t.bias:+.3g} -> {u:+.3g} (the torque that holds it)")
+        t.bias = u
+        if t.relay is not None:
+            t.relay.bias[:] = u
+        t.t_rest_s = math.nan
 
     def _centre(self, t: LoopTest, t_s: float, u: float, y: float, rate: float,
                 new: bool) -> float:

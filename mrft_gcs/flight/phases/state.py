@@ -133,6 +133,7 @@ class LoopTest:
     t_catch_s: float = _NAN
     catch_flips: int = 0  # roll/pitch: the catch's swings from one limit to the other
     catch_sign: float = 0.0  # and the side of the last limit it sat at
+    t_rest_s: float = _NAN  # roll/pitch: since when the catch has held the axis at rest
     bias_votes: list = field(default_factory=list)  # mean torque of the last periods
     #: roll/pitch before sizing: the torque-bias fit is done (see attitude.py); the relay's
     #: commands (t, u) since its start, the rates (t, rad/s) once off the ground, and the
