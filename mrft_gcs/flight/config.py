@@ -71,6 +71,9 @@ class SequenceConfig:
     #: a relay whose error passes ``runaway_factor`` x its cycle amplitude (and the floor:
     #: rad for attitude, m for altitude and side) while still pushing it out is restarted
     runaway_factor: float = 3.0
+    #: a relay that ran away this many times without a steady cycle stops the tests: the
+    #: vehicle drifts on each run-away's lean (a slow out-of-domain vehicle went 5 m on 9)
+    max_runaways: int = 5
     runaway_floor: tuple[float, float, float] = (0.1, 0.15, 0.3)
     #: roll/pitch before any cycle is known (rad): a relay's start-up swings are larger than
     #: its steady cycle, and restarting one as a sign relay swings it further out

@@ -33,6 +33,7 @@ from mrft_gcs.flight.sequence import (
     AUTOPILOT_ATTITUDE,
     SIDE_INNER,
     CycleSnapshot,
+    LoopState,
     Phase,
     TuningSequence,
 )
@@ -210,6 +211,13 @@ class SequenceDriver:
             self.identify_one(snap)
         if seq.side_waiting and self.side_gate():
             self.start_side()
+        for lp, t in seq.loops.items():
+            if t.runaways >= seq.config.max_runaways and t.state is LoopState.RELAY:
+                raise IdentificationError(
+                    f"{lp.value}: the relay ran away {t.runaways} times without a steady "
+                    f"cycle (the vehicle drifts on each one's lean); the tests stop and it "
+                    f"lands: check the balance (centre of mass) and the motors, or tune this "
+                    f"vehicle by hand (a response this slow is outside the classifiers' range)")
         if self.max_relay_s is not None:
             for lp in Loop:
                 age = seq.relay_age_s(lp)

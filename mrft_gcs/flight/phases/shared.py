@@ -178,6 +178,7 @@ class Shared:
         if reach > limit and (st * e < 0 or outward):
             relay.reset()
             t.from_rest = False
+            t.runaways += 1
             if (t.loop in (Loop.ROLL, Loop.PITCH) and not math.isfinite(t.cycle[0])
                     and math.isfinite(t.status.period_s) and t.status.amplitude > 0):
                 # no settled cycle yet: the last complete one still sizes a damping PD (a

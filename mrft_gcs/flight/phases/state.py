@@ -126,6 +126,7 @@ class LoopTest:
     turn_sign: float = 0.0
     probe_switches: int = 0
     pushed_away: int = 0  # roll/pitch: times the relay was turned round early (see attitude.py)
+    runaways: int = 0  # run-aways caught or restarted (Shared.watch)
     from_rest: bool = False  # roll/pitch: the relay restarted at rest after it was resized
     amp_per_h: float = _NAN
     resizes: int = 0
