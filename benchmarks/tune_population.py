@@ -74,7 +74,7 @@ from mrft_gcs.flight.timeliness import HostTooSlow, TimelinessMonitor
 from mrft_gcs.identify import relay_settings
 from mrft_gcs.identify.live import bundled_identifier
 from mrft_gcs.link.quality import LinkQuality, require_relay_capable
-from mrft_gcs.loops import SIDE_INNER, Loop, LoopKind
+from mrft_gcs.loops import INNER_LOOPS, SIDE_INNER, SIDE_LOOPS, Loop, LoopKind
 from mrft_gcs.profiles import PDGains, load_profile, params_in_range
 from mrft_gcs.sitl import SimVehicle, domain_check, random_airframe
 from mrft_gcs.sitl.lockstep import GcsLink, LockstepVehicle, PeriodicStalls
@@ -94,6 +94,41 @@ def gcs_delay_s(af) -> float:
     """The ground station's extra delay on the inner loops of ``af`` (see the docstring)."""
     tel = min(RATE_HZ, af.telemetry_max_hz)
     return 2 * af.link_delay_s + 0.5 / tel + 0.5 / RATE_HZ + 0.5 / af.onboard.loop_hz
+
+
+def _phase_times(seq: TuningSequence, drv: SequenceDriver) -> dict:
+    """Where the tune's time went (s from the take-off command; None: did not happen).
+
+    ``takeoff``: to the altitude relay's first switch (the climb); ``liftoff``: to the
+    attitude relays' start; per loop: its relay's start, the first and last sample of the
+    cycles identified, its PD applied, and the retries, amplitude raises and re-sizings it
+    took; ``inner``: to altitude, roll and pitch all done; ``side``: from then to x and y
+    done."""
+    t0 = seq.t_start_s
+
+    def rel(t: float) -> float | None:
+        return _num(t - t0) if math.isfinite(t) else None
+
+    loops = {}
+    for lp, t in seq.loops.items():
+        snap = t.snapshot
+        have = snap is not None and len(snap.t_s) > 0
+        loops[lp.value] = {
+            "start": rel(seq.takeoff.t_switch if lp is Loop.ALTITUDE else t.t_relay_start_s),
+            "cycles_from": rel(float(snap.t_s[0])) if have else None,
+            "cycles_to": rel(float(snap.t_s[-1])) if have else None,
+            "tuned": rel(t.t_tuned_s),
+            "retries": sum(1 for rl, _ in drv.retries if rl is lp),
+            "raises": t.raises, "resizes": t.resizes}
+    inner = [seq.loops[lp].t_tuned_s for lp in INNER_LOOPS]
+    side = [seq.loops[lp].t_tuned_s for lp in SIDE_LOOPS]
+    t_inner = max(inner) if all(math.isfinite(x) for x in inner) else math.nan
+    t_side = max(side) if all(math.isfinite(x) for x in side) else math.nan
+    return {"takeoff": rel(seq.takeoff.t_switch),
+            "liftoff": rel(seq.loops[Loop.ROLL].t_relay_start_s),
+            "inner": rel(t_inner),
+            "side": _num(t_side - t_inner) if math.isfinite(t_side - t_inner) else None,
+            "loops": loops}
 
 
 def run_lockstep(seed: int, max_s: float = 70.0,
@@ -154,6 +189,7 @@ def run_lockstep(seed: int, max_s: float = 70.0,
     monitor = drv.monitor
     notes = drv.notes
     rec["time_to_tune_s"] = _num(seq.duration_s) if seq.phase is Phase.HOVER else None
+    rec["phase_times_s"] = _phase_times(seq, drv)
     rec["notes"] = notes
     rec["max_tilt_by_phase"] = {k: _num(d) for k, d in seq.max_tilt_by_phase.items()}
     identified = {lp: t.identification for lp, t in seq.loops.items()
@@ -330,6 +366,15 @@ def summary(recs: list[dict]) -> list[str]:
     if tt:
         out.append(f"time from take-off to all loops tuned: mean {np.mean(tt):.1f} s, "
                    f"max {max(tt):.1f} s, {sum(t <= 15 for t in tt)}/{len(tt)} within 15 s")
+    pt = [r["phase_times_s"] for r in done if r.get("phase_times_s")
+          and all(r["phase_times_s"].get(k) is not None for k in ("takeoff", "inner", "side"))]
+    if pt:
+        # where it went: the climb, the rest of the inner tests after it, the side tests
+        parts = {"take-off": [p["takeoff"] for p in pt],
+                 "inner after take-off": [p["inner"] - p["takeoff"] for p in pt],
+                 "side": [p["side"] for p in pt]}
+        out.append("time by phase (mean/max s): " + ", ".join(
+            f"{k} {np.mean(v):.1f}/{max(v):.1f}" for k, v in parts.items()))
     loops = [(r["seed"], k, v) for r in recs for k, v in r.get("loops", {}).items()]
     if loops:
         pm = [v["onboard_pm_deg"] for _, _, v in loops if v["onboard_pm_deg"] is not None]

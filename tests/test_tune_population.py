@@ -39,6 +39,15 @@ def test_a_tune_ends_in_one_of_the_outcomes_with_every_written_loop_scored():
             assert 1 + fig["onboard_J_pct"] / 100 == pytest.approx(
                 (1 + vs / 100) * (1 + floor / 100))
         assert 0 < r["time_to_tune_s"] < 60 and r["written"]
+        # the per-phase times add up to the time to tune, in the order the phases run
+        pt = r["phase_times_s"]
+        assert 0 < pt["takeoff"] < pt["inner"] < r["time_to_tune_s"]
+        assert pt["inner"] + pt["side"] == pytest.approx(r["time_to_tune_s"], abs=1e-6)
+        for name, lp in pt["loops"].items():
+            assert lp["start"] < lp["cycles_from"] < lp["cycles_to"] <= lp["tuned"], name
+            assert lp["retries"] >= 0 and lp["resizes"] >= 0 and lp["raises"] >= 0
+        assert max(pt["loops"][n]["tuned"] for n in ("x", "y")) == pytest.approx(
+            r["time_to_tune_s"], abs=1e-6)
         # where the J of each written loop went, re-designed from the record
         f = sl.breakdown(r, Loop.ROLL)
         assert f["written"][0] == pytest.approx(r["loops"]["roll"]["onboard_J_pct"])
@@ -46,6 +55,8 @@ def test_a_tune_ends_in_one_of_the_outcomes_with_every_written_loop_scored():
         assert (f["cause"] == "") == (f["written"][0] <= 10)
     lines = tp.summary([r])
     assert any(ln.startswith("in-domain tuned:") for ln in lines)
+    if r["outcome"] == "completed":
+        assert any(ln.startswith("time by phase") for ln in lines)
 
 
 def test_cpu_hog_processes_end_with_the_block():

@@ -222,9 +222,11 @@ class TakeoffController:
         z = self.z_ref_m - e
         airborne = z >= st.delta_p_m
         if (not self.braked and not self.no_brake and airborne and 0 < e < st.brake_m
-                and self.a_int == 0.0 and st.settle_speed_m_s < vz < st.brake_speed_m_s):
+                and (self.a_int == 0.0 or self.folded)
+                and st.settle_speed_m_s < vz < st.brake_speed_m_s):
             # creeping up the last stretch: hold where it is about to be (settings), unless
-            # the integral has begun to learn a wrong guess
+            # the integral has begun to learn a wrong guess; a fold at rest measured the
+            # guess's error at once, and the climb after it creeps the same way
             self.z_hold_m, self.braked = z + st.brake_lead_s * vz, True
         e = self.z_hold_m - z
         if airborne and abs(e) < st.climb_int_band_m and abs(vz) < st.climb_int_speed_m_s:
