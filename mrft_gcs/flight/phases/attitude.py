@@ -206,6 +206,12 @@ def _swing_peak(fit: TorqueFit, hist: np.ndarray, t_s: float, y: float, rate: fl
     return y, t_s + horizon_s
 
 
+#: the run-away catch's integral action, per cycle period: its bias moves by this share of the
+#: PD's proportional torque each period (half: over about two periods, well below the
+#: catch's crossover); 0 leaves the catch a plain PD
+CATCH_BIAS_RATE = 0.5
+
+
 class AttitudeRelays:
     """Roll and pitch: relay, sizing, run-away catch, then the identified PD.
 
@@ -223,6 +229,8 @@ class AttitudeRelays:
                  liftoff: LiftoffDetector) -> None:
         self.sh = shared
         self.liftoff = liftoff
+        #: time (s) of the last attitude sample each running catch integrated its bias on
+        self._catch_t: dict[Loop, float] = {}
         cfg = shared.config
         for lp in (Loop.ROLL, Loop.PITCH):
             t = shared.loops[lp]
@@ -269,12 +277,26 @@ class AttitudeRelays:
                     t.from_rest = t.catch_release < 1.0
                     t.catch, t.catch_release = None, 1.0
                     t.catch_flips, t.catch_sign = 0, 0.0
+                    t.relay.bias[:] = t.bias  # centred on what the catch found holds it
+                    self._catch_t.pop(loop, None)
                 else:
                     kc, kd = t.catch
                     lim = self.sh.config.catch_torque_factor * t.h
                     raw = kc * e - kd * rate
                     if abs(raw) >= lim:
                         self._count_chatter(t, math.copysign(1.0, raw))
+                    elif new and abs(e) >= t.cycle[1]:
+                        # a torque bias (CoM offset) the relay was not yet centred on: the PD
+                        # alone holds the axis at rest off its set point, outside the envelope
+                        # it hands back in, and the vehicle drifts sideways on that tilt; the
+                        # bias integrates the error while it sits out there
+                        t_last = self._catch_t.get(loop, t_s)
+                        dt = min(max(t_s - t_last, 0.0), 0.05)
+                        b_max = self.sh.config.att_bias_max
+                        t.bias = min(b_max, max(-b_max, t.bias + kc * e * dt * CATCH_BIAS_RATE
+                                                / period))
+                    if new:
+                        self._catch_t[loop] = t_s
                     # about the relay's bias: the torque that holds the axis (a CoM offset)
                     u = t.bias + min(lim, max(-lim, raw))
                     t.u = u
