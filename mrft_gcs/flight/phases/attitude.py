@@ -285,11 +285,12 @@ class AttitudeRelays:
                     raw = kc * e - kd * rate
                     if abs(raw) >= lim:
                         self._count_chatter(t, math.copysign(1.0, raw))
-                    elif new and abs(e) >= t.cycle[1]:
+                    elif new and abs(e) >= t.cycle[1] and abs(kd * rate) < 0.25 * abs(kc * e):
                         # a torque bias (CoM offset) the relay was not yet centred on: the PD
                         # alone holds the axis at rest off its set point, outside the envelope
                         # it hands back in, and the vehicle drifts sideways on that tilt; the
-                        # bias integrates the error while it sits out there
+                        # bias integrates the error while it sits out there (not while the PD
+                        # still brings it back: an unbiased axis keeps a zero bias)
                         t_last = self._catch_t.get(loop, t_s)
                         dt = min(max(t_s - t_last, 0.0), 0.05)
                         b_max = self.sh.config.att_bias_max
