@@ -231,6 +231,7 @@ class AttitudeRelays:
         self.liftoff = liftoff
         #: time (s) of the last attitude sample each running catch integrated its bias on
         self._catch_t: dict[Loop, float] = {}
+        self._catch_t0: dict[Loop, float] = {}  # and when it took the axis (s)
         cfg = shared.config
         for lp in (Loop.ROLL, Loop.PITCH):
             t = shared.loops[lp]
@@ -279,18 +280,21 @@ class AttitudeRelays:
                     t.catch_flips, t.catch_sign = 0, 0.0
                     t.relay.bias[:] = t.bias  # centred on what the catch found holds it
                     self._catch_t.pop(loop, None)
+                    self._catch_t0.pop(loop, None)
                 else:
                     kc, kd = t.catch
                     lim = self.sh.config.catch_torque_factor * t.h
                     raw = kc * e - kd * rate
                     if abs(raw) >= lim:
                         self._count_chatter(t, math.copysign(1.0, raw))
-                    elif new and abs(e) >= t.cycle[1] and abs(kd * rate) < 0.25 * abs(kc * e):
+                    elif (new and abs(e) >= t.cycle[1] and abs(kd * rate) < 0.25 * abs(kc * e)
+                          and t_s - self._catch_t0.setdefault(loop, t_s) > 2 * period):
                         # a torque bias (CoM offset) the relay was not yet centred on: the PD
                         # alone holds the axis at rest off its set point, outside the envelope
                         # it hands back in, and the vehicle drifts sideways on that tilt; the
                         # bias integrates the error while it sits out there (not while the PD
-                        # still brings it back: an unbiased axis keeps a zero bias)
+                        # still brings it back, in its first two periods: an unbiased axis
+                        # keeps a zero bias)
                         t_last = self._catch_t.get(loop, t_s)
                         dt = min(max(t_s - t_last, 0.0), 0.05)
                         b_max = self.sh.config.att_bias_max
@@ -298,6 +302,7 @@ class AttitudeRelays:
                                                 / period))
                     if new:
                         self._catch_t[loop] = t_s
+                        self._catch_t0.setdefault(loop, t_s)
                     # about the relay's bias: the torque that holds the axis (a CoM offset)
                     u = t.bias + min(lim, max(-lim, raw))
                     t.u = u
