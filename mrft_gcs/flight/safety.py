@@ -40,8 +40,9 @@ RELAY_GUARD_LEAD_S = 0.02
 
 
 #: share of the distance limit at which a relay test is stopped: the vehicle still moving
-#: outwards needs room to brake and land (a drift of about 1 m/s takes a metre or more)
-DRIFT_GUARD_FRACTION = 0.7
+#: outwards needs room to brake and land (with the lead below, a drift at 0.6 m/s stops
+#: near 3.7 m of 5); lower, it stopped vehicles that wander 3-4 m and come back
+DRIFT_GUARD_FRACTION = 0.8
 
 #: how far ahead (s) the drift guard carries the outward speed on
 DRIFT_GUARD_LEAD_S = 0.5
