@@ -143,6 +143,8 @@ class SequenceDriver:
             ``s`` is beyond a safety limit.
         RelayTooLarge
             A relay test tilts ``s`` close to the tilt limit.
+        DriftTooLarge
+            A relay test carries ``s`` well towards the distance limit.
         HostTooSlow
             The ground station's loop stalled (``timeliness``).
         """
@@ -156,6 +158,7 @@ class SequenceDriver:
             self.monitor.check(s)
             if seq.phase in _RELAYS:
                 self.monitor.relay_guard(s, f"{seq.phase.value} relay test")
+                self.monitor.drift_guard(s, f"{seq.phase.value} relay test")
         if self.timeliness is not None and seq.phase in _FLOWN:
             why = self.timeliness.trouble(relays=seq.phase in _RELAYS)
             if why is not None:

@@ -10,6 +10,9 @@ autopilot profile and are overridden from the command line.
 While a relay test runs, :meth:`SafetyMonitor.relay_guard` stops it a little before the tilt
 limit (:data:`RELAY_GUARD_FRACTION` of it) with :class:`RelayTooLarge`, an explained refusal
 rather than an abort over the limit; the vehicle lands as on any stop.
+:meth:`SafetyMonitor.drift_guard` does the same for the distance from the take-off point
+(:class:`DriftTooLarge`): a relay test that the side hold cannot keep near the take-off point
+(a roll or pitch trim the relays do not cancel, wind) is stopped well before the distance limit.
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ from mrft_gcs.errors import IdentificationError, SafetyAbort
 from mrft_gcs.flight.controllers import FlightState
 from mrft_gcs.profiles import SafetyLimits
 
-__all__ = ["LimitExceeded", "RelayTooLarge", "SafetyMonitor", "RELAY_GUARD_FRACTION",
+__all__ = ["DriftTooLarge", "LimitExceeded", "RelayTooLarge", "SafetyMonitor",
+           "DRIFT_GUARD_FRACTION", "DRIFT_GUARD_LEAD_S", "RELAY_GUARD_FRACTION",
            "RELAY_GUARD_LEAD_S", "predicted_tilt_rad"]
 
 #: share of the tilt limit at which a relay test is stopped (the limit itself aborts): room
@@ -33,6 +37,15 @@ RELAY_GUARD_FRACTION = 0.9
 #: acts on the tilt extrapolated over the round trip (a loopback or Wi-Fi link: a few ms to
 #: 20 ms; a telemetry period more)
 RELAY_GUARD_LEAD_S = 0.02
+
+
+#: share of the distance limit at which a relay test is stopped: the vehicle still moving
+#: outwards needs room to brake and land (with the lead below, a drift at 0.6 m/s stops
+#: near 3.7 m of 5); lower, it stopped vehicles that wander 3-4 m and come back
+DRIFT_GUARD_FRACTION = 0.8
+
+#: how far ahead (s) the drift guard carries the outward speed on
+DRIFT_GUARD_LEAD_S = 0.5
 
 
 def predicted_tilt_rad(s: FlightState, lead_s: float,
@@ -63,6 +76,10 @@ class LimitExceeded(SafetyAbort):
 
 class RelayTooLarge(IdentificationError):
     """A relay test swung towards the tilt limit and was stopped before it."""
+
+
+class DriftTooLarge(IdentificationError):
+    """A relay test drifted away from the take-off point and was stopped before the limit."""
 
 
 class SafetyMonitor:
@@ -127,6 +144,29 @@ class SafetyMonitor:
         reason = self.violation(s)
         if reason is not None:
             raise LimitExceeded(f"safety limit: {reason}: test aborted, landing commanded")
+
+    def drift_guard(self, s: FlightState, what: str) -> None:
+        """Raise :class:`DriftTooLarge` where ``s``, its horizontal velocity carried on for
+        :data:`DRIFT_GUARD_LEAD_S`, lies past :data:`DRIFT_GUARD_FRACTION` of the distance
+        limit from the take-off point (``what``: the tests running, for the message).
+
+        The distance limit aborts; this stops the test earlier, with the reason."""
+        dx, dy = s.x_m - self.origin[0], s.y_m - self.origin[1]
+        dist = math.hypot(dx, dy)
+        lim = self.limits.max_distance_m
+        if dist <= 0.0:
+            return
+        out = (dx * s.vx_m_s + dy * s.vy_m_s) / dist  # outward speed (m/s)
+        ahead = dist + max(0.0, out) * DRIFT_GUARD_LEAD_S
+        if ahead > DRIFT_GUARD_FRACTION * lim:
+            raise DriftTooLarge(
+                f"{what}: drifted {dist:.2f} m from the take-off point ({dx:+.2f} m x, "
+                f"{dy:+.2f} m y, moving out at {max(0.0, out):.2f} m/s), past "
+                f"{DRIFT_GUARD_FRACTION:.0%} of the {lim:g} m limit: the side hold could not "
+                f"keep it near while the relays ran (a roll or pitch trim, a centre of mass "
+                f"off the middle, or wind); test stopped before the limit, landing commanded; "
+                f"balance the vehicle or fly in calm air (--max-distance raises the limit where "
+                f"there is room)")
 
     def relay_guard(self, s: FlightState, what: str) -> None:
         """Raise :class:`RelayTooLarge` where ``s`` tilts, or is about to tilt (its rates
