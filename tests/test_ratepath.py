@@ -437,3 +437,26 @@ def test_report_and_table_carry_yaw_tuned_or_held():
     assert len(rows) == 1 and "held" in rows[0] and "no steady relay cycle" in rows[0]
     loops, rows = run(None)  # yaw not relay-tested: no entry, no row (as before)
     assert "yaw" not in loops and rows == []
+
+
+def test_inair_check_models_the_written_rate_i():
+    """The in-air check's model of ArduCopter's cascade includes the written rate I: at low
+    frequency its feedback grows as Kd w_i / s (no I: flat at Kc), and its predicted margin
+    at a decade's zero is lower than without it, as the design predicts."""
+    import numpy as np
+
+    from mrft_gcs.flight.inair import OnboardCascade, plan_check
+    from mrft_gcs.flight.onboard import rate_loop_gains
+    from mrft_gcs.pd_design import PD
+    from mrft_gcs.plant import InnerModel
+
+    m = InnerModel(K=34.0, T_prop=0.0085, T1=0.095, tau=0.006)
+    c = rate_loop_gains(m, PD(6.4, 0.21), 20.0, decade=10.0)
+    wi = c.integrator_zero_rad_s
+    with_i, without = (OnboardCascade(20.0, integrator_zero_rad_s=w) for w in (wi, 0.0))
+    w = np.array([wi / 100.0])
+    assert abs(with_i.paths(c.gains, w)[1][0]) > 50 * abs(without.paths(c.gains, w)[1][0])
+    pm_i = plan_check(m, c.gains, 0.035, cascade=with_i).predicted_pm_deg
+    pm_0 = plan_check(m, c.gains, 0.035, cascade=without).predicted_pm_deg
+    assert 3.0 < pm_0 - pm_i < 9.0, (pm_0, pm_i)
+    assert "rate I zero" in with_i.describe() and "rate I" not in without.describe()

@@ -926,8 +926,11 @@ class RatePath:
             flte = client.read(prefix + "FLTE").value
         except MrftError:
             flte = 0.0
+        # the written rate I (roll_pitch_gains) closes the loop too: its zero is I / P
+        p, i = final.get(self.params.rate_p[axis], 0.0), final.get(prefix + "I", 0.0)
+        wi = i / p if p > 0 and math.isfinite(i) and i > 0 else 0.0
         return OnboardCascade(fltt if math.isfinite(fltt) else 0.0, flte,
-                              final.get(self.params.ff[axis], 0.0))
+                              final.get(self.params.ff[axis], 0.0), integrator_zero_rad_s=wi)
 
     @contextlib.contextmanager
     def small_signal(self, client: ParamClient) -> Iterator[None]:
