@@ -2,6 +2,7 @@
 
     python benchmarks/tune_yaw_ardupilot.py [--runs 2] [--instance N] [--hold-s 8]
                                             [--no-before] [--no-after] [--trace DIR]
+                                            [--json FILE]
 
 Starts ArduCopter SITL (parameters wiped, :mod:`tune_ardupilot`'s recipe), then per run:
 *before* (the vehicle's own gains) and *after* (the gains the tune wrote, restored after):
@@ -13,11 +14,14 @@ the time from take-off. One line per figure; nothing is written to disk but the 
 folder (a temporary one), except with ``--trace DIR``: per run, the yaw relay's every tick
 (``yaw-runN.npz``: time, heading error, yaw rate, output, state, cycles seen, amplitude,
 period) and the tune's .tlog (``yaw-runN.tlog``), to see why a cycle did or did not come.
+``--json FILE``: every run's figures (the holds, yaw's identified model and written values,
+each loop's time tuned after the take-off command) and their spread across the runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
@@ -31,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from tune_ardupilot import GUIDED, LOITER, Observer  # noqa: E402
 
 from mrft_gcs.errors import MrftError  # noqa: E402
+from mrft_gcs.flight import api, ratepath  # noqa: E402
 from mrft_gcs.flight.api import tune  # noqa: E402
 from mrft_gcs.flight.controllers import wrap_pi  # noqa: E402
 from mrft_gcs.flight.phases.yaw import YawRelay, YawState  # noqa: E402
@@ -130,10 +135,17 @@ def main() -> int:
     ap.add_argument("--instance", type=int, default=None)
     ap.add_argument("--hold-s", type=float, default=8.0)
     ap.add_argument("--no-before", action="store_true", help="skip the holds before")
+    ap.add_argument("--before-once", action="store_true",
+                    help="the holds before on the first run only (the same stock gains each run)")
     ap.add_argument("--no-after", action="store_true", help="skip the holds after")
     ap.add_argument("--trace", type=Path, default=None,
                     help="folder for each run's yaw relay trace (.npz) and .tlog")
+    ap.add_argument("--json", type=Path, default=None, help="write every run's figures here")
+    ap.add_argument("--inair-check-runs", type=int, default=0,
+                    help="the last N runs fly the rate path's in-air check of the written "
+                         "roll/pitch gains (off in the tool: ratepath.INAIR_CHECK)")
     args = ap.parse_args()
+    runs: list[dict[str, object]] = []
     reason = why_not()
     if reason is not None:
         print(reason, file=sys.stderr)
@@ -142,12 +154,18 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp, ArduCopterSitl.start(instance, tmp) as sitl:
         obs = Observer(sitl.serial2)
         for run in range(args.runs):
-            if not args.no_before:
-                print(line("before", yaw_figures(obs, args.hold_s)), flush=True)
+            rec: dict[str, object] = {"run": run}
+            runs.append(rec)
+            if not args.no_before and not (args.before_once and run > 0):
+                rec["before"] = f = yaw_figures(obs, args.hold_s)
+                print(line("before", f), flush=True)
             t = time.monotonic()
             tlog = args.trace / f"yaw-run{run}.tlog" if args.trace else None
             if args.trace:
                 args.trace.mkdir(parents=True, exist_ok=True)
+            check = args.inair_check_runs > 0 and run >= args.runs - args.inair_check_runs
+            api.RATE_INAIR_CHECK = check or ratepath.INAIR_CHECK
+            rec["inair_check"] = api.RATE_INAIR_CHECK
             with YawTrace() as trace:
                 try:
                     result = tune(sitl.serial0, "ardupilot", backup_dir=tmp, tlog_path=tlog,
@@ -160,21 +178,73 @@ def main() -> int:
                 trace.save(args.trace / f"yaw-run{run}.npz")
             written = {c.name: f"{c.old:.4g}->{c.new:.4g}" for c in result.parameters
                        if "YAW" in c.name}
+            for lp, lr in result.loops.items():
+                if lr.verification is not None:
+                    print(f"run {run}: {lp.value} {lr.verification.line()}", flush=True)
             print(f"run {run}: tune {status} in {time.monotonic() - t:.1f} s "
                   f"({result.duration_s:.1f} s from take-off, load "
                   f"{os.getloadavg()[0]:.1f}); yaw written {written} {error}", flush=True)
+            rec.update(run_record(result, status, error, time.monotonic() - t))
             for note in result.notes:
                 if note.startswith(("yaw", "rate path: zero-gain", "rate path: roll written",
-                                    "rate path: pitch written")):
+                                    "rate path: pitch written", "in-air")):
                     print(f"run {run}: {note}", flush=True)
             obs.land_and_wait()
             if not result.backup:
                 continue
             if not args.no_after:
-                print(line("after", yaw_figures(obs, args.hold_s)), flush=True)
+                rec["after"] = f = yaw_figures(obs, args.hold_s)
+                print(line("after", f), flush=True)
             with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
                 ParamClient(link).restore(result.backup, tmp)
+            if args.json:
+                write_json(args.json, runs)
+    if args.json:
+        write_json(args.json, runs)
     return 0
+
+
+def _num(x: object) -> float | None:
+    return float(x) if isinstance(x, (int, float)) and math.isfinite(x) else None
+
+
+def run_record(result: object, status: str, error: str, wall_s: float) -> dict[str, object]:
+    """One tune's figures: status, times, yaw's identification and written values."""
+    r: dict[str, object] = {"status": status, "error": error or None, "wall_s": wall_s,
+                            "duration_s": _num(getattr(result, "duration_s", None))}
+    loops = getattr(result, "loops", {}) or {}
+    r["tuned_after_s"] = {getattr(lp, "value", str(lp)): _num(lr.t_tuned_s)
+                          for lp, lr in loops.items()}
+    r["verification"] = {getattr(lp, "value", str(lp)): lr.verification.as_dict()
+                         for lp, lr in loops.items() if lr.verification is not None}
+    y = getattr(result, "yaw", None)
+    if y is not None:
+        m = y.identification.model if y.identification is not None else None
+        r["yaw"] = {"state": y.state, "reason": y.reason, "steady_after_s": _num(y.steady_after_s),
+                    "period_s": _num(y.period_s), "h": y.h,
+                    "model": None if m is None else {k: float(getattr(m, k)) for k in
+                                                     ("K", "T_prop", "T1", "tau")},
+                    "written": y.written, "pm_predicted_deg": _num(y.pm_predicted_deg),
+                    "max_error_deg": math.degrees(y.max_error_rad)}
+    r["zero_gain_note"] = next((n for n in getattr(result, "notes", ())
+                                if n.startswith("rate path: zero-gain")), None)
+    return r
+
+
+def write_json(path: Path, runs: list[dict[str, object]]) -> None:
+    """The runs and the spread of yaw's identified model and of the time to tune."""
+    models = [r["yaw"]["model"] for r in runs if isinstance(r.get("yaw"), dict)
+              and r["yaw"]["model"]]  # type: ignore[index]
+    spread = {k: [min(m[k] for m in models), max(m[k] for m in models)]
+              for k in ("K", "T_prop", "T1", "tau")} if models else {}
+    durs = [r["duration_s"] for r in runs if isinstance(r.get("duration_s"), float)]
+    out = {"benchmark": "tune_yaw_ardupilot", "runs": runs,
+           "yaw_tuned": sum(1 for r in runs if isinstance(r.get("yaw"), dict)
+                            and r["yaw"]["state"] == "tuned"),  # type: ignore[index]
+           "yaw_model_range": spread,
+           "duration_s_range": [min(durs), max(durs)] if durs else None,
+           "load_1min": os.getloadavg()[0]}
+    path.write_text(json.dumps(out, indent=1, default=str))
 
 
 if __name__ == "__main__":

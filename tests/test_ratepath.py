@@ -202,16 +202,66 @@ def test_yaw_identified_by_the_attitude_classifier_and_checked_on_the_cascade():
     names = yaw_names(load_profile("ardupilot").rate_path)
     d = yaw_design(ident, names, 20.0, 2.5)
     assert d.refusal is None and d.cascade is not None, d
-    assert d.values[names["rate_i"]] == 0.0 and d.values[names["rate_d"]] == 0.0
+    assert d.values[names["rate_d"]] == 0.0
     written = PD(d.values[names["angle_p"]] * d.values[names["rate_p"]],
                  d.values[names["rate_p"]])
     fe = d.values[names["flte"]]
+    wi = d.values[names["rate_i"]] / written.Kd  # the written rate I's zero (0: none)
     truth = InnerModel(*YAW_PLANT)
-    on_truth = cascade_gains(truth, written, 20.0, error_filter_hz=fe)
+    on_truth = cascade_gains(truth, written, 20.0, error_filter_hz=fe,
+                             integrator_zero_rad_s=wi)
     assert on_truth.pm_deg >= 10.0, on_truth  # the design's 15 less the identification's error
     doubled = cascade_gains(truth, PD(2 * written.Kc, 2 * written.Kd), 20.0,
                             error_filter_hz=fe)
     assert doubled.pm_identified_deg < 10.0 and doubled.scale < 0.8, doubled
+
+
+def test_yaw_design_writes_a_rate_i_that_keeps_the_margin():
+    """Yaw gets a rate I like roll and pitch: its zero a decade or more below the crossover,
+    the margin with it (checked again here on the cascade, I included) at least 15 deg, the
+    P gains the same as without it; none where the P gains already sit on the margin."""
+    from mrft_gcs.flight import ratepath
+    from mrft_gcs.flight.onboard import cascade_gains
+    from mrft_gcs.flight.ratepath import yaw_design, yaw_names
+    from mrft_gcs.identify import Identification
+    from mrft_gcs.loops import LoopKind
+    from mrft_gcs.pd_design import frequency_grid, optimal_pd
+    from mrft_gcs.plant import InnerModel, inner_response
+
+    names = yaw_names(load_profile("ardupilot").rate_path)
+
+    def design(model, decade=ratepath.YAW_RATE_I_DECADE):
+        w = frequency_grid(model.T_prop, model.T1, model.tau)
+        pd = optimal_pd(inner_response(model.K, model.T_prop, model.T1, model.tau, w)[0],
+                        w).pd
+        ident = Identification(LoopKind.ATTITUDE, model, 0, 1.0, -0.7, 0.1, 0.3, 0.01, pd)
+        old, ratepath.YAW_RATE_I_DECADE = ratepath.YAW_RATE_I_DECADE, decade
+        try:
+            return yaw_design(ident, names, 20.0, 2.5)
+        finally:
+            ratepath.YAW_RATE_I_DECADE = old
+
+    # an ArduCopter-SITL-like yaw (drag past the domain: the edge model checked too)
+    m = InnerModel(60.0, 0.04, 4.2, 0.01)
+    d, d0 = design(m), design(m, decade=0.0)
+    c = d.cascade
+    i, kd = d.values[names["rate_i"]], d.values[names["rate_p"]]
+    assert i > 0 and d0.values[names["rate_i"]] == 0.0, (d.values, d0.values)
+    assert {k: v for k, v in d.values.items() if k != names["rate_i"]} == {
+        k: v for k, v in d0.values.items() if k != names["rate_i"]}  # P never lowered for I
+    wi = i / kd
+    assert c.wc_rad_s / wi >= ratepath.YAW_RATE_I_DECADE - 1e-6, c
+    for model in (m, d.edge):
+        check = cascade_gains(model, c.gains, 20.0, error_filter_hz=d.values[names["flte"]],
+                              integrator_zero_rad_s=wi)
+        assert check.scale == 1.0 and check.pm_deg >= 15.0, check
+    assert "rate I" in d.note()
+    # a decade's I would cost more than the margin left: lowered, not dropped
+    assert check.pm_deg < d0.cascade.pm_deg
+    # gains scaled onto the margin already: no I (the P is not lowered for it), and it says so
+    tight = design(InnerModel(*YAW_PLANT))
+    assert tight.cascade.scale < 1.0 and tight.values[names["rate_i"]] == 0.0, tight
+    assert tight.cascade.integrator_refused and "no rate I" in tight.note()
 
 
 def test_yaw_relay_gives_up_to_the_hold_with_the_reason():
@@ -387,3 +437,26 @@ def test_report_and_table_carry_yaw_tuned_or_held():
     assert len(rows) == 1 and "held" in rows[0] and "no steady relay cycle" in rows[0]
     loops, rows = run(None)  # yaw not relay-tested: no entry, no row (as before)
     assert "yaw" not in loops and rows == []
+
+
+def test_inair_check_models_the_written_rate_i():
+    """The in-air check's model of ArduCopter's cascade includes the written rate I: at low
+    frequency its feedback grows as Kd w_i / s (no I: flat at Kc), and its predicted margin
+    at a decade's zero is lower than without it, as the design predicts."""
+    import numpy as np
+
+    from mrft_gcs.flight.inair import OnboardCascade, plan_check
+    from mrft_gcs.flight.onboard import rate_loop_gains
+    from mrft_gcs.pd_design import PD
+    from mrft_gcs.plant import InnerModel
+
+    m = InnerModel(K=34.0, T_prop=0.0085, T1=0.095, tau=0.006)
+    c = rate_loop_gains(m, PD(6.4, 0.21), 20.0, decade=10.0)
+    wi = c.integrator_zero_rad_s
+    with_i, without = (OnboardCascade(20.0, integrator_zero_rad_s=w) for w in (wi, 0.0))
+    w = np.array([wi / 100.0])
+    assert abs(with_i.paths(c.gains, w)[1][0]) > 50 * abs(without.paths(c.gains, w)[1][0])
+    pm_i = plan_check(m, c.gains, 0.035, cascade=with_i).predicted_pm_deg
+    pm_0 = plan_check(m, c.gains, 0.035, cascade=without).predicted_pm_deg
+    assert 3.0 < pm_0 - pm_i < 9.0, (pm_0, pm_i)
+    assert "rate I zero" in with_i.describe() and "rate I" not in without.describe()

@@ -112,6 +112,9 @@ class OnboardCascade:
     #: the rate target holds the attitude target's own rate (ArduPilot's ATC_RATE_FF_ENAB);
     #: False: angle P times the error alone (the bundled SITL's ArduPilot-like cascade)
     target_rate_ff: bool = True
+    #: the rate loop's integrator zero (rad/s; 0: no rate I): rate P and I act on the same
+    #: (error-filtered) rate error, so the PID is ``Kd (1 + w_i / s)`` in both paths
+    integrator_zero_rad_s: float = 0.0
 
     def paths(self, gains: PD, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(C_r, C_y)``: the command ``u = C_r x - C_y y`` at ``w`` (rad/s).
@@ -126,8 +129,10 @@ class OnboardCascade:
             return 1.0 / (1.0 + s / (2 * np.pi * hz)) if hz > 0 else np.ones_like(s)
         ft, fe = lp(self.target_filter_hz), lp(self.error_filter_hz)
         pa = gains.Kc / gains.Kd
-        fwd = (gains.Kd * fe + self.ff) * ft
-        return fwd * (pa + s if self.target_rate_ff else pa), fwd * pa + gains.Kd * fe * s
+        wi = self.integrator_zero_rad_s
+        kd = gains.Kd * (1.0 + wi / s) if wi > 0 else gains.Kd
+        fwd = (kd * fe + self.ff) * ft
+        return fwd * (pa + s if self.target_rate_ff else pa), fwd * pa + kd * fe * s
 
     def filters(self, w: np.ndarray) -> np.ndarray:
         """The target and error filters in series at ``w`` (rad/s)."""
@@ -142,7 +147,9 @@ class OnboardCascade:
         rate = " + target rate" if self.target_rate_ff else ""
         return (f"ArduPilot cascade: rate target = angle P x error{rate}, target filter "
                 f"{self.target_filter_hz:g} Hz, error filter {self.error_filter_hz:g} Hz, "
-                f"rate FF {self.ff:g}")
+                f"rate FF {self.ff:g}"
+                + (f", rate I zero {self.integrator_zero_rad_s:.3g} rad/s"
+                   if self.integrator_zero_rad_s > 0 else ""))
 
 
 def _paths(gains: PD, w: np.ndarray, cascade: OnboardCascade | None

@@ -76,6 +76,7 @@ __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignmen
            "check_feed_forward", "rate_path_refusal", "body_rates", "LINK_LOSS_GUARD",
            "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE", "TARGET_SET_PARAM",
            "CHECK_PARAMS", "CHECK_SPAN_S", "INAIR_CHECK", "TUNE_YAW", "RATE_I_DECADE",
+           "YAW_RATE_I_DECADE",
            "YawDesign",
            "yaw_design", "yaw_names"]
 
@@ -138,8 +139,10 @@ YAW_FLTE_MAX_HZ = 40.0
 YAW_FLTE_KEEP = 0.95
 #: the in-air check of the written roll/pitch gains flies on this path (off: ArduCopter's
 #: ATTITUDE_TARGET came too unevenly at these crossovers to measure the loop, and a check
-#: that cannot measure lands the vehicle; the gains are checked on the cascade's model at
-#: the hand-over instead, :func:`mrft_gcs.flight.onboard.cascade_gains`)
+#: that cannot measure lands the vehicle; flown with its linearised angle P at the written
+#: margin of 15 deg the loop rang and diverged on ArduCopter SITL: docs/ardupilot.md; the
+#: gains are checked on the cascade's model at the hand-over instead,
+#: :func:`mrft_gcs.flight.onboard.rate_loop_gains`)
 INAIR_CHECK = False
 #: set while the in-air check flies (restored after it): ArduCopter's angle P runs through a
 #: square-root controller that is linear only below (accel/2)/P^2 of error (0.2-0.5 deg at
@@ -158,6 +161,11 @@ CHECK_SPAN_S = 1.0
 #: atan(1/10) = 6 deg of phase at the crossover (the gains scaled down where that takes
 #: the margin below 15 deg: :func:`~mrft_gcs.flight.onboard.rate_loop_gains`)
 RATE_I_DECADE = 10.0
+#: yaw: the rate I's zero this factor below the written loop's crossover, as
+#: :data:`RATE_I_DECADE` for roll and pitch (0: rate I written 0). With P alone the heading
+#: keeps ``d / Kc`` of error under a yaw torque ``d`` (the motors' own torque imbalance,
+#: a yaw-twisted frame); the I removes it
+YAW_RATE_I_DECADE = 10.0
 _ATTITUDE_TARGET_ID = 83
 _PID_TUNING_ID = 194
 _AXES = ("roll", "pitch", "yaw")
@@ -320,8 +328,9 @@ class YawDesign:
     Attributes
     ----------
     values : dict
-        Parameter -> value (angle P ``Kc/Kd``, rate P ``Kd``, rate I and D 0); empty where
-        refused.
+        Parameter -> value (angle P ``Kc/Kd``, rate P ``Kd``, rate I ``Kd w_i`` with its
+        zero ``w_i`` below the crossover (:data:`YAW_RATE_I_DECADE`; 0 where none keeps the
+        margin), D 0); empty where refused.
     cascade : CascadeGains or None
         The identified gains checked (and scaled) on ArduCopter's yaw cascade: on the
         identified model, or where the domain's edge model needs the smaller scale, on that.
@@ -363,11 +372,32 @@ def _t1_phase_deg(t1_a: float, t1_b: float, w: float) -> float:
     return abs(math.degrees(math.atan(w * t1_a) - math.atan(w * t1_b)))
 
 
+def _yaw_rate_i(c: CascadeGains, model: InnerModel, edge: InnerModel | None,
+                target_filter_hz: float, error_filter_hz: float) -> CascadeGains:
+    """``c`` (the scaled yaw gains) with a rate I as roll and pitch get it
+    (:func:`~mrft_gcs.flight.onboard.rate_loop_gains`, zero :data:`YAW_RATE_I_DECADE` below
+    the crossover, lower where the margin needs it, none where even the lowest does not keep
+    it); with an edge model, the lower of the two models' zeros, its margin the smaller."""
+    found = [rate_loop_gains(mm, c.gains, target_filter_hz, error_filter_hz,
+                             decade=YAW_RATE_I_DECADE) for mm in (model, edge) if mm is not None]
+    if any(f.integrator_refused or not f.integrator_zero_rad_s > 0 for f in found):
+        return dataclasses.replace(c, integrator_refused=True)
+    wi = min(f.integrator_zero_rad_s for f in found)
+    checked = [cascade_gains(mm, c.gains, target_filter_hz, error_filter_hz=error_filter_hz,
+                             integrator_zero_rad_s=wi) for mm in (model, edge) if mm is not None]
+    worst = min(checked, key=lambda k: k.pm_deg)
+    if worst.scale < 1.0:  # the two models' zeros differ, and the lower one misses the margin
+        return dataclasses.replace(c, integrator_refused=True)
+    return dataclasses.replace(c, pm_deg=worst.pm_deg, wc_rad_s=worst.wc_rad_s,
+                               integrator_zero_rad_s=wi)
+
+
 def yaw_design(ident: Identification, names: Mapping[str, str], target_filter_hz: float,
                error_filter_hz: float) -> YawDesign:
     """Yaw's written gains: the identified PD on ArduCopter's yaw cascade (its target and
     error filters, the 400 Hz loop; :func:`~mrft_gcs.flight.onboard.cascade_gains`), scaled
-    down where it falls short of the margin.
+    down where it falls short of the margin, with a rate I (:func:`_yaw_rate_i`) whose zero
+    sits below the crossover as far as the margin needs (the P gains are not lowered for it).
 
     Refused where the identified model lies outside the attitude classifier's domain by more
     than :data:`YAW_DOMAIN_SLACK` (its gains would be a guess), with one exception: a drag
@@ -387,8 +417,10 @@ def yaw_design(ident: Identification, names: Mapping[str, str], target_filter_hz
     ...                           -0.7, 0.05, 0.3, 0.05, PD(1.0, 0.1))
     >>> d = yaw_design(ident(0.03, 0.5, 0.01), names, 20.0, 2.5)
     >>> g = d.cascade.gains
-    >>> d.refusal is None, d.edge is None, d.values["A"] == g.Kc / g.Kd, d.values["I"]
-    (True, True, True, 0.0)
+    >>> d.refusal is None, d.edge is None, d.values["A"] == g.Kc / g.Kd
+    (True, True, True)
+    >>> d.values["I"] == g.Kd * d.cascade.integrator_zero_rad_s > 0, d.cascade.pm_deg >= 15
+    (True, True)
     >>> yaw_design(ident(0.03, 9.0, 0.01), names, 20.0, 2.5).edge.T1  # integrating drag
     2.0
     >>> yaw_design(ident(0.9, 1.0, 0.01), names, 20.0, 2.5).refusal[:40]
@@ -442,8 +474,10 @@ def yaw_design(ident: Identification, names: Mapping[str, str], target_filter_hz
     if not (c.scale > 0 and math.isfinite(c.pm_deg)):
         return YawDesign({}, c, edge, refusal=f"no gain keeps its margin on ArduCopter's yaw "
                                               f"cascade ({c.note()})")
+    if YAW_RATE_I_DECADE > 0:
+        c = _yaw_rate_i(c, m, edge, target_filter_hz, fe)
     g = c.gains
-    values = {names["angle_p"]: g.Kc / g.Kd, names["rate_p"]: g.Kd, names["rate_i"]: 0.0,
+    values = {names["angle_p"]: g.Kc / g.Kd, names["rate_p"]: g.Kd, names["rate_i"]: c.rate_i,
               names["rate_d"]: 0.0}
     if "flte" in names:
         values[names["flte"]] = fe
@@ -894,8 +928,11 @@ class RatePath:
             flte = client.read(prefix + "FLTE").value
         except MrftError:
             flte = 0.0
+        # the written rate I (roll_pitch_gains) closes the loop too: its zero is I / P
+        p, i = final.get(self.params.rate_p[axis], 0.0), final.get(prefix + "I", 0.0)
+        wi = i / p if p > 0 and math.isfinite(i) and i > 0 else 0.0
         return OnboardCascade(fltt if math.isfinite(fltt) else 0.0, flte,
-                              final.get(self.params.ff[axis], 0.0))
+                              final.get(self.params.ff[axis], 0.0), integrator_zero_rad_s=wi)
 
     @contextlib.contextmanager
     def small_signal(self, client: ParamClient) -> Iterator[None]:
