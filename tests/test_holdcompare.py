@@ -191,4 +191,38 @@ def test_tune_over_udp_flies_both_holds(tmp_path, force_revert):
         with VehicleLink.connect(sitl.connection_string) as link:
             back = {n: p.value for n, p in ParamClient(link).read_many(want).items()}
         assert back == pytest.approx(want)
-        assert report_dict(result)["hold_compare"]["outcome"] == cmp.outcome
+        rep = report_dict(result)
+        assert rep["hold_compare"]["outcome"] == cmp.outcome
+        # the report says what is on the vehicle, beside what the tune wrote
+        assert {p["name"]: p["on_vehicle"] for p in rep["parameters"]} == pytest.approx(back)
+        assert {p["name"]: p["new"] for p in rep["parameters"]} == pytest.approx(
+            {c.name: c.new for c in result.parameters})
+
+
+def test_px4_profile_flies_it_against_the_bundled_sitl(tmp_path):
+    """PX4's profile (attitude path, POSCTL hand-over) with the comparison asked for, over UDP
+    against the bundled SITL as the PX4 stand-in: both holds in POSCTL, altitude and drift
+    judged (the SITL sends no ATTITUDE_TARGET or VFR_HUD), the report's parameters say what
+    the vehicle holds; the profile's own default stays off (not flown on a real PX4)."""
+    prof = load_profile("px4")
+    assert prof.hold_compare_s == 0.0 and prof.actuation == "attitude"
+    with SitlProcess(vehicle="qdrone", port=None, seed=2) as sitl:
+        try:
+            result = tune(sitl.connection_string, prof, backup_dir=tmp_path, hold_compare_s=2.0,
+                          hover_check_s=2.0, residuals=False)
+        except GainsReverted as err:
+            result = err.partial_result
+        cmp = result.hold_compare
+        assert cmp is not None, result.notes
+        print(cmp.line())
+        with VehicleLink.connect(sitl.connection_string) as link:
+            names = [c.name for c in result.parameters]
+            back = {n: p.value for n, p in ParamClient(link).read_many(names).items()}
+            mode = link.heartbeat.custom_mode
+    assert cmp.mode == "POSCTL" and (mode >> 16) & 0xFF == 3  # still holding in POSCTL
+    assert result.status == ("ok" if cmp.outcome == "kept" else "error:4:GainsReverted")
+    assert set(cmp.verdict.judged) == {"alt_spread_m", "alt_std_m", "max_drift_m"}
+    assert cmp.before.samples > 50 and cmp.after.samples > 50
+    assert cmp.swapped and all(n.startswith("MPC_") for n in cmp.swapped)
+    rep = report_dict(result)
+    assert {p["name"]: p["on_vehicle"] for p in rep["parameters"]} == pytest.approx(back)
