@@ -114,6 +114,42 @@ def test_tracking_is_judged_per_unit_of_the_targets_motion():
     assert not v.kept and v.worse_in == ("att_err_sync_rms_deg",)
 
 
+def _gusty_hold(first_m: float, second_m: float, n: int = 200) -> dict[str, np.ndarray]:
+    """A hold whose position wanders ``first_m`` (m) in its first half and ``second_m`` in
+    its second, level attitude: gusts that push the same set around by different amounts."""
+    h = n // 2
+    x = np.concatenate([np.linspace(0, first_m, h), np.linspace(0, second_m, n - h)])
+    pos = np.column_stack([x, np.zeros(n), np.ones(n), np.zeros(n)])
+    return {"pos": pos, "att": np.zeros((n, 2))}
+
+
+def test_scatter_between_a_holds_halves():
+    f = hold_figures(_gusty_hold(0.1, 0.3))
+    assert f.max_drift_m == pytest.approx(0.3)
+    assert f.noise["max_drift_m"] == pytest.approx(0.2)
+    assert f.noise["alt_spread_m"] == 0.0 and "throttle_saturated" not in f.noise
+    assert "noise" not in f.as_dict()
+    assert hold_figures(_gusty_hold(0.1, 0.3), noise=False).noise == {}
+
+
+def test_a_difference_within_one_sets_scatter_is_not_worse():
+    """Gusts: each set's holds scatter by 0.2 m in drift. A written set 0.1 m worse than the
+    old one is within that (kept; the judge as it was would have reverted it); 0.45 m worse
+    is not, and the reason names the scatter."""
+    before = HoldFigures(**dict(BASE, max_drift_m=0.35), noise={"max_drift_m": 0.2})
+    after = HoldFigures(**dict(BASE, max_drift_m=0.45), noise={"max_drift_m": 0.05})
+    # without the scatter (or with only the smaller one) the 0.1 m is worse
+    assert judge_holds(dataclasses.replace(before, noise={}),
+                       dataclasses.replace(after, noise={})).worse_in == ("max_drift_m",)
+    assert not judge_holds(dataclasses.replace(before, noise={}), after).kept
+    assert judge_holds(before, after).kept
+    v = judge_holds(before, dataclasses.replace(after, max_drift_m=0.8))
+    assert v.worse_in == ("max_drift_m",)
+    assert "more than the 0.200 the halves of one hold differ" in v.reason
+    cmp = HoldComparison("LOITER", 8.0, after, before, v, "reverted", {})
+    assert cmp.as_dict()["noise"] == {"max_drift_m": 0.2}
+
+
 def test_a_figure_the_telemetry_cannot_give_is_not_judged():
     """No VFR_HUD or ATTITUDE_TARGET (e.g. a vehicle that does not send them): NaN there,
     judged on the rest."""
