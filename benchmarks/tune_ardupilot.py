@@ -29,7 +29,9 @@ handover``: also in the tune from its hand-over to LOITER on, the tool's own hol
 included; ``all``: the whole run). The hold
 after is called worse where altitude spread, its deviation, drift or saturation grew by
 more than 20 % (and 5 mm), or roll/pitch followed their target less closely (rms against
-ATTITUDE_TARGET interpolated to each ATTITUDE's vehicle time, by more than 20 % and 0.01 deg);
+ATTITUDE_TARGET interpolated to each ATTITUDE's vehicle time, and its part above 2 Hz, by
+more than 20 % and 0.01 deg, per unit of the target's motion too; each hold's ``noise``: how
+far its two halves' figures differ, and ``worse_beyond_noise``: the verdict against it);
 more lean spent holding position is reported beside it. ``--compare JSON`` flies no tune:
 LOITER holds on the values a run of an earlier ``--json`` wrote, split into stock, tuned,
 attitude only and position only (``--config`` adds sets), interleaved ``--repeats`` times,
