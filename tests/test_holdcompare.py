@@ -265,7 +265,7 @@ def test_px4_profile_flies_it_against_the_bundled_sitl(tmp_path):
     judged (the SITL sends no ATTITUDE_TARGET or VFR_HUD), the report's parameters say what
     the vehicle holds; the profile's own default stays off (not flown on a real PX4)."""
     prof = load_profile("px4")
-    assert prof.hold_compare_s == 0.0 and prof.actuation == "attitude"
+    assert prof.hold_compare_s == 0.0 and prof.actuation.value == "attitude"
     with SitlProcess(vehicle="qdrone", port=None, seed=2) as sitl:
         try:
             result = tune(sitl.connection_string, prof, backup_dir=tmp_path, hold_compare_s=2.0,
