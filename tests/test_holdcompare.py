@@ -224,8 +224,8 @@ RELAY = {LoopKind.ATTITUDE: ATT_RELAY, LoopKind.ALTITUDE: ALT_RELAY, LoopKind.SI
 
 @pytest.mark.parametrize("force_revert", [False, True], ids=["real verdict", "forced revert"])
 def test_tune_over_udp_flies_both_holds(tmp_path, force_revert):
-    """Against the bundled SITL (it serves neither ATTITUDE_TARGET nor VFR_HUD: altitude and
-    drift are judged): both holds flown on the link, the written values kept (read back) or
+    """Against the bundled SITL (it serves no VFR_HUD: altitude, drift and tracking are
+    judged): both holds flown on the link, the written values kept (read back) or
     the old ones back (read back) as the verdict says."""
     judge = judge_holds
     if force_revert:
