@@ -24,10 +24,14 @@ Hold quality over the LOITER window, from an observer link (SERIAL2): altitude s
 where the hold began, largest tilt, throttle saturation (share of VFR_HUD samples at 0 % or
 100 %) and the throttle's standard deviation. ``--baro-noise 0.2`` turns on the SITL's baro
 noise for the whole run (tune included); ``--gust 4`` flies both holds in turbulent wind
-with an upward component, so that the altitude loop has something to reject. The hold
+with an upward component, so that the altitude loop has something to reject (``--gust-in
+handover``: also in the tune from its hand-over to LOITER on, the tool's own hold comparison
+included; ``all``: the whole run). The hold
 after is called worse where altitude spread, its deviation, drift or saturation grew by
 more than 20 % (and 5 mm), or roll/pitch followed their target less closely (rms against
-ATTITUDE_TARGET interpolated to each ATTITUDE's vehicle time, by more than 20 % and 0.01 deg);
+ATTITUDE_TARGET interpolated to each ATTITUDE's vehicle time, and its part above 2 Hz, by
+more than 20 % and 0.01 deg, per unit of the target's motion too; each hold's ``noise``: how
+far its two halves' figures differ, and ``worse_beyond_noise``: the verdict against it);
 more lean spent holding position is reported beside it. ``--compare JSON`` flies no tune:
 LOITER holds on the values a run of an earlier ``--json`` wrote, split into stock, tuned,
 attitude only and position only (``--config`` adds sets), interleaved ``--repeats`` times,
@@ -53,6 +57,7 @@ import socket
 import struct
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -75,6 +80,8 @@ class Observer:
     """A second MAVLink link (SERIAL2) that flies the before/after holds and records them."""
 
     def __init__(self, connection: str) -> None:
+        #: SIM_* values set (from this link) once the tune hands over to LOITER (empty: none)
+        self.wind_at_handover: dict[str, float] = {}
         self.m = mavutil.mavlink_connection(connection, source_system=254)
         self.m.wait_heartbeat(timeout=10)
         # ATTITUDE, LOCAL_POSITION_NED, VFR_HUD, ATTITUDE_TARGET at 25 Hz
@@ -86,6 +93,13 @@ class Observer:
         self.m.mav.command_long_send(self.m.target_system, self.m.target_component, cmd, 0,
                                      *params)
         self.m.recv_match(type="COMMAND_ACK", blocking=True, timeout=2)
+
+    def set_params(self, values: dict[str, float]) -> None:
+        """PARAM_SET each value from this link (the SITL's SIM_* settings)."""
+        for name, value in values.items():
+            self.m.mav.param_set_send(self.m.target_system, self.m.target_component,
+                                      name.encode(), value, mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
+            self.m.recv_match(type="PARAM_VALUE", blocking=True, timeout=2)
 
     def mode(self, number: int) -> None:
         self.command(176, 1, number)
@@ -117,6 +131,25 @@ class Observer:
                 rows["thr"].append((msg.throttle,))
         return {k: np.asarray(v, float) for k, v in rows.items()}
 
+    def watch_handover(self, stop: threading.Event) -> threading.Thread:
+        """Set :attr:`wind_at_handover` when the vehicle is armed in LOITER (the tune's
+        hand-over); a thread that runs until ``stop`` or the wind is set."""
+        def run() -> None:
+            while not stop.is_set():
+                msg = self.m.recv_match(type="HEARTBEAT", blocking=True, timeout=0.5)
+                if (msg is not None and msg.get_srcSystem() == self.m.target_system
+                        and msg.get_srcComponent() == 1 and msg.custom_mode == LOITER
+                        and msg.base_mode & 128):
+                    break
+            else:
+                return
+            self.set_params(self.wind_at_handover)
+            print("wind on at the hand-over to LOITER", flush=True)
+
+        thread = threading.Thread(target=run, daemon=True)
+        thread.start()
+        return thread
+
     def height(self) -> float:
         msg = self.m.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=2)
         return -msg.z if msg is not None else math.nan
@@ -143,7 +176,8 @@ class Observer:
         self.mode(LOITER)
         data = self.record(hold_s)
         self.land_and_wait()
-        return hold_figures(data)
+        f = figures_of(data)  # with the scatter between the hold's halves
+        return f.as_dict() | {"noise": dict(f.noise)}
 
 
 def hold_figures(data: dict[str, np.ndarray]) -> dict[str, float]:
@@ -244,6 +278,8 @@ def tune_run(run: int, serial0: str, obs: Observer, hold: Callable[[], dict[str,
     before = hold()
     print(line("before", before), flush=True)
     t = time.monotonic()
+    stop = threading.Event()
+    watcher = obs.watch_handover(stop) if obs.wind_at_handover else None
     try:
         result = tune(serial0, args.profile, backup_dir=tmp, heartbeat_timeout_s=10,
                       actuation=args.actuation, hold_compare_s=args.hold_compare)
@@ -253,6 +289,11 @@ def tune_run(run: int, serial0: str, obs: Observer, hold: Callable[[], dict[str,
             raise
         result = err.partial_result
         status, error = result.status, str(err)
+    finally:
+        stop.set()
+        if watcher is not None:
+            watcher.join(timeout=5)
+            obs.set_params(dict.fromkeys(obs.wind_at_handover, 0.0))  # calm for the landing
     total_s = time.monotonic() - t
     load = os.getloadavg()[0]
     written = {c.name: f"{c.old:.4g}->{c.new:.4g}" for c in result.parameters}
@@ -285,12 +326,17 @@ def tune_run(run: int, serial0: str, obs: Observer, hold: Callable[[], dict[str,
     print(line("after", after), flush=True)
     worse = worse_in(before, after)
     effort = effort_in(before, after)
+    # the same holds judged against their scatter, as the tool's comparison judges its own
+    noise = {k: max(before["noise"].get(k, 0.0), after["noise"].get(k, 0.0))  # type: ignore
+             for k in WORSE_SLACK}
+    worse_noise = worse_in(before, after, noise)
     print(f"run {run}: hold after the tune "
           f"{'worse in ' + ', '.join(worse) if worse else 'as good or better'}"
+          f" (beyond the halves' scatter: {', '.join(worse_noise) or 'none'})"
           f"{'; ' + effort if effort else ''}; backup restored", flush=True)
     with VehicleLink.connect(serial0, timeout_s=10) as link:
         ParamClient(link).restore(result.backup, tmp)
-    row.update(after=after, worse_in=worse, effort=effort)
+    row.update(after=after, worse_in=worse, worse_beyond_noise=worse_noise, effort=effort)
     return row
 
 
@@ -357,6 +403,10 @@ def main() -> int:
     ap.add_argument("--gust", type=float, default=0.0, metavar="M_S",
                     help="turbulent wind in the LOITER holds only (SIM_WIND_SPD, half of it "
                     "SIM_WIND_TURB, 30 deg up from level: a vertical disturbance)")
+    ap.add_argument("--gust-in", default="holds", choices=("holds", "handover", "all"),
+                    help="with --gust: where the wind blows: the benchmark's holds only; "
+                    "also from the tune's hand-over to LOITER on (its hover check and its own "
+                    "hold comparison); or the whole run, the tune's tests included")
     ap.add_argument("--autotune", action="store_true",
                     help="first fly ArduPilot's own AUTOTUNE (roll, pitch), hold on its gains, "
                     "restore them, then the tool's runs")
@@ -417,21 +467,29 @@ def run_all(sitl: ArduCopterSitl, args: argparse.Namespace, tmp: str,
     wind = {"SIM_WIND_SPD": args.gust, "SIM_WIND_TURB": args.gust / 2,
             "SIM_WIND_DIR_Z": 30.0, "SIM_WIND_T": 1.0} if args.gust else {}
     calm = dict.fromkeys(wind, 0.0)
+    if wind and args.gust_in == "all":  # on once, for everything: the holds switch nothing
+        with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
+            ParamClient(link).write(wind, tmp, label="sim")
+    switch = bool(wind) and args.gust_in != "all"
+    if wind and args.gust_in == "handover":
+        obs.wind_at_handover = wind
 
     def hold() -> dict[str, float]:
         with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
-            if wind:
+            if switch:
                 ParamClient(link).write(wind, tmp, label="sim")
         try:
             return obs.loiter_hold(args.hold_s)
         finally:
-            if wind:
+            if switch:
                 with VehicleLink.connect(sitl.serial0, timeout_s=10) as link:
                     ParamClient(link).write(calm, tmp, label="sim")
 
     if wind:
-        print(f"holds in wind {args.gust} m/s, turbulence {args.gust / 2} m/s, 30 deg "
-              f"up", flush=True)
+        where = {"holds": "holds", "handover": "holds and the tune from its hand-over on",
+                 "all": "whole run"}[args.gust_in]
+        print(f"{where} in wind {args.gust} m/s, "
+              f"turbulence {args.gust / 2} m/s, 30 deg up", flush=True)
     if args.autotune:
         before = hold()
         print(line("before", before), flush=True)

@@ -262,6 +262,8 @@ def test_hold_comparison_reverts_and_says_why(copter, tmp_path):
             assert link.heartbeat.armed  # still hovering in LOITER, on the old values
             back = {n: p.value for n, p in ParamClient(link).read_many(old).items()}
         assert back == pytest.approx(old)
+        # the report's parameters say the old values are on the vehicle, not the written ones
+        assert {p["name"]: p["on_vehicle"] for p in rep["parameters"]} == pytest.approx(back)
         assert list(tmp_path.glob("params-hold-old-*.params"))
         assert not list(tmp_path.glob("params-hold-new-*.params"))
     finally:

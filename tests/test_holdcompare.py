@@ -114,12 +114,72 @@ def test_tracking_is_judged_per_unit_of_the_targets_motion():
     assert not v.kept and v.worse_in == ("att_err_sync_rms_deg",)
 
 
+def _gusty_hold(first_m: float, second_m: float, n: int = 200) -> dict[str, np.ndarray]:
+    """A hold whose position wanders ``first_m`` (m) in its first half and ``second_m`` in
+    its second, level attitude: gusts that push the same set around by different amounts."""
+    h = n // 2
+    x = np.concatenate([np.linspace(0, first_m, h), np.linspace(0, second_m, n - h)])
+    pos = np.column_stack([x, np.zeros(n), np.ones(n), np.zeros(n)])
+    return {"pos": pos, "att": np.zeros((n, 2))}
+
+
+def test_scatter_between_a_holds_halves():
+    f = hold_figures(_gusty_hold(0.1, 0.3))
+    assert f.max_drift_m == pytest.approx(0.3)
+    assert f.noise["max_drift_m"] == pytest.approx(0.2)
+    assert f.noise["alt_spread_m"] == 0.0 and "throttle_saturated" not in f.noise
+    assert "noise" not in f.as_dict()
+    assert hold_figures(_gusty_hold(0.1, 0.3), noise=False).noise == {}
+
+
+def test_a_difference_within_one_sets_scatter_is_not_worse():
+    """Gusts: each set's holds scatter by 0.2 m in drift. A written set 0.1 m worse than the
+    old one is within that (kept; the judge as it was would have reverted it); 0.45 m worse
+    is not, and the reason names the scatter."""
+    before = HoldFigures(**dict(BASE, max_drift_m=0.35), noise={"max_drift_m": 0.2})
+    after = HoldFigures(**dict(BASE, max_drift_m=0.45), noise={"max_drift_m": 0.05})
+    # without the scatter (or with only the smaller one) the 0.1 m is worse
+    assert judge_holds(dataclasses.replace(before, noise={}),
+                       dataclasses.replace(after, noise={})).worse_in == ("max_drift_m",)
+    assert not judge_holds(dataclasses.replace(before, noise={}), after).kept
+    assert judge_holds(before, after).kept
+    v = judge_holds(before, dataclasses.replace(after, max_drift_m=0.8))
+    assert v.worse_in == ("max_drift_m",)
+    assert "more than the 0.200 the halves of one hold differ" in v.reason
+    cmp = HoldComparison("LOITER", 8.0, after, before, v, "reverted", {})
+    assert cmp.as_dict()["noise"] == {"max_drift_m": 0.2}
+
+
+def test_a_ringing_attitude_loop_is_worse_though_the_total_error_is_excused():
+    """The gusty rate-path run: the hold on the old values carried a slow 0.43 deg error
+    (its rate I settling after the swap), the written set rang at 0.9 deg above 2 Hz; per
+    unit of the target's motion the total looked no worse, the part above 2 Hz did (24 x).
+    The attitude path's written sets in the same wind (own attitude loop, faster target)
+    stay kept."""
+    old = HoldFigures(**dict(BASE, att_err_sync_rms_deg=0.432, att_err_hf_rms_deg=0.013,
+                             target_rate_rms_deg_s=1.83))
+    ringing = dataclasses.replace(old, att_err_sync_rms_deg=0.933, att_err_hf_rms_deg=0.897,
+                                  target_rate_rms_deg_s=5.29)
+    v = judge_holds(old, ringing)
+    assert v.worse_in == ("att_err_hf_rms_deg",)
+    assert "above 2 Hz 0.013 -> 0.897 deg rms" in v.reason
+    # the second within 1 % of the per-unit limit: the attitude path in gusts sits near it
+    runs = ((0.027, 0.016, 1.61, 0.109, 0.045, 5.72), (0.0315, 0.017, 2.001, 0.0914, 0.034, 4.885))
+    for b_sync, b_hf, b_rate, a_sync, a_hf, a_rate in runs:
+        b = HoldFigures(**dict(BASE, att_err_sync_rms_deg=b_sync, att_err_hf_rms_deg=b_hf,
+                               target_rate_rms_deg_s=b_rate))
+        a = dataclasses.replace(b, att_err_sync_rms_deg=a_sync, att_err_hf_rms_deg=a_hf,
+                                target_rate_rms_deg_s=a_rate)
+        assert judge_holds(b, a).kept
+
+
 def test_a_figure_the_telemetry_cannot_give_is_not_judged():
     """No VFR_HUD or ATTITUDE_TARGET (e.g. a vehicle that does not send them): NaN there,
     judged on the rest."""
     before = HoldFigures(**dict(BASE, throttle_saturated=math.nan,
-                                att_err_sync_rms_deg=math.nan))
-    after = dataclasses.replace(before, throttle_saturated=0.9, att_err_sync_rms_deg=5.0)
+                                att_err_sync_rms_deg=math.nan, att_err_hf_rms_deg=math.nan))
+    after = dataclasses.replace(before, throttle_saturated=0.9, att_err_sync_rms_deg=5.0,
+                                att_err_hf_rms_deg=5.0)
     v = judge_holds(before, after)
     assert v.kept and v.judged == ("alt_spread_m", "alt_std_m", "max_drift_m")
     cmp = HoldComparison("LOITER", 8.0, after, before, v, "kept", {"PSC_VELXY_P": (2.0, 3.1)})
@@ -164,8 +224,8 @@ RELAY = {LoopKind.ATTITUDE: ATT_RELAY, LoopKind.ALTITUDE: ALT_RELAY, LoopKind.SI
 
 @pytest.mark.parametrize("force_revert", [False, True], ids=["real verdict", "forced revert"])
 def test_tune_over_udp_flies_both_holds(tmp_path, force_revert):
-    """Against the bundled SITL (it serves neither ATTITUDE_TARGET nor VFR_HUD: altitude and
-    drift are judged): both holds flown on the link, the written values kept (read back) or
+    """Against the bundled SITL (it serves no VFR_HUD: altitude, drift and tracking are
+    judged): both holds flown on the link, the written values kept (read back) or
     the old ones back (read back) as the verdict says."""
     judge = judge_holds
     if force_revert:
@@ -193,4 +253,37 @@ def test_tune_over_udp_flies_both_holds(tmp_path, force_revert):
         assert back == pytest.approx(want)
         rep = report_dict(result)
         assert rep["hold_compare"]["outcome"] == cmp.outcome
+        # the report says what is on the vehicle, beside what the tune wrote
         assert {p["name"]: p["on_vehicle"] for p in rep["parameters"]} == pytest.approx(back)
+        assert {p["name"]: p["new"] for p in rep["parameters"]} == pytest.approx(
+            {c.name: c.new for c in result.parameters})
+
+
+def test_px4_profile_flies_it_against_the_bundled_sitl(tmp_path):
+    """PX4's profile (attitude path, POSCTL hand-over) with the comparison asked for, over UDP
+    against the bundled SITL as the PX4 stand-in: both holds in POSCTL, all but throttle
+    saturation judged (the SITL sends no VFR_HUD), the report's parameters say what the
+    vehicle holds; the profile's own default stays off (not flown on a real PX4)."""
+    prof = load_profile("px4")
+    assert prof.hold_compare_s == 0.0 and prof.actuation.value == "attitude"
+    with SitlProcess(vehicle="qdrone", port=None, seed=2) as sitl:
+        try:
+            result = tune(sitl.connection_string, prof, backup_dir=tmp_path, hold_compare_s=2.0,
+                          hover_check_s=2.0, residuals=False)
+        except GainsReverted as err:
+            result = err.partial_result
+        cmp = result.hold_compare
+        assert cmp is not None, result.notes
+        print(cmp.line())
+        with VehicleLink.connect(sitl.connection_string) as link:
+            names = [c.name for c in result.parameters]
+            back = {n: p.value for n, p in ParamClient(link).read_many(names).items()}
+            mode = link.heartbeat.custom_mode
+    assert cmp.mode == "POSCTL" and (mode >> 16) & 0xFF == 3  # still holding in POSCTL
+    assert result.status == ("ok" if cmp.outcome == "kept" else "error:4:GainsReverted")
+    # ATTITUDE_TARGET asked for the holds is served; VFR_HUD is not (saturation not judged)
+    assert set(cmp.verdict.judged) == set(WORSE_SLACK) - {"throttle_saturated"}
+    assert cmp.before.samples > 50 and cmp.after.samples > 50
+    assert cmp.swapped and all(n.startswith("MPC_") for n in cmp.swapped)
+    rep = report_dict(result)
+    assert {p["name"]: p["on_vehicle"] for p in rep["parameters"]} == pytest.approx(back)

@@ -97,7 +97,8 @@ def test_tune_over_udp_report_and_readback(tuned):
     # the bundled SITL answers AUTOPILOT_VERSION as a PX4 1.13
     assert firmware["autopilot"] == "px4" and firmware["source"] == "AUTOPILOT_VERSION"
     assert rep["hover_check"]["passed"] and rep["hover_check"]["min_height_m"] > 0.3
-    assert rep["parameters"][0].keys() == {"name", "old", "new"}
+    assert rep["parameters"][0].keys() == {"name", "old", "new", "on_vehicle"}
+    assert all(p["on_vehicle"] == p["new"] for p in rep["parameters"])  # no comparison: kept
     assert write_report(result, folder / "r.json").is_file()
     png = plot_cycles(result, folder / "cycles.png")
     assert png.read_bytes()[:4] == b"\x89PNG"

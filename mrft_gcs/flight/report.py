@@ -15,6 +15,7 @@ from typing import Any
 
 from mrft_gcs.flight.api import SCHEMA, LoopResult, TuneResult
 from mrft_gcs.flight.phases.yaw import YawOutcome
+from mrft_gcs.params import ParamChange
 
 __all__ = ["report_dict", "write_report", "SCHEMA"]
 
@@ -105,10 +106,10 @@ def report_dict(result: TuneResult) -> dict[str, Any]:
         "duration_s": _num(result.duration_s),
         "loops": {lp.value: _loop(lr) for lp, lr in result.loops.items()}
         | ({"yaw": _yaw(result.yaw)} if result.yaw is not None else {}),
-        # on_vehicle: the value there now (the old one after a hold comparison reverted)
+        # new: what the tune wrote (read back); on_vehicle: what the vehicle holds at the end
+        # (the old value again where the hold comparison reverted the set)
         "parameters": [{"name": c.name, "old": _num(c.old), "new": _num(c.new),
-                        "on_vehicle": _num(c.new if result.hold_compare is None
-                                           else result.hold_compare.on_vehicle(c.name, c.new))}
+                        "on_vehicle": _num(_on_vehicle(result, c))}
                        for c in result.parameters],
         "backup": result.backup,
         "status": result.status,
@@ -132,6 +133,15 @@ def report_dict(result: TuneResult) -> dict[str, Any]:
             "rtt_p90_ms": _num(lq.rtt_p90_ms), "rtt_method": lq.rtt_method},
         "notes": list(result.notes),
     }
+
+
+def _on_vehicle(result: TuneResult, change: ParamChange) -> float:
+    """The value of ``change``'s parameter on the vehicle when the tune ended: the hold
+    comparison's last read-back where it swapped the parameter, else the written one."""
+    hc = result.hold_compare
+    if hc is not None and change.name in hc.on_vehicle:
+        return hc.on_vehicle[change.name]
+    return change.new
 
 
 def write_report(result: TuneResult, path: str | os.PathLike[str]) -> Path:
