@@ -24,9 +24,9 @@ the ones ``benchmarks/tune_ardupilot.py`` judges its LOITER holds by:
 A hold is worse where altitude spread, its deviation, drift or saturation grew by more than
 20 % (plus :data:`WORSE_SLACK`) and by more than the figure differs between the two halves of
 one hold (the scatter of the same set, large in gusts), or roll/pitch followed their target
-less closely; a stiffer
-position loop that spends more lean to hold position is reported (:func:`effort_in`), not
-failed. A figure the telemetry cannot give (NaN on either side) is not judged.
+less closely; a stiffer position loop that spends more lean to hold position is reported
+(:func:`effort_in`), not failed. A figure the telemetry cannot give (NaN on either side) is
+not judged.
 """
 
 from __future__ import annotations

@@ -278,7 +278,7 @@ class AttitudeRelays:
                         self._count_chatter(t, math.copysign(1.0, raw))
                     # about the relay's bias: the torque that holds the axis (a CoM offset)
                     u = t.bias + min(lim, max(-lim, raw))
-                    self._rest_bias(t, t_s, u, rate, t.cycle)
+                    self._rest_bias(t, t_s, u, rate)
                     t.u = u
                     return u
             before = float(t.relay.state[0])
@@ -312,13 +312,12 @@ class AttitudeRelays:
         t.u = u
         return u
 
-    def _rest_bias(self, t: LoopTest, t_s: float, u: float, rate: float,
-                   cycle: tuple[float, float]) -> None:
+    def _rest_bias(self, t: LoopTest, t_s: float, u: float, rate: float) -> None:
         """A catch that holds the axis at rest outside its hand-back envelope holds it on the
         torque bias it lacks (its PD has no I): after a cycle's period at rest, that torque
         is the relay's bias, or the catch never hands back and the vehicle drifts on its
         lean (a 7 deg lean for 10 s went 5 m)."""
-        period, amp = cycle
+        period, amp = t.cycle  # the whole cycle (not the envelope narrowed after a resize)
         if not (abs(rate) < 0.1 * 2 * math.pi * amp / period):
             t.t_rest_s = math.nan
             return
