@@ -288,3 +288,40 @@ def test_the_floor_of_a_rate_target_filter_bounds_every_written_design(name, tar
         assert sc.floor is not None and sc.floor.J_pct == pytest.approx(fl.J_pct, abs=1e-6)
         assert (1 + sc.onboard.J_pct / 100) == pytest.approx(
             (1 + sc.J_vs_floor_pct / 100) * (1 + fl.J_pct / 100))
+
+
+@pytest.mark.slow
+def test_a_live_tune_of_an_ardupilot_like_vehicle_writes_rate_d_and_it_holds(tmp_path):
+    """The real tune() over loopback UDP against the bundled SITL's ArduPilot-like random
+    vehicle 10: rate D goes in with the roll/pitch gains (backed up, read back) at the
+    default share of rate P, and the in-air check measures the loop it closes with it."""
+    from pymavlink import mavutil
+
+    from mrft_gcs.flight import tune
+    from mrft_gcs.sitl import SitlProcess, random_airframe
+
+    assert random_airframe(10).onboard.style == "ardupilot"
+    with SitlProcess(random_seed=10, port=None) as sitl:
+        r = tune(sitl.connection_string, "sitl", backup_dir=tmp_path)
+        assert r.status == "ok", r.error
+        changes = {c.name: c for c in r.parameters}
+        for ax in ("ROLL", "PITCH"):
+            d, p = changes[f"MC_{ax}RATE_D"], changes[f"MC_{ax}RATE_P"]
+            assert d.old == pytest.approx(0.003)  # the vehicle's own, backed up
+            assert d.new == pytest.approx(RATE_D_OVER_P_S * p.new, rel=1e-3)
+        assert "rate D" in " ".join(r.notes)
+        for lp in (Loop.ROLL, Loop.PITCH):
+            v = r.loops[lp].verification
+            assert v is not None and v.passed and v.measured_pm_deg >= 17.0
+        gcs = mavutil.mavlink_connection(sitl.connection_string, source_system=254)
+        try:  # read back from the vehicle itself
+            assert gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=10) is not None
+            gcs.mav.param_request_read_send(1, 1, b"MC_ROLLRATE_D", -1)
+            m = gcs.recv_match(type="PARAM_VALUE", blocking=True, timeout=5)
+            assert m is not None and m.param_value == pytest.approx(
+                changes["MC_ROLLRATE_D"].new, rel=1e-5)
+        finally:
+            gcs.close()
+    from pathlib import Path
+
+    assert r.backup is not None and "MC_ROLLRATE_D" in Path(r.backup).read_text()
