@@ -46,7 +46,14 @@ from mrft_gcs.flight.onboard import (
     robust_onboard_gains,
 )
 from mrft_gcs.flight.scoring import score_written
-from mrft_gcs.flight.structure import OnboardStructure, structured_retarget
+from mrft_gcs.flight.structure import (
+    D_FILTER_PARAMS,
+    TARGET_FILTER_PARAMS,
+    OnboardStructure,
+    rate_d_values,
+    read_structure,
+    structured_retarget,
+)
 from mrft_gcs.identify import Identification
 from mrft_gcs.loops import SIDE_INNER, Loop, LoopKind
 from mrft_gcs.plant import PD, InnerModel, SideModel
@@ -71,9 +78,13 @@ def _params(af, rec: dict, gains: dict[Loop, PD] | None = None) -> dict:
     p = dict(ParamStore(af.hover_thrust * af.hover_estimate_factor, af.onboard).values)
     p.update(rec["written"])
     if gains:
-        p.update(params_in_range(load_profile("sitl"),
-                                 {lp: PDGains(g.Kc, g.Kd) for lp, g in gains.items()},
-                                 p["MPC_THR_HOVER"]).values)
+        prof = load_profile("sitl")
+        ranged = params_in_range(prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in gains.items()},
+                                 p["MPC_THR_HOVER"])
+        p.update(ranged.values)
+        # rate D as the tool writes it beside re-designed attitude gains
+        p.update(rate_d_values(prof, ranged.gains, {lp: _structure(af, lp).d_over_p_s
+                                                    for lp in gains}))
     return p
 
 
@@ -85,7 +96,8 @@ def true_gcs_delay_s(af) -> float:
 
 def _structure(af, loop: Loop) -> OnboardStructure:
     if loop in (Loop.ROLL, Loop.PITCH) and af.onboard.style == "ardupilot":
-        return OnboardStructure(af.onboard.target_cutoff_hz, "the vehicle's")
+        return read_structure(loop, {TARGET_FILTER_PARAMS[loop]: af.onboard.target_cutoff_hz,
+                                     D_FILTER_PARAMS[loop]: af.onboard.dgyro_cutoff_hz})
     return OnboardStructure()
 
 

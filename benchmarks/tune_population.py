@@ -69,7 +69,13 @@ from mrft_gcs.flight.safety import LimitExceeded
 from mrft_gcs.flight.scoring import score_written
 from mrft_gcs.flight.sequence import LoopState, Phase, SequenceConfig, TuningSequence
 from mrft_gcs.flight.source import VehicleMode
-from mrft_gcs.flight.structure import TARGET_FILTER_PARAMS, read_structure, structured_retarget
+from mrft_gcs.flight.structure import (
+    D_FILTER_PARAMS,
+    TARGET_FILTER_PARAMS,
+    rate_d_values,
+    read_structure,
+    structured_retarget,
+)
 from mrft_gcs.flight.timeliness import HostTooSlow, TimelinessMonitor
 from mrft_gcs.identify import relay_settings
 from mrft_gcs.identify.live import bundled_identifier
@@ -206,7 +212,8 @@ def run_lockstep(seed: int, max_s: float = 70.0,
     # attitude gains; clamp
     written, delays, rts = {}, {}, {}
     # the structure's filters as the tool reads them: the names the vehicle has
-    read = {n: ap.params[n] for n in TARGET_FILTER_PARAMS.values() if n in ap.params}
+    read = {n: ap.params[n] for n in (*TARGET_FILTER_PARAMS.values(), *D_FILTER_PARAMS.values())
+            if n in ap.params}
     structure = {lp: read_structure(lp, read, prof.family.value) for lp in identified}
     for lp, ident in identified.items():
         snap = seq.loops[lp].snapshot
@@ -222,7 +229,8 @@ def run_lockstep(seed: int, max_s: float = 70.0,
         if lp in identified and inner_lp in rts:
             written[lp] = onboard_side_gains(identified[lp], identified[inner_lp],
                                              rts[inner_lp],
-                                             target_hz=structure[inner_lp].target_hz).gains
+                                             target_hz=structure[inner_lp].target_hz,
+                                             d_hz=structure[inner_lp].d_hz).gains
     rec["retarget_delay_ms"] = {lp.value: d * 1e3 for lp, d in delays.items()}
     # what the re-target was measured as (benchmarks/structure_loss.py re-designs from these)
     rec["gcs_delay_measured_ms"] = {lp.value: {
@@ -231,10 +239,12 @@ def run_lockstep(seed: int, max_s: float = 70.0,
         for lp, rt in rts.items()}
     ranged = params_in_range(prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in written.items()}, hover)
     rec["notes"] += list(ranged.notes)
-    refused = [n for n, val in ranged.values.items() if not ap.params.set(n, val)]
+    values = {**ranged.values, **rate_d_values(
+        prof, ranged.gains, {lp: rt.d_over_p_s for lp, rt in rts.items()})}
+    refused = [n for n, val in values.items() if not ap.params.set(n, val)]
     if refused:
         return _end(rec, "refused", f"parameters did not stick: {refused}")
-    rec["written"] = dict(ranged.values)
+    rec["written"] = dict(values)
     # hand-over: position mode on the written gains, the stream stops, a short hover check
     src.set_mode(VehicleMode.POSITION)
     held = None

@@ -70,7 +70,12 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError, MrftError
 from mrft_gcs.flight.cycles import CycleRules, CycleWatcher
-from mrft_gcs.flight.structure import OnboardStructure, structured_retarget, vehicle_structure
+from mrft_gcs.flight.structure import (
+    OnboardStructure,
+    rate_d_values,
+    structured_retarget,
+    vehicle_structure,
+)
 from mrft_gcs.identify import Identification, identify
 from mrft_gcs.logs import decode_log, log_truncation, read_csv_metadata, summarize_log
 from mrft_gcs.logs.describe import LogSummary
@@ -183,6 +188,8 @@ class LoopResult:
     gains: PD | None = None
     #: the GCS delay re-targeted out of ``gains`` (s; NaN: not re-targeted)
     gcs_delay_s: float = math.nan
+    #: rate D written as this share of rate P (s; 0: none; ArduPilot's structure)
+    rate_d_over_p_s: float = 0.0
 
     def as_dict(self) -> dict:
         """The loop's entry of the tuning report (README's schema), as dry-run knows it."""
@@ -1214,7 +1221,7 @@ def _loop_result(seg: RelaySegment, ident: Identification | None, cyc: _Cycles, 
                         f"({100 * seg.crossed:.0f} % do): the relay lost its set point, so its "
                         f"beta cannot be read from the switches ({seg.beta:.2f}); give beta "
                         f"('--beta' or '# beta=...' in a CSV)")
-    gains, delay = None, math.nan
+    gains, delay, d_ratio = None, math.nan, 0.0
     if ident is not None:
         gains = ident.gains
         if seg.gcs_period_s > 0 and isinstance(ident.model, InnerModel):
@@ -1224,7 +1231,7 @@ def _loop_result(seg: RelaySegment, ident: Identification | None, cyc: _Cycles, 
                                       onboard_extra_s=onboard_extra_delay_s(seg.loop))
             if structure is not None:
                 rt = structured_retarget(ident, rt, structure)
-            delay, gains = rt.delay_s, rt.gains
+            delay, gains, d_ratio = rt.delay_s, rt.gains, rt.d_over_p_s
             notes.append(f"gains re-targeted to the onboard loop, less delay than the "
                          f"ground-station relay by how old telemetry was when the command "
                          f"answering it was logged ({rt.note()}), as a tune writes them; "
@@ -1242,7 +1249,8 @@ def _loop_result(seg: RelaySegment, ident: Identification | None, cyc: _Cycles, 
             notes.append(f"residual not analysed: {err}")
     elif isinstance(use, SideModel):
         notes.append("residual analysis covers roll, pitch and altitude only")
-    return LoopResult(seg.loop, seg, steady, ident, res, tuple(notes), cyc, gains, delay)
+    return LoopResult(seg.loop, seg, steady, ident, res, tuple(notes), cyc, gains, delay,
+                      d_ratio)
 
 
 def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=None,
@@ -1332,7 +1340,8 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
         gains = {r.loop: PDGains(r.gains.Kc, r.gains.Kd) for r in results if r.gains is not None}
         if gains:
             ranged = params_in_range(profile, gains, hover_f)  # clamped as a tune writes them
-            params = ranged.values
+            params = {**ranged.values, **rate_d_values(profile, ranged.gains, {
+                r.loop: r.rate_d_over_p_s for r in results})}
             results = tuple(replace(r, notes=r.notes + tuple(
                 n for c, n in zip(ranged.clamps, ranged.notes, strict=True) if r.loop in c.loops))
                 for r in results)

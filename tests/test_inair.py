@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -288,3 +290,36 @@ def test_a_loop_on_a_rate_target_filter_is_tightened_on_that_structure():
     pts = harmonic_points(*_square_wave_test(MODEL, best.gains, plan.period_s, 0.05,
                                              cascade=fltt), plan.period_s, plan.period_s, 3)
     assert structured_redesign(plan, check_margin(plan, *pts), hz)[1] < STRUCT_TIGHTEN_GAIN
+
+
+@pytest.mark.parametrize("extra_s, gain", [(0.0, 1.0), (0.006, 1.0), (0.003, 1.25)])
+def test_a_loop_with_rate_d_is_checked_and_backed_off_on_its_structure(extra_s, gain):
+    """Rate D on the rate error behind the target filter (ArduPilot's AC_PID, the bundled
+    SITL's ArduPilot-like cascade): the check predicts and inverts through it and measures
+    the true loop's margin; a loop short of margin is re-designed on that structure with D,
+    never above the gains checked, and holds the margin on the true loop."""
+    from mrft_gcs.flight.structure import RATE_D_OVER_P_S, OnboardStructure, structured_pd
+
+    cas = OnboardCascade(15.0, target_rate_ff=False, d_over_p_s=RATE_D_OVER_P_S,
+                         d_filter_hz=20.0)
+    assert cas.structure == OnboardStructure(15.0, "", RATE_D_OVER_P_S, 20.0)
+    w = frequency_grid(MODEL.T_prop, MODEL.T1, MODEL.tau)
+    G = inner_response(MODEL.K, MODEL.T_prop, MODEL.T1, MODEL.tau, w)[0]
+    gains = structured_pd(G, w, cas.structure, gm_min=2.0).gains
+    plan = plan_check(MODEL, gains, 0.05, cascade=cas)
+    assert plan.predicted_pm_deg == pytest.approx(_cascade_pm(MODEL, gains, cas), abs=0.5)
+    true = InnerModel(MODEL.K * gain, MODEL.T_prop, MODEL.T1, MODEL.tau + extra_s)
+    pts = harmonic_points(*_square_wave_test(true, gains, plan.period_s, 0.05, cascade=cas),
+                          plan.period_s, plan.period_s, 3)
+    check = check_margin(plan, *pts)
+    assert abs(check.measured_pm_deg - _cascade_pm(true, gains, cas)) < AGREE_DEG
+    # inverted without the D the same points read as another plant
+    no_d = check_margin(dataclasses.replace(plan, cascade=OnboardCascade(
+        15.0, target_rate_ff=False)), *pts)
+    assert abs(no_d.k - gain) > 0.1 or abs(no_d.extra_delay_s - extra_s) > 3e-3
+    if extra_s == 0.003:
+        assert not check.passed  # short: backed off
+    if not check.passed:
+        safer = redesigned_gains(plan, check)
+        assert safer.Kc <= gains.Kc * 1.0001 and safer.Kd <= gains.Kd * 1.0001
+        assert _cascade_pm(true, safer, cas) >= 18.0

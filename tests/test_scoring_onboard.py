@@ -172,3 +172,32 @@ def test_predicted_onboard_attitude_loop_matches_the_simulated_autopilot(style, 
     plain = replace(af, onboard=OnboardSpec())
     ref = score_written(plain, _written(af, gains), [Loop.ROLL])[Loop.ROLL].onboard
     assert onb.pm_deg < ref.pm_deg
+
+
+def test_rate_d_on_the_error_of_the_ardupilot_like_cascade_is_what_scoring_predicts():
+    # ArduCopter's AC_PID differentiates the rate error (FLTT-filtered target less the gyro),
+    # low-passed at FLTD; the simulated ArduPilot-like cascade does the same, and the scoring's
+    # linear model of it matches the simulated response with the rate D a tune writes
+    from mrft_gcs.flight.structure import RATE_D_OVER_P_S
+
+    af = _pick("ardupilot", 250.0)
+    models = af.linear_models()
+    params = _written(af, _gains_for(models))
+    params.update({n: v for n, v in ParamStore(af.hover_thrust, af.onboard).values.items()
+                   if n.startswith("ATC_")})
+    params["MC_ROLLRATE_D"] = 2 * RATE_D_OVER_P_S * params["MC_ROLLRATE_P"]
+    G, w = onboard_process(af, Loop.ROLL, params)
+    Cr, Cy = onboard_controller(af, Loop.ROLL, params, w)
+    T = G * Cr / (1 + G * Cy)
+    ph = np.degrees(np.unwrap(np.angle(T)))
+    nd = dict(params, MC_ROLLRATE_D=0.0)
+    Cr0, Cy0 = onboard_controller(af, Loop.ROLL, nd, w)
+    T0 = G * Cr0 / (1 + G * Cy0)
+    for frac in (-45.0, -90.0):
+        i = int(np.argmax(ph < frac))
+        f = w[i] / (2 * np.pi)
+        gain, phase = _sine_response(af, params, 0, f)
+        assert gain == pytest.approx(abs(T[i]), rel=0.08), (af.description, f)
+        assert phase == pytest.approx(ph[i], abs=4.0), (af.description, f)
+    # and D shows: without it the prediction at the last point is another one
+    assert abs(np.degrees(np.angle(T0[i] / T[i]))) > 4.0 or abs(abs(T0[i]) / abs(T[i]) - 1) > 0.08

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from mrft_gcs.flight import structure
 from mrft_gcs.flight.onboard import (
     CAP_SHARE,
     PM_ROBUST_DEG,
@@ -22,7 +23,11 @@ from mrft_gcs.flight.scoring import (
     structure_floor,
 )
 from mrft_gcs.flight.structure import (
+    D_GAIN_MOVE_MAX,
+    D_GM_MIN,
+    RATE_D_OVER_P_S,
     OnboardStructure,
+    rate_d_values,
     read_structure,
     structure_controller,
     structured_pd,
@@ -54,11 +59,11 @@ def _identified(af, loop: Loop, gcs_delay_s: float) -> Identification:
     return Identification(LoopKind.ATTITUDE, im, 0, 1.0, -0.8, 0.1, 0.25, 0.03, pd)
 
 
-def _written(af, gains: dict[Loop, PD]):
+def _written(af, gains: dict[Loop, PD], d_over_p: dict[Loop, float] | None = None):
     prm = dict(ParamStore(af.hover_thrust, af.onboard).values)
-    prm.update(gains_to_params(load_profile("sitl"), {lp: PDGains(g.Kc, g.Kd)
-                                                      for lp, g in gains.items()},
-                               prm["MPC_THR_HOVER"]))
+    pd = {lp: PDGains(g.Kc, g.Kd) for lp, g in gains.items()}
+    prm.update(gains_to_params(load_profile("sitl"), pd, prm["MPC_THR_HOVER"]))
+    prm.update(rate_d_values(load_profile("sitl"), pd, d_over_p or {}))
     return {lp: s.onboard for lp, s in score_written(af, prm, list(gains)).items()}
 
 
@@ -77,10 +82,72 @@ def test_the_structured_design_beats_the_pd_design_on_a_rate_target_filter(name,
     st = read_structure(Loop.ROLL, ParamStore(af.hover_thrust, af.onboard).values, "px4")
     assert st.target_hz == target_hz and not st.plain
     new = structured_retarget(ident, rt, st)
-    old_sc, new_sc = (_written(af, {Loop.ROLL: g})[Loop.ROLL] for g in (rt.gains, new.gains))
+    old_sc = _written(af, {Loop.ROLL: rt.gains})[Loop.ROLL]
+    new_sc = _written(af, {Loop.ROLL: new.gains}, {Loop.ROLL: new.d_over_p_s})[Loop.ROLL]
     assert new_sc.J_pct < old_sc.J_pct - gain_pct, (old_sc, new_sc)
     assert new_sc.pm_deg >= PM_ROBUST_DEG and new.pm_deg >= PM_ROBUST_DEG
     assert "rate target low-pass" in new.note()
+
+
+@pytest.mark.parametrize("name,target_hz", [("qdrone", 12.0), ("racer250", 20.0),
+                                            ("f550", 15.0)])
+def test_rate_d_takes_the_loop_below_its_two_number_floor(name, target_hz):
+    # ArduPilot's structure with its D filter read: the design writes rate D at ArduCopter's
+    # default share of rate P; on the true loop it beats the best two numbers can do (the
+    # floor) and the ideal PD, keeping both margins and a gain margin of 2
+    af = _ardupilot_like(name, target_hz)
+    ident = _identified(af, Loop.ROLL, 0.008)
+    rt = robust_onboard_gains(ident, measure_gcs_delay([0.002] * 30, P, round_trip_s=0.004))
+    st = read_structure(Loop.ROLL, ParamStore(af.hover_thrust, af.onboard).values, "px4")
+    assert st.d_over_p_s == RATE_D_OVER_P_S and st.d_hz == 20.0  # ATC_RAT_RLL_FLTD read
+    two = structured_retarget(ident, rt, dataclasses.replace(st, d_over_p_s=0.0))
+    new = structured_retarget(ident, rt, st)
+    assert new.d_over_p_s == RATE_D_OVER_P_S and "rate D" in new.note()
+    assert two.d_over_p_s == 0.0 and "rate D" not in new.note().split("rate D")[0]
+    # never more than D_GAIN_MOVE_MAX times the two-number design's gains
+    assert new.gains.Kc <= two.gains.Kc * D_GAIN_MOVE_MAX * 1.0001
+    assert new.gains.Kd <= two.gains.Kd * D_GAIN_MOVE_MAX * 1.0001
+    prm = dict(ParamStore(af.hover_thrust, af.onboard).values)
+    pd = {Loop.ROLL: PDGains(new.gains.Kc, new.gains.Kd)}
+    prm.update(gains_to_params(load_profile("sitl"), pd, prm["MPC_THR_HOVER"]))
+    prm.update(rate_d_values(load_profile("sitl"), pd, {Loop.ROLL: new.d_over_p_s}))
+    assert prm["MC_ROLLRATE_D"] == pytest.approx(RATE_D_OVER_P_S * new.gains.Kd, rel=1e-3)
+    sc = score_written(af, prm, [Loop.ROLL], floor=True)[Loop.ROLL]
+    assert sc.floor is not None and sc.onboard.J_pct < 0.0 < sc.floor.J_pct
+    assert sc.onboard.pm_deg >= 20.0
+    G, w = onboard_process(af, Loop.ROLL, prm)
+    from mrft_gcs.flight.scoring import onboard_controller
+    assert margins(onboard_controller(af, Loop.ROLL, prm, w)[1] * G, w).gm >= D_GM_MIN
+    # the same gains with D dropped (written as 0): far from the design (it leaned on D)
+    dropped = _written(af, {Loop.ROLL: new.gains})[Loop.ROLL]
+    assert dropped.J_pct > sc.onboard.J_pct + 10.0 or dropped.pm_deg < sc.onboard.pm_deg - 10
+
+
+def test_rate_d_not_written_where_it_does_not_pay_or_is_switched_off(monkeypatch):
+    # PX4 (no rate-target filter): no D; ArduPilot with WRITE_RATE_D off: no D
+    assert read_structure(Loop.ROLL, {}, "px4").d_over_p_s == 0.0
+    values = {"ATC_RAT_RLL_FLTT": 20.0}
+    assert read_structure(Loop.ROLL, values).d_hz == 20.0  # FLTD's default, not read
+    monkeypatch.setattr(structure, "WRITE_RATE_D", False)
+    assert read_structure(Loop.ROLL, values).d_over_p_s == 0.0
+    assert rate_d_values(load_profile("sitl"), {Loop.ROLL: PDGains(1.0, 0.2)}, {}) == {}
+
+
+def test_structure_controller_with_rate_d_is_the_sitl_cascade_on_the_error():
+    # the design's (Cr, Cy) are the scoring's ArduPilot-like onboard controller (D on the
+    # error of the filtered target, AC_PID) for the same written parameters
+    af = _ardupilot_like("qdrone", 15.0)
+    prm = dict(ParamStore(af.hover_thrust, af.onboard).values)
+    g = PD(1.2, 0.12)
+    pd = {Loop.ROLL: PDGains(g.Kc, g.Kd)}
+    prm.update(gains_to_params(load_profile("sitl"), pd, prm["MPC_THR_HOVER"]))
+    prm.update(rate_d_values(load_profile("sitl"), pd, {Loop.ROLL: RATE_D_OVER_P_S}))
+    from mrft_gcs.flight.scoring import onboard_controller
+    w = np.logspace(0, 3, 50)
+    Cr, Cy = onboard_controller(af, Loop.ROLL, prm, w)
+    st = read_structure(Loop.ROLL, prm, "px4")
+    Cr2, Cy2 = structure_controller(g, st, w)
+    assert np.allclose(Cr, Cr2, rtol=1e-4) and np.allclose(Cy, Cy2, rtol=1e-4)
 
 
 def test_a_plain_structure_keeps_the_pd_retarget():
@@ -221,3 +288,40 @@ def test_the_floor_of_a_rate_target_filter_bounds_every_written_design(name, tar
         assert sc.floor is not None and sc.floor.J_pct == pytest.approx(fl.J_pct, abs=1e-6)
         assert (1 + sc.onboard.J_pct / 100) == pytest.approx(
             (1 + sc.J_vs_floor_pct / 100) * (1 + fl.J_pct / 100))
+
+
+@pytest.mark.slow
+def test_a_live_tune_of_an_ardupilot_like_vehicle_writes_rate_d_and_it_holds(tmp_path):
+    """The real tune() over loopback UDP against the bundled SITL's ArduPilot-like random
+    vehicle 10: rate D goes in with the roll/pitch gains (backed up, read back) at the
+    default share of rate P, and the in-air check measures the loop it closes with it."""
+    from pymavlink import mavutil
+
+    from mrft_gcs.flight import tune
+    from mrft_gcs.sitl import SitlProcess, random_airframe
+
+    assert random_airframe(10).onboard.style == "ardupilot"
+    with SitlProcess(random_seed=10, port=None) as sitl:
+        r = tune(sitl.connection_string, "sitl", backup_dir=tmp_path)
+        assert r.status == "ok", r.error
+        changes = {c.name: c for c in r.parameters}
+        for ax in ("ROLL", "PITCH"):
+            d, p = changes[f"MC_{ax}RATE_D"], changes[f"MC_{ax}RATE_P"]
+            assert d.old == pytest.approx(0.003)  # the vehicle's own, backed up
+            assert d.new == pytest.approx(RATE_D_OVER_P_S * p.new, rel=1e-3)
+        assert "rate D" in " ".join(r.notes)
+        for lp in (Loop.ROLL, Loop.PITCH):
+            v = r.loops[lp].verification
+            assert v is not None and v.passed and v.measured_pm_deg >= 17.0
+        gcs = mavutil.mavlink_connection(sitl.connection_string, source_system=254)
+        try:  # read back from the vehicle itself
+            assert gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=10) is not None
+            gcs.mav.param_request_read_send(1, 1, b"MC_ROLLRATE_D", -1)
+            m = gcs.recv_match(type="PARAM_VALUE", blocking=True, timeout=5)
+            assert m is not None and m.param_value == pytest.approx(
+                changes["MC_ROLLRATE_D"].new, rel=1e-5)
+        finally:
+            gcs.close()
+    from pathlib import Path
+
+    assert r.backup is not None and "MC_ROLLRATE_D" in Path(r.backup).read_text()

@@ -103,7 +103,12 @@ from mrft_gcs.flight.sequence import (
     quat_from_euler,
 )
 from mrft_gcs.flight.source import LinkTelemetry, LiveVehicle, Setpoint, VehicleMode
-from mrft_gcs.flight.structure import OnboardStructure, structured_retarget, vehicle_structure
+from mrft_gcs.flight.structure import (
+    OnboardStructure,
+    rate_d_values,
+    structured_retarget,
+    vehicle_structure,
+)
 from mrft_gcs.flight.timeliness import HostTooSlow, TimelinessMonitor, host_advice
 from mrft_gcs.identify import (
     Identification,
@@ -579,6 +584,8 @@ class _Run:
         self.retargets: dict[Loop, Retarget] = {}
         #: the autopilot's attitude-loop structure, read before take-off (flight/structure)
         self.structure: dict[Loop, OnboardStructure] = {}
+        #: rate D written as this share of rate P (s), per roll/pitch loop whose design chose it
+        self.d_over_p: dict[Loop, float] = {}
         self.config = SequenceConfig()
         self.written: dict[Loop, PD] = {}
         self.residuals = True
@@ -1106,6 +1113,8 @@ class _Run:
             delay[lp], retargets[lp] = rt.delay_s, rt
             self.written[lp] = rt.gains
             self.retargets[lp] = rt
+            if rt.d_over_p_s > 0:
+                self.d_over_p[lp] = rt.d_over_p_s
         side_notes = []
         for lp, inner_lp in SIDE_INNER.items():
             # flown behind the written attitude gains, not the GCS's PD it was identified behind
@@ -1114,7 +1123,8 @@ class _Run:
                     and ident is not None and self.gcs_delay_s is None):
                 st = self.structure.get(inner_lp)
                 side = onboard_side_gains(ident, inner, retargets[inner_lp],
-                                          target_hz=st.target_hz if st else None)
+                                          target_hz=st.target_hz if st else None,
+                                          d_hz=st.d_hz if st else 0.0)
                 self.written[lp] = side.gains
                 side_notes.append(f"{lp.value} {side.note()}")
         moved = [lp for lp, g in identified.items() if self.written[lp] != g
@@ -1161,7 +1171,7 @@ class _Run:
             self.written.pop(Loop.ALTITUDE, None)
             ranged = params_in_range(self.prof, gains, self.hover)
         self.notes.extend(ranged.notes)
-        values = ranged.values
+        values = {**ranged.values, **rate_d_values(self.prof, ranged.gains, self.d_over_p)}
         if self.rate is not None:  # the attitude gains go in with the rate path's hand-over
             values = self.rate.split(values)
         if not values:
@@ -1188,6 +1198,12 @@ class _Run:
             if on_rate:  # ArduPilot's cascade with the written gains, as restored
                 assert self.rate is not None
                 cascades[lp] = self.rate.cascade(client, i)
+            elif lp in self.d_over_p and lp in self.structure:
+                # rate D written: the check predicts and inverts through the structure it
+                # closes (its rate-target and D filters), as the design did
+                st = self.structure[lp]
+                cascades[lp] = OnboardCascade(st.target_hz, target_rate_ff=False,
+                                              d_over_p_s=self.d_over_p[lp], d_filter_hz=st.d_hz)
 
         def plan_for(lp: Loop, model: InnerModel, gains: PD) -> CheckPlan:
             plan = plan_check(model, gains, CHECK_AMPLITUDE_RAD, cascade=cascades.get(lp))
@@ -1229,7 +1245,9 @@ class _Run:
                            and structured_redesign(plan, check, hz)[1] >= STRUCT_TIGHTEN_GAIN)
                 if tighter:
                     on_structure.add(lp)
-                if (check.passed and check.measured_pm_deg <= PM_HIGH_DEG and not tighter) or (
+                # a loop with rate D sits under its gain cap, not at the margin: not tightened
+                high = PM_HIGH_DEG if lp not in self.d_over_p or on_rate else math.inf
+                if (check.passed and check.measured_pm_deg <= high and not tighter) or (
                         n + 1 == CHECK_ROUNDS):
                     continue
                 if check.steady:
@@ -1363,8 +1381,9 @@ class _Run:
         return self.link.ask_message_interval(ATTITUDE_TARGET_ID, rate_hz)
 
     def _rewrite(self, client: ParamClient, gains: dict[Loop, PD]) -> None:
-        values = params_in_range(self.prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in gains.items()},
-                                 self.hover).values
+        ranged = params_in_range(self.prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in gains.items()},
+                                 self.hover)
+        values = {**ranged.values, **rate_d_values(self.prof, ranged.gains, self.d_over_p)}
         result = client.write(values, self.backup_dir, label="backup-recheck")
         first = {c.name: c for c in self.changes}
         merged = {c.name: c for c in self.changes}

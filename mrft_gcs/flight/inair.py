@@ -39,7 +39,12 @@ from typing import Any
 import numpy as np
 
 from mrft_gcs.flight.scoring import general_ise
-from mrft_gcs.flight.structure import OnboardStructure, structure_controller, structured_pd
+from mrft_gcs.flight.structure import (
+    D_GM_MIN,
+    OnboardStructure,
+    structure_controller,
+    structured_pd,
+)
 from mrft_gcs.loops import Loop
 from mrft_gcs.pd_design import frequency_grid, margins, optimal_pd
 from mrft_gcs.plant import PD, InnerModel, SideModel, inner_response, side_response
@@ -115,6 +120,10 @@ class OnboardCascade:
     #: the rate loop's integrator zero (rad/s; 0: no rate I): rate P and I act on the same
     #: (error-filtered) rate error, so the PID is ``Kd (1 + w_i / s)`` in both paths
     integrator_zero_rad_s: float = 0.0
+    #: rate D as a share of rate P (s; 0: none), on the same rate error (AC_PID), low-passed
+    #: at ``d_filter_hz`` (0: none): the PID is ``Kd (1 + w_i / s + r s F_D)``
+    d_over_p_s: float = 0.0
+    d_filter_hz: float = 0.0
 
     def paths(self, gains: PD, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(C_r, C_y)``: the command ``u = C_r x - C_y y`` at ``w`` (rad/s).
@@ -131,6 +140,8 @@ class OnboardCascade:
         pa = gains.Kc / gains.Kd
         wi = self.integrator_zero_rad_s
         kd = gains.Kd * (1.0 + wi / s) if wi > 0 else gains.Kd
+        if self.d_over_p_s > 0:
+            kd = kd + gains.Kd * self.d_over_p_s * s * lp(self.d_filter_hz)
         fwd = (kd * fe + self.ff) * ft
         return fwd * (pa + s if self.target_rate_ff else pa), fwd * pa + kd * fe * s
 
@@ -149,7 +160,19 @@ class OnboardCascade:
                 f"{self.target_filter_hz:g} Hz, error filter {self.error_filter_hz:g} Hz, "
                 f"rate FF {self.ff:g}"
                 + (f", rate I zero {self.integrator_zero_rad_s:.3g} rad/s"
-                   if self.integrator_zero_rad_s > 0 else ""))
+                   if self.integrator_zero_rad_s > 0 else "")
+                + (f", rate D {self.d_over_p_s * 1e3:.1f} ms x rate P through "
+                   f"{self.d_filter_hz:g} Hz" if self.d_over_p_s > 0 else ""))
+
+    @property
+    def structure(self) -> OnboardStructure | None:
+        """The same loop as an :class:`~mrft_gcs.flight.structure.OnboardStructure` where it
+        is one (a target filter, no rate FF or I, no target rate; None otherwise)."""
+        if (self.target_filter_hz > 0 and not self.target_rate_ff and self.ff == 0
+                and self.error_filter_hz == 0 and self.integrator_zero_rad_s == 0):
+            return OnboardStructure(self.target_filter_hz, "", self.d_over_p_s,
+                                    self.d_filter_hz)
+        return None
 
 
 def _paths(gains: PD, w: np.ndarray, cascade: OnboardCascade | None
@@ -390,6 +413,12 @@ def redesigned_gains(plan: CheckPlan, check: InAirCheck, target_hz: float = 0.0)
     m = check.corrected_model(plan)
     w = frequency_grid(m.T_prop, m.T1, m.tau)
     G = inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0]
+    st = plan.cascade.structure if plan.cascade is not None else None
+    if st is not None and st.d_over_p_s > 0:
+        # rate D written: re-designed on that structure, never above the gains checked (a
+        # loop with D is designed under a gain cap, not at the margin: it is not tightened)
+        return structured_pd(G, w, st, starts=(plan.gains,), gm_min=D_GM_MIN,
+                             most=plan.gains).gains
     if plan.cascade is not None:
         # the cascade's filters lag angle P's part of the loop; designing the PD on the plant
         # behind them (its D part lagged too) keeps the design's margin, conservatively

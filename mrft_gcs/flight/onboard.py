@@ -331,6 +331,9 @@ class Retarget:
     structure : str
         The onboard controller structure the gains were designed on, where it is not the
         plain PD ("": the PD; :func:`mrft_gcs.flight.structure.structured_retarget`).
+    d_over_p_s : float
+        Rate D written as this share of rate P (s; 0: D written as 0), where the design on
+        the structure chose one.
     """
 
     gains: PD
@@ -340,6 +343,7 @@ class Retarget:
     cap_s: float = math.inf
     extra_s: float = 0.0
     structure: str = ""
+    d_over_p_s: float = 0.0
 
     @property
     def aimed_s(self) -> float:
@@ -493,13 +497,18 @@ class SideRetarget:
 
 
 def _side_process(inner: InnerModel, inner_pd: PD, tau: float, side: SideModel,
-                  w: np.ndarray, target_hz: float = 0.0) -> np.ndarray:
+                  w: np.ndarray, target_hz: float = 0.0, d_over_p_s: float = 0.0,
+                  d_hz: float = 0.0) -> np.ndarray:
     """The side cascade behind ``inner_pd``; ``target_hz`` > 0: with the angle P's rate
-    target low-passed there (ArduPilot's FLTT), ``u = Kd (F Kc/Kd e - w)``."""
+    target low-passed there (ArduPilot's FLTT), ``u = Kd (F Kc/Kd e - w)``, and with a rate
+    D ``d_over_p_s`` times rate P on that rate error (low-passed at ``d_hz``, 0: none)."""
     g = inner_response(inner.K, inner.T_prop, inner.T1, max(tau, 1e-6), w)[0]
     if target_hz > 0:
-        f = 1.0 / (1.0 + 1j * w / (2 * np.pi * target_hz))
-        t_att = f * inner_pd.Kc * g / (1.0 + (f * inner_pd.Kc + inner_pd.Kd * 1j * w) * g)
+        s = 1j * w
+        f = 1.0 / (1.0 + s / (2 * np.pi * target_hz))
+        fd = 1.0 / (1.0 + s / (2 * np.pi * d_hz)) if d_hz > 0 else 1.0
+        g = g * (1.0 + d_over_p_s * s * fd)  # D multiplies both paths: fold it into g
+        t_att = f * inner_pd.Kc * g / (1.0 + (f * inner_pd.Kc + inner_pd.Kd * s) * g)
     else:
         t_att = closed_inner_response(inner_pd.Kc, inner_pd.Kd, g[None, :], w)[0]
     return t_att * side_response(side.K, side.T2, side.tau, w)[0]
@@ -508,7 +517,7 @@ def _side_process(inner: InnerModel, inner_pd: PD, tau: float, side: SideModel,
 def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Retarget,
                        pm_min_deg: float = PM_ROBUST_DEG, *,
                        onboard_extra_s: float = 0.5 / POSITION_LOOP_MIN_HZ,
-                       target_hz: float | None = None) -> SideRetarget:
+                       target_hz: float | None = None, d_hz: float = 0.0) -> SideRetarget:
     """Side gains for the autopilot's cascade: behind the attitude gains it is written.
 
     A side loop is identified behind the ground station's attitude PD (``inner.gains``)
@@ -528,7 +537,8 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
     ``target_hz``: the attitude loop's rate-target low-pass where the vehicle said what it
     is (Hz, 0: none; :func:`mrft_gcs.flight.structure.read_structure`): the nominal cascade
     and every check then have that filter instead of the unseen :data:`RATE_TARGET_MIN_HZ`
-    one.
+    one. The attitude loop's rate D (``inner_rt.d_over_p_s`` times rate P, on the rate error
+    behind that filter, low-passed at ``d_hz``) is in every onboard cascade.
 
     Examples
     --------
@@ -551,10 +561,11 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
     g_gcs = _side_process(mi, inner.gains, mi.tau, ms, w)
     known = target_hz is not None and math.isfinite(target_hz) and target_hz >= 0
     f_on = float(target_hz) if known else 0.0  # type: ignore[arg-type]
-    g_on = _side_process(mi, inner_rt.gains, mi.tau - inner_rt.delay_s, ms, w, f_on)
+    dd = (inner_rt.d_over_p_s, d_hz) if f_on > 0 else (0.0, 0.0)
+    g_on = _side_process(mi, inner_rt.gains, mi.tau - inner_rt.delay_s, ms, w, f_on, *dd)
     lo = min(inner_rt.gcs.lo_s, inner_rt.delay_s)
     g_lo = g_on if lo >= inner_rt.delay_s else _side_process(
-        mi, inner_rt.gains, mi.tau - lo, ms, w, f_on)
+        mi, inner_rt.gains, mi.tau - lo, ms, w, f_on, *dd)
     worst = [g_lo, g_on] if known else [
         g_lo, g_on, _side_process(mi, inner_rt.gains, mi.tau - lo, ms, w, RATE_TARGET_MIN_HZ)]
     worst = [G * np.exp(-extra * s) for G in worst]

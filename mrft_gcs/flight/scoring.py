@@ -358,12 +358,14 @@ class StructureFloor:
 
 def _with_pd(loop: Loop, params: Mapping[str, float], pd: PD) -> dict[str, float]:
     """``params`` with the two written numbers set for ``pd`` (the inverse of
-    :func:`_pd_equivalent`)."""
+    :func:`_pd_equivalent`); an attitude loop's rate D at 0: the floor is that of the two
+    numbers, which a rate D written beside them may take the loop below."""
     p = dict(params)
     if loop in _AXIS:
         a = _AXIS[loop]
         p[f"MC_{a}RATE_P"] = pd.Kd / params.get(f"MC_{a}RATE_K", 1.0)
         p[f"MC_{a}_P"] = pd.Kc / pd.Kd
+        p[f"MC_{a}RATE_D"] = 0.0
     elif loop is Loop.ALTITUDE:
         p["MPC_Z_VEL_P_ACC"] = pd.Kd * 9.80665 / params["MPC_THR_HOVER"]
         p["MPC_Z_P"] = pd.Kc / pd.Kd
@@ -379,9 +381,10 @@ def structure_floor(airframe: Airframe, loop: Loop, params: Mapping[str, float],
 
     The loop's two written numbers (angle or position P, rate or velocity P) are searched on
     the true onboard process and controller (:func:`onboard_process`,
-    :func:`onboard_controller`) with every other parameter as in ``params`` (filters, I, D,
-    FF), under phase margin ``pm_min_deg`` there: the best the structure allows, scored as
-    :func:`score_written` scores the written gains. A structure that closes exactly a PD has
+    :func:`onboard_controller`) with every other parameter as in ``params`` (filters, I,
+    FF, velocity D; an attitude loop's rate D at 0), under phase margin ``pm_min_deg``
+    there: the best the structure allows, scored as :func:`score_written` scores the
+    written gains. A structure that closes exactly a PD has
     the ideal PD as its floor (``J`` 0).
 
     Examples

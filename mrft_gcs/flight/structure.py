@@ -21,9 +21,28 @@ phase margin :data:`~mrft_gcs.pd_design.PM_MIN_DEG` there and
 The filter is read from the vehicle (:data:`TARGET_FILTER_PARAMS`); a vehicle without the
 parameter gets its family's documented default (:data:`DEFAULT_TARGET_HZ`: ArduPilot 20 Hz,
 PX4 none). A structure with no target filter keeps the gains of
-:func:`~mrft_gcs.flight.onboard.robust_onboard_gains` unchanged. D filters, the loop rate and
-I do not enter: D and I are written as 0, and the rate loop's sample-and-hold was in the
-loop the relay tests identified.
+:func:`~mrft_gcs.flight.onboard.robust_onboard_gains` unchanged. The loop rate and I do not
+enter: I is written as 0, and the rate loop's sample-and-hold was in the loop the relay tests
+identified.
+
+Rate D. With two numbers the filter leaves the loop 7-10 % J above the ideal PD at PM 20
+deg (the structure floor, :func:`mrft_gcs.flight.scoring.structure_floor`). ArduCopter's
+rate PID (``AC_PID::update_all``) differentiates the rate *error* (the FLTT-filtered target
+minus the gyro), low-passed by ``ATC_RAT_*_FLTD``, so a rate D ``r Kd`` multiplies both paths
+by ``1 + r s F_D``:
+
+``u = (1 + r s F_D) (Kc F r - (Kc F + Kd s) y)``,  ``F_D = 1 / (1 + s / (2 pi f_d))``
+
+and its lead buys back the filter's lag. ``r`` is held at ArduCopter's own default ratio
+(:data:`RATE_D_OVER_P_S`, ``ATC_RAT_RLL_D`` 0.0036 over ``ATC_RAT_RLL_P`` 0.135), not
+optimised: the design is linear and noise-free, where more D always looks better, while on a
+vehicle D amplifies gyro noise by ``r 2 pi f_d`` over rate P (some 3.4 x at 20 Hz); at the
+default ratio that is the noise every stock ArduCopter already flies with. With D the gains
+stay within :data:`D_GAIN_MOVE_MAX` of the two-number design's, the angle P within
+:data:`D_ANGLE_P_MOVE_MAX` of its, and they keep a gain margin of :data:`D_GM_MIN` besides both
+phase margins: D's lead would otherwise move the crossover far above the frequency the relay
+identified the model at, and the angle P into the square-root controller's soft part. Where
+D does not lower the design's ISE, none is written.
 """
 
 from __future__ import annotations
@@ -42,9 +61,12 @@ from mrft_gcs.identify import Identification
 from mrft_gcs.loops import Loop
 from mrft_gcs.pd_design import PM_MIN_DEG, frequency_grid, margins, optimal_pd
 from mrft_gcs.plant import PD, InnerModel, inner_response
+from mrft_gcs.profiles import AutopilotProfile, PDGains
 
-__all__ = ["TARGET_FILTER_PARAMS", "DEFAULT_TARGET_HZ", "OnboardStructure", "read_structure",
-           "vehicle_structure",
+__all__ = ["TARGET_FILTER_PARAMS", "DEFAULT_TARGET_HZ", "D_FILTER_PARAMS", "DEFAULT_D_HZ",
+           "RATE_D_OVER_P_S", "WRITE_RATE_D", "D_GAIN_MOVE_MAX", "D_GM_MIN",
+           "D_ANGLE_P_MOVE_MAX", "OnboardStructure",
+           "read_structure", "vehicle_structure", "rate_d_values",
            "structure_controller", "StructuredDesign", "structured_pd", "structured_retarget"]
 
 #: the rate-target low-pass of each attitude axis, under ArduPilot's names (Hz)
@@ -53,6 +75,27 @@ TARGET_FILTER_PARAMS: dict[Loop, str] = {Loop.ROLL: "ATC_RAT_RLL_FLTT",
 #: the rate-target low-pass a family's firmware has where the vehicle does not say (Hz;
 #: ArduCopter's AC_ATC_MULTI_RATE_RP_FILT_HZ; PX4's rate controller has none)
 DEFAULT_TARGET_HZ: dict[str, float] = {"ardupilot": 20.0, "px4": 0.0}
+#: the rate-D low-pass of each attitude axis (ArduPilot's names, Hz)
+D_FILTER_PARAMS: dict[Loop, str] = {Loop.ROLL: "ATC_RAT_RLL_FLTD",
+                                     Loop.PITCH: "ATC_RAT_PIT_FLTD"}
+#: the rate-D low-pass where the vehicle does not say (Hz; ArduCopter's
+#: AC_ATC_MULTI_RATE_RPY_FILT_HZ)
+DEFAULT_D_HZ = 20.0
+#: rate D written per unit of rate P on a structure with a rate-target filter (s):
+#: ArduCopter's defaults AC_ATC_MULTI_RATE_RP_D / AC_ATC_MULTI_RATE_RP_P
+RATE_D_OVER_P_S = 0.0036 / 0.135
+#: whether the design writes rate D on such a structure at all
+WRITE_RATE_D = True
+#: with rate D, each gain at most this many times the two-number design's: the model is
+#: identified about the relay's frequency, and D's lead would otherwise carry the crossover
+#: 4-5 x above it (in-process, on the random population: gain margins down to 1.15 on the truth)
+D_GAIN_MOVE_MAX = 1.5
+#: and a gain margin of at least this (ratio) on the nominal and the worst process
+D_GM_MIN = 2.0
+#: and the angle P (``Kc/Kd``) at most this many times the two-number design's: ArduPilot's
+#: square-root angle controller is linear only within ``accel_max / P^2`` of error, and a
+#: higher P leaves larger errors to its softer part
+D_ANGLE_P_MOVE_MAX = 1.25
 
 
 @dataclass(frozen=True)
@@ -65,10 +108,25 @@ class OnboardStructure:
         Low-pass on the rate target inside the loop (Hz; 0: none, the loop is the PD).
     source : str
         Where ``target_hz`` came from (a parameter read, or the family's default).
+    d_over_p_s : float
+        Rate D written as this share of rate P (s; 0: D written as 0). Rate D acts on the
+        rate error, low-passed at ``d_hz``.
+    d_hz : float
+        Low-pass on the rate D term (Hz; 0: none).
     """
 
     target_hz: float = 0.0
     source: str = ""
+    d_over_p_s: float = 0.0
+    d_hz: float = 0.0
+
+    def rate_d(self, gains: PD) -> float:
+        """The rate D written with ``gains`` (normalised output per rad/s^2; 0: none).
+
+        >>> OnboardStructure(20.0, "", 0.02, 20.0).rate_d(PD(3.0, 0.15))
+        0.003
+        """
+        return round(self.d_over_p_s * gains.Kd, 9) if self.d_over_p_s > 0 else 0.0
 
     @property
     def plain(self) -> bool:
@@ -80,25 +138,40 @@ def read_structure(loop: Loop, values: Mapping[str, float], family: str = "") ->
     """The structure of ``loop`` from parameter ``values`` read from the vehicle.
 
     ``values`` holds what the vehicle answered (a name it lacks is absent); ``family`` is the
-    autopilot family (``"px4"``, ``"ardupilot"``) for the default.
+    autopilot family (``"px4"``, ``"ardupilot"``) for the default. A structure with a
+    rate-target filter is ArduPilot's: it gets rate D (:data:`RATE_D_OVER_P_S`, where
+    :data:`WRITE_RATE_D`) through its D low-pass (``ATC_RAT_*_FLTD``, :data:`DEFAULT_D_HZ`
+    where not read).
 
     >>> read_structure(Loop.ROLL, {"ATC_RAT_RLL_FLTT": 12.5}).target_hz
     12.5
-    >>> read_structure(Loop.PITCH, {}, "ardupilot").source
+    >>> read_structure(Loop.PITCH, {}, "ardupilot").source.split(";")[0]
     "ArduPilot's default 20 Hz (ATC_RAT_PIT_FLTT not read)"
     >>> read_structure(Loop.ROLL, {}, "px4").plain
     True
+    >>> read_structure(Loop.ROLL, {"ATC_RAT_RLL_FLTT": 20.0, "ATC_RAT_RLL_FLTD": 30.0}).d_hz
+    30.0
     """
     name = TARGET_FILTER_PARAMS.get(loop)
     if name is None:
         return OnboardStructure(0.0, "no rate target on this loop")
     v = values.get(name)
     if v is not None and math.isfinite(v) and v >= 0:
-        return OnboardStructure(float(v), f"{name} = {v:g} Hz read")
-    hz = DEFAULT_TARGET_HZ.get(family, 0.0)
-    if hz > 0:
-        return OnboardStructure(hz, f"ArduPilot's default {hz:g} Hz ({name} not read)")
-    return OnboardStructure(0.0, "no rate target filter")
+        st = OnboardStructure(float(v), f"{name} = {v:g} Hz read")
+    elif (hz := DEFAULT_TARGET_HZ.get(family, 0.0)) > 0:
+        st = OnboardStructure(hz, f"ArduPilot's default {hz:g} Hz ({name} not read)")
+    else:
+        return OnboardStructure(0.0, "no rate target filter")
+    if st.plain or not WRITE_RATE_D:
+        return st
+    d_name = D_FILTER_PARAMS[loop]
+    fd = values.get(d_name)
+    if fd is not None and math.isfinite(fd) and fd >= 0:
+        d_hz, how = float(fd), f"{d_name} = {fd:g} Hz read"
+    else:
+        d_hz, how = DEFAULT_D_HZ, f"ArduPilot's default {DEFAULT_D_HZ:g} Hz ({d_name} not read)"
+    return dataclasses.replace(st, d_over_p_s=RATE_D_OVER_P_S, d_hz=d_hz,
+                               source=f"{st.source}; rate D low-pass {how}")
 
 
 def vehicle_structure(read: Callable[[str], float | None], family: str = ""
@@ -122,6 +195,8 @@ def vehicle_structure(read: Callable[[str], float | None], family: str = ""
         if v is None:
             break
         values[name] = float(v)
+        if WRITE_RATE_D and (fd := read(D_FILTER_PARAMS[lp])) is not None:
+            values[D_FILTER_PARAMS[lp]] = float(fd)
     return {lp: read_structure(lp, values, family) for lp in (Loop.ROLL, Loop.PITCH)}
 
 
@@ -132,10 +207,22 @@ def structure_controller(gains: PD, st: OnboardStructure, w: np.ndarray
     >>> Cr, Cy = structure_controller(PD(2.0, 0.1), OnboardStructure(), np.array([1.0]))
     >>> complex(Cr[0]), complex(Cy[0])
     ((2+0j), (2+0.1j))
+    >>> Cr, Cy = structure_controller(PD(2.0, 0.1), OnboardStructure(20.0, "", 0.5),
+    ...                               np.array([1.0]))
+    >>> lead = Cr[0] / structure_controller(PD(2.0, 0.1), OnboardStructure(20.0),
+    ...                                     np.array([1.0]))[0][0]  # 1 + r s, no D filter
+    >>> bool(np.isclose(lead, 1 + 0.5j))
+    True
     """
     s = 1j * np.asarray(w, float)
     f = 1.0 / (1.0 + s / (2 * np.pi * st.target_hz)) if st.target_hz > 0 else np.ones_like(s)
-    return gains.Kc * f, gains.Kc * f + gains.Kd * s
+    Cr, Cy = gains.Kc * f, gains.Kc * f + gains.Kd * s
+    if st.d_over_p_s > 0:
+        # rate D on the rate error (the filtered target less the gyro): both paths
+        fd = 1.0 / (1.0 + s / (2 * np.pi * st.d_hz)) if st.d_hz > 0 else 1.0
+        lead = 1.0 + st.d_over_p_s * s * fd
+        Cr, Cy = Cr * lead, Cy * lead
+    return Cr, Cy
 
 
 @dataclass(frozen=True)
@@ -156,7 +243,8 @@ def _pm(gains: PD, st: OnboardStructure, G: np.ndarray, w: np.ndarray) -> float:
 def structured_pd(G: np.ndarray, w: np.ndarray, st: OnboardStructure, *,
                   pm_min_deg: float = PM_MIN_DEG, worst: Sequence[np.ndarray] = (),
                   pm_worst_deg: float = PM_ROBUST_DEG,
-                  starts: Sequence[PD] = ()) -> StructuredDesign:
+                  starts: Sequence[PD] = (), gm_min: float = 0.0,
+                  most: PD | None = None, most_ratio: float = math.inf) -> StructuredDesign:
     """ISE-optimal written gains for the loop ``G`` closes under ``st``.
 
     Parameters
@@ -170,8 +258,14 @@ def structured_pd(G: np.ndarray, w: np.ndarray, st: OnboardStructure, *,
         Other processes the gains must hold ``pm_worst_deg`` on (the most onboard delay).
     starts : sequence of PD
         Starting points besides the plain optimal PD of ``G``.
+    gm_min : float
+        Gain margin (ratio) required on ``G`` and every ``worst`` (0: none).
+    most : PD, optional
+        The most each gain may be (the search is clipped there).
+    most_ratio : float
+        The most ``Kc / Kd`` (the angle P written, 1/s) may be.
 
-    Both margins are honoured: the optimum is scaled down (a pure gain change) until they
+    The margins are honoured: the optimum is scaled down (a pure gain change) until they
     hold where the penalised search ends short of them.
 
     Examples
@@ -185,14 +279,27 @@ def structured_pd(G: np.ndarray, w: np.ndarray, st: OnboardStructure, *,
     def pm_all(g: PD) -> tuple[float, float]:
         return _pm(g, st, G, w), min((_pm(g, st, Gw, w) for Gw in worst), default=math.inf)
 
+    def gm_of(g: PD) -> float:
+        return min(float(margins(structure_controller(g, st, w)[1] * Gx, w).gm)
+                   for Gx in (G, *worst)) if gm_min > 0 else math.inf
+
+    top = np.log([most.Kc, most.Kd]) if most is not None else np.array([np.inf, np.inf])
+
+    def gains_of(x: np.ndarray) -> PD:
+        x = np.minimum(x, top)
+        kd = float(np.exp(x[1]))
+        return PD(min(float(np.exp(x[0])), most_ratio * kd), kd)
+
     def cost(x: np.ndarray) -> float:
-        g = PD(float(np.exp(x[0])), float(np.exp(x[1])))
+        g = gains_of(x)
         pm, pmw = pm_all(g)
         if pm == -math.inf or pmw == -math.inf:  # unstable (no worst case: pmw is +inf)
             return 1e12
         Cr, Cy = structure_controller(g, st, w)
         q = general_ise(Cr, Cy, G, w)
         short = max(0.0, pm_min_deg - pm) + max(0.0, pm_worst_deg - pmw)
+        if gm_min > 0:  # in dB-like units: 1 for each 5 % short of the gain margin
+            short += 20.0 * max(0.0, math.log(gm_min / gm_of(g)))
         return q * (1.0 + 0.05 * short + 0.02 * short ** 2) if np.isfinite(q) else 1e12
 
     best = None
@@ -202,11 +309,12 @@ def structured_pd(G: np.ndarray, w: np.ndarray, st: OnboardStructure, *,
         if best is None or res.fun < best.fun:
             best = res
     assert best is not None
-    g = PD(float(np.exp(best.x[0])), float(np.exp(best.x[1])))
+    g = gains_of(best.x)
     pm, pmw = pm_all(g)
     k = 1.0
-    while (pm < pm_min_deg or pmw < pm_worst_deg) and k > 1e-3:
-        k *= 0.98  # the search ended short of a margin: less gain until both hold
+    while (pm < pm_min_deg or pmw < pm_worst_deg or gm_of(PD(g.Kc * k, g.Kd * k)) < gm_min
+           ) and k > 1e-3:
+        k *= 0.98  # the search ended short of a margin: less gain until they hold
         pm, pmw = pm_all(PD(g.Kc * k, g.Kd * k))
     g = PD(g.Kc * k, g.Kd * k)
     Cr, Cy = structure_controller(g, st, w)
@@ -247,9 +355,46 @@ def structured_retarget(ident: Identification, rt: Retarget, st: OnboardStructur
     w = frequency_grid(m.T_prop, m.T1, tau_on)
     G = inner_response(m.K, m.T_prop, m.T1, tau_on, w)[0]
     Gw = inner_response(m.K, m.T_prop, m.T1, tau_worst, w)[0]
-    des = structured_pd(G, w, st, pm_min_deg=pm_min_deg, worst=(Gw,),
-                        starts=(rt.gains,))
+    what = f"rate target low-pass {st.target_hz:g} Hz"
+    if not st.d_over_p_s > 0:
+        des = structured_pd(G, w, st, pm_min_deg=pm_min_deg, worst=(Gw,),
+                            starts=(rt.gains,))
+    if st.d_over_p_s > 0:
+        two = structured_pd(G, w, dataclasses.replace(st, d_over_p_s=0.0),
+                            pm_min_deg=pm_min_deg, worst=(Gw,), starts=(rt.gains,))
+        most = PD(two.gains.Kc * D_GAIN_MOVE_MAX, two.gains.Kd * D_GAIN_MOVE_MAX)
+        des = structured_pd(G, w, st, pm_min_deg=pm_min_deg, worst=(Gw,),
+                            starts=(two.gains,), gm_min=D_GM_MIN, most=most,
+                            most_ratio=two.gains.Kc / two.gains.Kd * D_ANGLE_P_MOVE_MAX)
+        if not two.ise > des.ise:  # D that does not pay for itself is not written
+            des, st = two, dataclasses.replace(st, d_over_p_s=0.0)
+            what += ", no rate D (it did not lower the ISE)"
+        else:
+            what += (f", rate D {st.d_over_p_s * 1e3:.1f} ms x rate P "
+                     f"= {st.rate_d(des.gains):.4g} through {st.d_hz:g} Hz "
+                     f"(ISE {100 * (1 - des.ise / two.ise):.0f} % below two numbers)")
     return dataclasses.replace(rt, gains=des.gains, delay_s=round(d, 6),
-                               pm_deg=des.pm_worst_deg,
-                               structure=f"rate target low-pass {st.target_hz:g} Hz "
-                                         f"({st.source})")
+                               pm_deg=des.pm_worst_deg, d_over_p_s=st.d_over_p_s,
+                               structure=f"{what} ({st.source})")
+
+
+def rate_d_values(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
+                  d_over_p_s: Mapping[Loop, float]) -> dict[str, float]:
+    """The rate D parameters for the written roll/pitch ``gains`` (their rate P ``Kd`` in
+    effect, after any clamp) at ``d_over_p_s`` of it, clamped into the profile's range;
+    loops without D are left out (their D is written as 0 with the gains).
+
+    >>> from mrft_gcs.profiles import load_profile
+    >>> rate_d_values(load_profile("sitl"), {Loop.ROLL: PDGains(1.0, 0.2)},
+    ...               {Loop.ROLL: 0.02, Loop.PITCH: 0.02})
+    {'MC_ROLLRATE_D': 0.004}
+    """
+    out: dict[str, float] = {}
+    for lp, names in ((Loop.ROLL, profile.roll), (Loop.PITCH, profile.pitch)):
+        r, g = d_over_p_s.get(lp, 0.0), gains.get(lp)
+        if g is None or not r > 0:
+            continue
+        v = round(r * g.Kd, 6)
+        lo, hi = profile.param_ranges.get(names.rate_d, (0.0, math.inf))
+        out[names.rate_d] = min(max(v, lo), hi)
+    return out
