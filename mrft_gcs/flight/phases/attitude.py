@@ -294,8 +294,8 @@ class AttitudeRelays:
                 self._ref[loop] = ref  # a relay (re)starting takes the set point as it is
             e = self._ref[loop] - y
             u = float(r.step(e)[0])
-            st = float(r.state[0])
-            if before != 0 and st != before and (ref - self._ref[loop]) * st > 0:
+            now = float(r.state[0])
+            if before != 0 and now != before and (ref - self._ref[loop]) * now > 0:
                 # the bounding relay steps the set point (0.05 rad): taken mid-swing, the
                 # step moved the error past the MRFT's threshold, switching it early into a
                 # short cycle whose small amplitude then had a normal swing caught as a
@@ -304,7 +304,7 @@ class AttitudeRelays:
                 # new set point, leaving the relay unarmed and pushing the axis on
                 self._ref[loop] = ref
                 e = ref - y
-                r.ext[:] = max(e, 0.0) if r.state[0] > 0 else min(e, 0.0)
+                r.ext[:] = max(e, 0.0) if now > 0 else min(e, 0.0)
                 r.entry[:] = e
             self.sh.watch(t, r, e, before, -rate)
             if t.relay is not None and self._drives_away(t, e, -rate):
