@@ -130,11 +130,14 @@ def test_a_relay_that_keeps_running_away_stops_the_tests_before_the_drift_limit(
     """An out-of-domain 1.6 kg vehicle (motor lag 68 ms): its roll relay runs away again
     and again, each catch leaning it the same way, and without a limit on run-aways it
     drifted to the 5 m limit. The fifth stops the tests with the reason (a refusal). The
-    drift guard, the other net under it, is off here."""
+    drift guard, the other net under it, is off here, and the bounding relay's set point
+    steps reach the relay at once (``att_ref_at_switch`` off), as when these run-aways were
+    seen: taken at the relay's switches they no longer run it away, and the drift guard
+    stops this vehicle instead."""
     from mrft_gcs.flight import safety
 
     monkeypatch.setattr(safety, "DRIFT_GUARD_FRACTION", 10.0)
-    rec, _ = _lockstep_take_off(monkeypatch, 9)
+    rec, _ = _lockstep_take_off(monkeypatch, 9, att_ref_at_switch=False)
     assert rec["outcome"] == "refused" and "ran away 5 times" in rec["reason"], rec["reason"]
-    rec, _ = _lockstep_take_off(monkeypatch, 9, max_runaways=10 ** 6)
+    rec, _ = _lockstep_take_off(monkeypatch, 9, att_ref_at_switch=False, max_runaways=10 ** 6)
     assert rec["outcome"] == "aborted" and "5 m limit" in rec["reason"], rec["reason"]

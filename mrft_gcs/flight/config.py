@@ -144,6 +144,16 @@ class SequenceConfig:
     #: envelope): a relay restarted off its set point swings out to twice its cycle and can
     #: lock into a lopsided cycle
     att_restart_envelope: float = 0.1
+    #: ... except a relay whose h only shrinks (its bias kept): the smaller h is taken at the
+    #: turn of the axis its period or swing ended on, with no restart. A restart waited
+    #: 0.9 s on average (up to three periods) for the catch to bring the axis to rest
+    att_resize_at_turn: bool = True
+    #: roll/pitch: a change of the set point (the bounding relay's 0.05 rad steps) reaches a
+    #: running relay at its next switch into the half-cycle whose swing it enlarges
+    #: (:meth:`~mrft_gcs.flight.phases.attitude.AttitudeRelays.step`); False: at once, as
+    #: it was, which switched the relay early into short cycles that cost a run-away catch
+    #: and the relay's steady periods
+    att_ref_at_switch: bool = True
     #: the same for the x/y relays (tilt, rad): the side classifiers' own value. Each side
     #: relay switch steps the attitude set point by 2 h, which the freshly tuned attitude PD
     #: overshoots; a larger h tilts the vehicle further under ground-station stalls. A

@@ -11,6 +11,8 @@ axis turns: both relays run at once, and their first swings add up. Later period
 relay whose swing grew too large or whose mean torque moved off its bias. A relay that
 pushes the axis away before it is sized is turned round; a run-away is held by a damping PD
 until the axis is back inside its cycle (:meth:`~mrft_gcs.flight.phases.shared.Shared.watch`).
+A relay takes a new set point (the bounding relay's steps) only at a switch, and a smaller h
+found on a period at the turn of the axis that ended it, without a restart.
 """
 
 from __future__ import annotations
@@ -223,6 +225,9 @@ class AttitudeRelays:
                  liftoff: LiftoffDetector) -> None:
         self.sh = shared
         self.liftoff = liftoff
+        #: the set point each relay's error is taken from (rad): the set point given, as it
+        #: was at the relay's last switch (:meth:`step`)
+        self._ref = {Loop.ROLL: math.nan, Loop.PITCH: math.nan}
         cfg = shared.config
         for lp in (Loop.ROLL, Loop.PITCH):
             t = shared.loops[lp]
@@ -265,6 +270,7 @@ class AttitudeRelays:
                 if t_s - t.t_catch_s < 3 * period:  # a resized relay: at rest first
                     amp *= t.catch_release
                 e = ref - y
+                self._ref[loop] = ref  # the catch brings the axis to the set point
                 if abs(e) < amp and abs(rate) < 2 * math.pi * amp / period:
                     t.from_rest = t.catch_release < 1.0
                     t.catch, t.catch_release = None, 1.0
@@ -281,16 +287,31 @@ class AttitudeRelays:
                     self._rest_bias(t, t_s, u, rate)
                     t.u = u
                     return u
-            before = float(t.relay.state[0])
-            u = float(t.relay.step(ref - y)[0])
-            self.sh.watch(t, t.relay, ref - y, before, -rate)
-            if t.relay is not None and self._drives_away(t, ref - y, -rate):
+            r = t.relay
+            at_switch = self.sh.config.att_ref_at_switch
+            before = float(r.state[0])
+            if before == 0 or not math.isfinite(self._ref[loop]) or not at_switch:
+                self._ref[loop] = ref  # a relay (re)starting takes the set point as it is
+            e = self._ref[loop] - y
+            u = float(r.step(e)[0])
+            now = float(r.state[0])
+            if before != 0 and now != before and (ref - self._ref[loop]) * now > 0:
+                # the bounding relay steps the set point (0.05 rad): taken mid-swing, the
+                # step moved the error past the MRFT's threshold, switching it early into a
+                # short cycle whose small amplitude then had a normal swing caught as a
+                # run-away. It is taken at a switch into the half-cycle whose error swing
+                # it enlarges: into the other, an off-centre swing could stop short of the
+                # new set point, leaving the relay unarmed and pushing the axis on
+                self._ref[loop] = ref
+                e = ref - y
+                r.ext[:] = max(e, 0.0) if now > 0 else min(e, 0.0)
+                r.entry[:] = e
+            self.sh.watch(t, r, e, before, -rate)
+            if t.relay is not None and self._drives_away(t, e, -rate):
                 # the MRFT's lead braked a return swing short of its set point (too little
                 # swing to arm the switch: a torque bias, an agile vehicle at its first h)
                 # and now pushes the axis away from it, which tilts a light vehicle far
                 # over. The relay is turned round at once, this point its new extreme
-                e = ref - y
-                r = t.relay
                 r.state[:] = 1.0 if e >= 0 else -1.0
                 r.ext[:] = r.entry[:] = e
                 r.first[:] = False
@@ -304,7 +325,7 @@ class AttitudeRelays:
                 u = float(t.relay.bias[0] + t.relay.h[0] * t.relay.state[0])
             self.sh.feed(t, t_s, u, y, new)
             if new and t.relay is not None:
-                self._size(t, t_s, u, y, ref - y, -rate)
+                self._size(t, t_s, u, y, e, -rate)
             st = t.status
             if (st.cycles >= 2 and st.spread < 0.15 and math.isfinite(st.period_s)
                     and st.amplitude > 0):
@@ -609,8 +630,12 @@ class AttitudeRelays:
             notes.append(f"bias {t.bias:+.3g} -> {bias:+.3g} (the mean torque)")
         if not notes:
             return
+        # a smaller h alone is taken at once: sizing runs at a turn of the axis, where it only
+        # accelerates the return swing less (as a planned h, :meth:`_take_planned_h`)
+        at_turn = cfg.att_resize_at_turn and amp > 0 and h < h0 and bias == t.bias
         self.sh.events.append(f"{t.loop.value}: relay sized on {what} ({amp:.3g} rad at h "
-                              f"{h0:.3g}): " + ", ".join(notes))
+                              f"{h0:.3g}): " + ", ".join(notes)
+                              + (", from this turn of the axis" if at_turn else ""))
         t.resizes += 1
         t.h, t.bias = h, bias
         relay.h[:] = h
@@ -622,7 +647,7 @@ class AttitudeRelays:
         t.restart_detection()
         if amp > 0:  # the cycle to expect at the new h (sizes the run-away catch)
             t.cycle = (float(ts[-1] - ts[0]), t.amp_per_h * h)
-        if amp > 0:
+        if amp > 0 and not at_turn:
             relay.reset()
             # the relay restarts from rest at its set point: an MRFT (beta -0.7) switched to a
             # smaller h or a new bias mid-swing swung out further or locked into a lopsided
