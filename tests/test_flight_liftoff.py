@@ -12,7 +12,6 @@ import pytest
 from flight_sim import ALT_RELAY, ATT_RELAY, SIDE_RELAY, state_of
 
 from mrft_gcs.errors import IdentificationError
-from mrft_gcs.flight.phases.liftoff import swing_stop
 from mrft_gcs.flight.sequence import LoopState, SequenceConfig, TuningSequence
 from mrft_gcs.identify.live import bundled_identifier
 from mrft_gcs.loops import Loop
@@ -191,29 +190,3 @@ def test_torque_bias_fit_with_motor_lag_and_noise():
     assert f.gain == pytest.approx(300, rel=0.1) and f.bias_se < 0.002
     one = torque_bias_fit(t, u, t[52:100], rate[52:100])
     assert one is None or one.bias_se > 0.1 * 0.06
-
-
-def test_first_swing_of_a_light_agile_vehicle_braked_before_it_tilts_far():
-    # random vehicle 5: 88 g, thrust/weight 4, a roll torque of a third of the starting h;
-    # 20 ms more loop delay stands for the ground station's round trip of a live tune, where
-    # its first swings at h_att_start tilted it 22-25 deg (and past the relay guard in about
-    # one run of three)
-    af = random_airframe(5)
-    af = dataclasses.replace(af, actuator_delay_s=af.actuator_delay_s + 0.02)
-    seq, _, rec = fly_first(af, 1.5, hover_factor=af.hover_estimate_factor)
-    braked = [e for e in seq.events if "first swing heads for" in e]
-    assert braked, seq.events
-    assert max(tilt for _, _, tilt, _ in rec) < 20.5, seq.events
-    # the sizing still runs on the relay's own h
-    assert seq.loops[Loop.ROLL].sized and seq.loops[Loop.PITCH].sized, seq.events
-
-
-@pytest.mark.parametrize("vehicle", ["qdrone", "racer250", "f550"])
-def test_first_swings_inside_the_limit_are_not_braked(vehicle):
-    seq, _, _ = fly_first(load_airframe(vehicle), 2.5)
-    assert not [e for e in seq.events if "first swing heads for" in e], seq.events
-
-
-def test_swing_stop():
-    assert swing_stop(-0.1, 2.0, 20.0) == pytest.approx(0.2)
-    assert swing_stop(0.1, 2.0, -1.0) == math.inf

@@ -137,13 +137,6 @@ class SequenceConfig:
     #: this (rad, per axis; 0: off): both relays swing at once, so 1.5 x
     #: ``att_amp_max_rad`` keeps the tilt near 60 % of a 35 deg limit
     att_pred_amp_rad: float = 0.18
-    #: ... and a swing heading past this (rad, per axis; 0: off), predicted from its own
-    #: deceleration over the last ``att_brake_window_s``, is braked harder before it gets
-    #: there (:class:`~mrft_gcs.flight.phases.liftoff.FirstSwingBrake`): both axes at once
-    #: then tilt about 20 deg, well under the relay guard (90 % of a 35 deg limit); a light
-    #: vehicle with a high thrust-to-weight swings far past it at ``h_att_start``
-    att_brake_amp_rad: float = 0.25
-    att_brake_window_s: float = 0.02
     #: later periods may resize a relay this many times (each restarts its detection)
     att_max_resizes: int = 3
     #: a resized relay restarts once its axis is within this share of the expected cycle's

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mrft_gcs.flight.controllers import catch_pd
-from mrft_gcs.flight.phases.liftoff import FirstSwingBrake, LiftoffDetector
+from mrft_gcs.flight.phases.liftoff import LiftoffDetector
 from mrft_gcs.flight.phases.shared import Shared
 from mrft_gcs.flight.phases.state import AUTOPILOT_ATTITUDE, LoopState, LoopTest
 from mrft_gcs.identify import RelaySettings
@@ -228,7 +228,6 @@ class AttitudeRelays:
         #: the set point each relay's error is taken from (rad): the set point given, as it
         #: was at the relay's last switch (:meth:`step`)
         self._ref = {Loop.ROLL: math.nan, Loop.PITCH: math.nan}
-        self.brake = FirstSwingBrake(shared)
         cfg = shared.config
         for lp in (Loop.ROLL, Loop.PITCH):
             t = shared.loops[lp]
@@ -319,9 +318,6 @@ class AttitudeRelays:
                 r.switches += 1
                 u = float(r.bias[0] + r.h[0] * r.state[0])
                 t.pushed_away += 1
-            if new and self.brake.step(t, t_s, e, -rate):
-                assert t.relay is not None
-                u = float(t.relay.bias[0] + t.relay.h[0] * t.relay.state[0])
             if t.relay is not None and not t.sized and not t.centred:
                 u = self._centre(t, t_s, u, y, rate, new)
             if math.isfinite(t.h_planned) and self._take_planned_h(t, t_s):
