@@ -159,3 +159,18 @@ def test_the_rate_read_over_mavlink_from_the_bundled_sitl_is_the_vehicle_s(style
         res = tune(sitl.connection_string, "sitl", dry_link=True, backup_dir=tmp_path)
     assert res.position_loop == r
     assert any(n.startswith("position loop: ") for n in res.notes)
+
+
+def test_dry_run_reads_the_position_rate_a_log_holds_as_a_tune_reads_it(tmp_path):
+    from mrft_gcs.dryrun import log_position_rate
+    from mrft_gcs.logs import decode_log
+    from mrft_gcs.residual.synth import sitl_relay_record, write_relay_tlog
+
+    rec = sitl_relay_record("roll", seed=3, beta=-0.7, h=0.08, duration_s=2.0)
+    plain, ekf = tmp_path / "plain.tlog", tmp_path / "ekf.tlog"
+    write_relay_tlog(plain, "roll", rec.t, rec.u, rec.y)
+    write_relay_tlog(ekf, "roll", rec.t, rec.u, rec.y,
+                     params={"EKF2_PREDICT_US": 4000.0, "IMU_INTEG_RATE": 250.0})
+    r = log_position_rate(decode_log(ekf), "px4")
+    assert r.read and r.hz == pytest.approx(250.0)
+    assert not log_position_rate(decode_log(plain), "px4").read
