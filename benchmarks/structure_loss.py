@@ -39,6 +39,7 @@ import math
 from pathlib import Path
 
 from mrft_gcs.flight.onboard import (
+    POSITION_LOOP_MIN_HZ,
     GcsDelay,
     Retarget,
     onboard_extra_delay_s,
@@ -111,7 +112,9 @@ def _inner_rt(rec: dict, af, loop: Loop, *, narrow: bool = False, nocap: bool = 
     g = rec["gcs_delay_measured_ms"][loop.value]
     gcs = GcsDelay(g["estimate"] * 1e-3, g["lo"] * 1e-3, g["hi"] * 1e-3, math.nan,
                    g["measured"], "", g["round_trip"] * 1e-3)
-    extra = onboard_extra_delay_s(loop)
+    # the position loop's rate the benchmark read from the vehicle (older records: none)
+    extra = onboard_extra_delay_s(loop, (rec.get("position_loop_read") or {}).get(
+        "hz", POSITION_LOOP_MIN_HZ))
     kw: dict = {}
     if at_s is not None:
         gcs = dataclasses.replace(gcs, estimate_s=at_s, lo_s=at_s)

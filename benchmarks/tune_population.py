@@ -64,6 +64,7 @@ from mrft_gcs.flight.onboard import (
     onboard_extra_delay_s,
     onboard_side_gains,
     robust_onboard_gains,
+    vehicle_position_rate,
 )
 from mrft_gcs.flight.safety import LimitExceeded
 from mrft_gcs.flight.scoring import score_written
@@ -215,6 +216,10 @@ def run_lockstep(seed: int, max_s: float = 70.0,
     read = {n: ap.params[n] for n in (*TARGET_FILTER_PARAMS.values(), *D_FILTER_PARAMS.values())
             if n in ap.params}
     structure = {lp: read_structure(lp, read, prof.family.value) for lp in identified}
+    # the position loop's rate as the tool reads it (flight/onboard.vehicle_position_rate)
+    pos_rate = vehicle_position_rate(
+        lambda n: ap.params[n] if n in ap.params else None, prof.family.value)
+    rec["position_loop_read"] = pos_rate.as_dict()
     for lp, ident in identified.items():
         snap = seq.loops[lp].snapshot
         t0, t1 = (float(snap.t_s[0]), float(snap.t_s[-1])) if snap is not None and len(
@@ -223,14 +228,14 @@ def run_lockstep(seed: int, max_s: float = 70.0,
         gcs = measure_gcs_delay([a for _, a in ta], 1.0 / RATE_HZ,
                                 sample_t_s=[t for t, _ in ta], round_trip_s=rtt * 1e-3)
         rts[lp] = structured_retarget(ident, robust_onboard_gains(
-            ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp)), structure[lp])
+            ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp, pos_rate.hz)), structure[lp])
         delays[lp], written[lp] = rts[lp].delay_s, rts[lp].gains
     for lp, inner_lp in SIDE_INNER.items():
         if lp in identified and inner_lp in rts:
-            written[lp] = onboard_side_gains(identified[lp], identified[inner_lp],
-                                             rts[inner_lp],
-                                             target_hz=structure[inner_lp].target_hz,
-                                             d_hz=structure[inner_lp].d_hz).gains
+            written[lp] = onboard_side_gains(
+                identified[lp], identified[inner_lp], rts[inner_lp],
+                onboard_extra_s=onboard_extra_delay_s(lp, pos_rate.hz),
+                target_hz=structure[inner_lp].target_hz, d_hz=structure[inner_lp].d_hz).gains
     rec["retarget_delay_ms"] = {lp.value: d * 1e3 for lp, d in delays.items()}
     # what the re-target was measured as (benchmarks/structure_loss.py re-designs from these)
     rec["gcs_delay_measured_ms"] = {lp.value: {
@@ -288,6 +293,8 @@ def run_live(seed: int) -> dict:
     rec["max_tilt_deg"] = _num(r.max_tilt_deg)
     rec["max_tilt_by_phase"] = {k: _num(x) for k, x in r.max_tilt_by_phase.items()}
     rec["notes"] = list(r.notes)
+    if r.position_loop is not None:
+        rec["position_loop_read"] = r.position_loop.as_dict()
     rec["stream"] = r.stream.line() if r.stream is not None else None
     rec["hover_error_m"] = _num(r.hover_error_m)
     rec["verification"] = {

@@ -70,6 +70,7 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError, MrftError
 from mrft_gcs.flight.cycles import CycleRules, CycleWatcher
+from mrft_gcs.flight.onboard import PositionLoopRate, vehicle_position_rate
 from mrft_gcs.flight.structure import (
     OnboardStructure,
     rate_d_values,
@@ -1182,17 +1183,20 @@ def _retarget_delay(seg: RelaySegment, t_cycles: np.ndarray) -> tuple[float, boo
 
 def analyse_segment(seg: RelaySegment, *, inner: Identification | None = None,
                     model: InnerModel | None = None, hover: float = 0.5,
-                    structure: OnboardStructure | None = None) -> LoopResult:
+                    structure: OnboardStructure | None = None,
+                    position_hz: float = math.nan) -> LoopResult:
     """Cycle detector, identification and residual analysis of one relay test.
 
     The cycles identified are those a live tune identifies (:func:`_live_cycles`);
     when the oscillation never becomes steady, the last cycles are identified with a
     note. ``model`` replaces the identified model for the residual
     analysis (e.g. a known model while the classifiers are not bundled). ``structure``:
-    how the autopilot closes the loop on written gains (:func:`log_structure`).
+    how the autopilot closes the loop on written gains (:func:`log_structure`);
+    ``position_hz``: the rate of its position loop (Hz, :func:`log_position_rate`; NaN: the
+    slowest allowed for).
     """
     ident, cyc, steady, notes = _live_cycles(seg, inner)
-    return _loop_result(seg, ident, cyc, steady, notes, model, hover, structure)
+    return _loop_result(seg, ident, cyc, steady, notes, model, hover, structure, position_hz)
 
 
 def log_structure(decoded: DecodedLog, family: str = "") -> dict[Loop, OnboardStructure]:
@@ -1210,9 +1214,20 @@ def log_structure(decoded: DecodedLog, family: str = "") -> dict[Loop, OnboardSt
     return vehicle_structure(first.get, family)
 
 
+def log_position_rate(decoded: DecodedLog, family: str = "") -> PositionLoopRate:
+    """The position loop's rate from the parameters a log holds, as a live tune reads it
+    (:func:`~mrft_gcs.flight.onboard.vehicle_position_rate`): the first logged values."""
+    first: dict[str, float] = {}
+    for e in decoded.events:
+        if isinstance(e, ParamValue) and e.name not in first:
+            first[e.name] = float(e.value)
+    return vehicle_position_rate(first.get, family)
+
+
 def _loop_result(seg: RelaySegment, ident: Identification | None, cyc: _Cycles, steady: bool,
                  notes: list[str], model: InnerModel | None, hover: float,
-                 structure: OnboardStructure | None = None) -> LoopResult:
+                 structure: OnboardStructure | None = None,
+                 position_hz: float = math.nan) -> LoopResult:
     """The gains a tune writes from ``ident`` (re-targeted where the relay ran on a ground
     station, and designed on the autopilot's ``structure`` as a tune designs them) and the
     residual analysis over the identified cycles ``cyc``."""
@@ -1228,7 +1243,8 @@ def _loop_result(seg: RelaySegment, ident: Identification | None, cyc: _Cycles, 
             from mrft_gcs.flight.onboard import onboard_extra_delay_s, robust_onboard_gains
 
             rt = robust_onboard_gains(ident, _gcs_delay(seg, cyc[0]),
-                                      onboard_extra_s=onboard_extra_delay_s(seg.loop))
+                                      onboard_extra_s=onboard_extra_delay_s(seg.loop,
+                                                                            position_hz))
             if structure is not None:
                 rt = structured_retarget(ident, rt, structure)
             delay, gains, d_ratio = rt.delay_s, rt.gains, rt.d_over_p_s
@@ -1299,6 +1315,8 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
     hover = _hover(log, profile)
     hover_f = hover if hover is not None else 0.5
     structure = log_structure(decoded, profile.family.value if profile is not None else "")
+    position_hz = log_position_rate(decoded, profile.family.value if profile is not None
+                                    else "").hz
     by_loop: dict[Loop, LoopResult] = {}
     for seg in sorted(segs, key=lambda s: s.loop.kind is LoopKind.SIDE):
         inner = None
@@ -1309,7 +1327,8 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
                 seg = _segment(seg.loop, seg.source, seg.t, seg.u, seg.y, info,
                                seg.gcs_period_s, inner)
         by_loop[seg.loop] = analyse_segment(seg, inner=inner, model=(models or {}).get(seg.loop),
-                                            hover=hover_f, structure=structure.get(seg.loop))
+                                            hover=hover_f, structure=structure.get(seg.loop),
+                                            position_hz=position_hz)
     alt = by_loop.get(Loop.ALTITUDE)
     if alt is not None and alt.identification is not None and alt.segment.source == "actuator":
         order = _answer_position(log, order, float(alt.segment.t[-1]))
@@ -1330,7 +1349,7 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
         if session is not None:
             cmds = decoded.actuator if len(decoded.actuator) else decoded.attitude_target
             _use_session(session, by_loop, why, want, models or {}, hover_f,
-                         _setpoint_period(cmds[:, 0]), structure)
+                         _setpoint_period(cmds[:, 0]), structure, position_hz)
     results = tuple(by_loop[lp] for lp in Loop if lp in by_loop and lp in want)
     why = {k: v for k, v in why.items() if Loop(k) in want}
     params: dict[str, float] = {}
@@ -1482,7 +1501,8 @@ def _replay_session(decoded: DecodedLog, profile) -> _SessionReplay | None:
 def _use_session(session: _SessionReplay, by_loop: dict[Loop, LoopResult],
                  why: dict[str, str], want: tuple[Loop, ...], models: dict[Loop, InnerModel],
                  hover: float, period_s: float,
-                 structure: dict[Loop, OnboardStructure] | None = None) -> None:
+                 structure: dict[Loop, OnboardStructure] | None = None,
+                 position_hz: float = math.nan) -> None:
     """Each loop the replayed tune identified: its identification, on the cycles the
     sequence handed over, replaces what the relay-segment search found (whose segment,
     with the ages the written gains are re-targeted by, is kept where it found one)."""
@@ -1504,7 +1524,7 @@ def _use_session(session: _SessionReplay, by_loop: dict[Loop, LoopResult],
             notes.append(session.notes[lp])
         why.pop(lp.value, None)
         by_loop[lp] = _loop_result(seg, ident, cyc, True, notes, models.get(lp), hover,
-                                   (structure or {}).get(lp))
+                                   (structure or {}).get(lp), position_hz)
 
 
 def _before_write_back(decoded: DecodedLog) -> DecodedLog:

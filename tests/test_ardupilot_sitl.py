@@ -18,8 +18,9 @@ import pytest
 
 from mrft_gcs.cli import main
 from mrft_gcs.errors import GainsReverted, LinkError, MrftError, SafetyAbort
-from mrft_gcs.flight.api import tune
+from mrft_gcs.flight.api import _optional_reader, tune
 from mrft_gcs.flight.holdcompare import WORSE_SLACK, judge_holds
+from mrft_gcs.flight.onboard import vehicle_position_rate
 from mrft_gcs.flight.ratepath import INAIR_CHECK
 from mrft_gcs.link import VehicleLink, measure_link, require_relay_capable
 from mrft_gcs.link.firmware import detect_firmware
@@ -59,6 +60,18 @@ def landed(copter):
         assert not link.heartbeat.armed, "still armed 40 s after a land command"
         if time.monotonic() - t > 0.1:
             print(f"waited {time.monotonic() - t:.1f} s for the vehicle to land and disarm")
+
+
+def test_the_position_loop_rate_is_the_main_loop_rate_read(copter):
+    """ArduCopter runs its position controller in the main loop: the tool reads
+    SCHED_LOOP_RATE for it, and a PX4 profile's reader finds it too."""
+    with VehicleLink.connect(copter[0], timeout_s=10) as link:
+        sched = ParamClient(link).read("SCHED_LOOP_RATE").value
+        r = vehicle_position_rate(_optional_reader(link), "ardupilot")
+        other = vehicle_position_rate(_optional_reader(link), "px4")
+    assert 50 <= sched <= 2000
+    assert r.read and r.hz == sched and "SCHED_LOOP_RATE" in r.source, r
+    assert other == r
 
 
 def test_firmware_is_known_and_link_timed_with_timesync(copter):

@@ -79,12 +79,14 @@ from mrft_gcs.flight.inair import (
     structured_redesign,
 )
 from mrft_gcs.flight.onboard import (
+    PositionLoopRate,
     Retarget,
     measure_gcs_delay,
     onboard_extra_delay_s,
     onboard_gains,
     onboard_side_gains,
     robust_onboard_gains,
+    vehicle_position_rate,
 )
 from mrft_gcs.flight.phases.yaw import IDENTIFY_AS as YAW_IDENTIFY_AS
 from mrft_gcs.flight.phases.yaw import YawOutcome
@@ -277,6 +279,8 @@ class TuneResult:
     yaw: YawOutcome | None = None
     #: the holds on the written and the old values after the hover check (None: not flown)
     hold_compare: HoldComparison | None = None
+    #: the position loop's rate the altitude and x/y gains were designed for (None: not read)
+    position_loop: PositionLoopRate | None = None
 
 
 #: the latest state from the link (kept under its old name for the code below)
@@ -586,6 +590,9 @@ class _Run:
         self.structure: dict[Loop, OnboardStructure] = {}
         #: rate D written as this share of rate P (s), per roll/pitch loop whose design chose it
         self.d_over_p: dict[Loop, float] = {}
+        #: the rate of the loop the written altitude and x/y gains go into, read before
+        #: take-off (flight/onboard): its hold is designed for
+        self.position_loop = PositionLoopRate()
         self.config = SequenceConfig()
         self.written: dict[Loop, PD] = {}
         self.residuals = True
@@ -653,7 +660,7 @@ class _Run:
                            if seq and seq.max_tilt_by_phase else [])),
             firmware=self.firmware, hover_check=self.hover_check,
             yaw=self.rate.yaw_outcome(seq.t_start_s if seq else math.nan) if self.rate else None,
-            hold_compare=self.hold_compare)
+            hold_compare=self.hold_compare, position_loop=self.position_loop)
 
     def _verification(self, lp: Loop, status: str) -> Verification | None:
         """The in-air check of ``lp``; a written loop it does not measure is checked by the
@@ -698,6 +705,10 @@ class _Run:
         current = client.read_many(self.prof.parameter_names())
         self.hover = current[self.prof.altitude.hover_thrust].value
         self.structure = vehicle_structure(_optional_reader(link), self.prof.family.value)
+        self.position_loop = vehicle_position_rate(_optional_reader(link),
+                                                   self.prof.family.value)
+        self.notes.append(f"position loop: {self.position_loop.source}; the altitude and x/y "
+                          f"gains allow for its hold ({self.position_loop.hold_s * 1e3:.2g} ms)")
         if dry_link:
             try:
                 relay_settings(LoopKind.ATTITUDE)
@@ -1122,9 +1133,10 @@ class _Run:
             if (lp in self.written and inner_lp in retargets and inner is not None
                     and ident is not None and self.gcs_delay_s is None):
                 st = self.structure.get(inner_lp)
-                side = onboard_side_gains(ident, inner, retargets[inner_lp],
-                                          target_hz=st.target_hz if st else None,
-                                          d_hz=st.d_hz if st else 0.0)
+                side = onboard_side_gains(
+                    ident, inner, retargets[inner_lp],
+                    onboard_extra_s=onboard_extra_delay_s(lp, self.position_loop.hz),
+                    target_hz=st.target_hz if st else None, d_hz=st.d_hz if st else 0.0)
                 self.written[lp] = side.gains
                 side_notes.append(f"{lp.value} {side.note()}")
         moved = [lp for lp, g in identified.items() if self.written[lp] != g
@@ -1415,7 +1427,8 @@ class _Run:
         spread = 1e-3 * (q.rtt_p90_ms - q.rtt_p50_ms) if rtt > 0 and q is not None else 0.0
         gcs = measure_gcs_delay(ages, period, sample_t_s=t, clock=clock, latency_s=0.5 * rtt,
                                 round_trip_s=rtt, round_trip_spread_s=spread)
-        rt = robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp))
+        rt = robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(
+            lp, self.position_loop.hz))
         return structured_retarget(ident, rt, self.structure.get(lp, OnboardStructure()))
 
     def _hand_over(self) -> None:

@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,7 +80,8 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "robust_onboard_gains", "PM_ROBUST_DEG", "ROUND_TRIP_SLACK_S", "SideRetarget",
            "onboard_side_gains", "onboard_extra_delay_s", "CAP_SHARE", "CERTAIN_CAP_SHARE",
            "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ", "CascadeGains", "cascade_gains",
-           "CASCADE_LOOP_HZ", "rate_loop_gains", "RATE_I_LOWEST"]
+           "CASCADE_LOOP_HZ", "rate_loop_gains", "RATE_I_LOWEST", "PositionLoopRate",
+           "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -111,7 +113,8 @@ CAP_SHARE = 0.75
 #: the most of the identified delay the least plausible GCS delay (measured: the link's
 #: round trip, the ages) may take out where that is more than :data:`CAP_SHARE`
 CERTAIN_CAP_SHARE = 0.95
-#: the slowest onboard position loop allowed for (Hz): its sample-and-hold is delay the
+#: the onboard position loop's rate allowed for where the vehicle does not say what it is
+#: (Hz; the slowest either firmware runs by default): its sample-and-hold is delay the
 #: altitude and side loops have onboard and did not have during the GCS-side tests
 POSITION_LOOP_MIN_HZ = 50.0
 #: the lowest rate-target low-pass (Hz) an autopilot's attitude loop is allowed to have
@@ -620,19 +623,155 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
     return SideRetarget(best, share, float(pm_best))
 
 
-def onboard_extra_delay_s(loop: Loop) -> float:
+def onboard_extra_delay_s(loop: Loop, position_hz: float = POSITION_LOOP_MIN_HZ) -> float:
     """Delay the autopilot's ``loop`` may have that the GCS-side loop had not, unseen (s).
 
-    Altitude and x/y are flown onboard by the position loop, at a rate the ground station
-    cannot read (PX4 runs it on each position estimate, ArduPilot in its main loop), down
-    to :data:`POSITION_LOOP_MIN_HZ`: its hold adds up to half a period. The relay tests
-    commanded thrust and attitude directly. Roll and pitch: none (the rate loop runs at
-    the rate the tests' torque commands were applied at).
+    Altitude and x/y are flown onboard by the position loop at ``position_hz`` (Hz; read
+    from the vehicle, :func:`vehicle_position_rate`; not finite or not positive:
+    :data:`POSITION_LOOP_MIN_HZ`): its hold adds half a period. The relay tests commanded
+    thrust and attitude directly. Roll and pitch: none (the rate loop runs at the rate the
+    tests' torque commands were applied at).
 
     >>> onboard_extra_delay_s(Loop.ALTITUDE), onboard_extra_delay_s(Loop.ROLL)
     (0.01, 0.0)
+    >>> onboard_extra_delay_s(Loop.X, 400.0)
+    0.00125
     """
-    return 0.0 if loop in (Loop.ROLL, Loop.PITCH) else 0.5 / POSITION_LOOP_MIN_HZ
+    if loop in (Loop.ROLL, Loop.PITCH):
+        return 0.0
+    hz = float(position_hz)
+    return 0.5 / (hz if math.isfinite(hz) and hz > 0 else POSITION_LOOP_MIN_HZ)
+
+
+# ----------------------------------------------------------------------- position loop rate
+#: the parameters that set the position loop's rate, per firmware (docs/onboard-rates.md):
+#: ArduCopter runs its position controller in the main loop (SCHED_LOOP_RATE, Hz); PX4's
+#: mc_pos_control runs on each vehicle_local_position, which EKF2 publishes once per filter
+#: update: every round(EKF2_PREDICT_US / IMU period) samples of vehicle_imu (IMU_INTEG_RATE)
+POSITION_RATE_PARAMS: dict[str, tuple[str, ...]] = {
+    "ardupilot": ("SCHED_LOOP_RATE",), "px4": ("EKF2_PREDICT_US", "IMU_INTEG_RATE")}
+#: the rates a read value may give (Hz): ArduPilot clamps SCHED_LOOP_RATE to 50-2000 Hz,
+#: PX4's IMU down-sampler EKF2_PREDICT_US to 1-100 ms; outside, the firmware is not one
+#: whose rule is known here and the fallback is taken
+_ARDUPILOT_HZ = (50.0, 2000.0)
+_PX4_PREDICT_US = (1000.0, 100000.0)
+_PX4_INTEG_HZ = (50.0, 4000.0)
+
+
+@dataclass(frozen=True)
+class PositionLoopRate:
+    """The rate the autopilot runs the loop the written altitude and x/y gains go into.
+
+    Attributes
+    ----------
+    hz : float
+        The position loop's rate (Hz).
+    source : str
+        What it came from: the parameters read, or why the fallback was taken.
+    read : bool
+        True where ``hz`` came from the vehicle, False where it is the fallback
+        :data:`POSITION_LOOP_MIN_HZ`.
+    """
+
+    hz: float = POSITION_LOOP_MIN_HZ
+    source: str = f"not read: {POSITION_LOOP_MIN_HZ:g} Hz assumed"
+    read: bool = False
+
+    @property
+    def hold_s(self) -> float:
+        """Delay the loop's sample-and-hold adds, allowed for onboard (s)."""
+        return 0.5 / self.hz
+
+    def as_dict(self) -> dict[str, object]:
+        return {"hz": self.hz, "hold_ms": self.hold_s * 1e3, "read": self.read,
+                "source": self.source}
+
+
+def _fallback(why: str) -> PositionLoopRate:
+    return PositionLoopRate(POSITION_LOOP_MIN_HZ,
+                            f"{why}: {POSITION_LOOP_MIN_HZ:g} Hz assumed", False)
+
+
+def read_position_rate(values: Mapping[str, float], family: str = "") -> PositionLoopRate:
+    """The position loop's rate from parameter ``values`` read from the vehicle.
+
+    ``values`` holds what the vehicle answered (a name it lacks is absent). The names of
+    ``family`` (``"ardupilot"``, ``"px4"``) are looked at first, then the other's (a
+    vehicle may run another firmware than its profile says). Absent or implausible:
+    :data:`POSITION_LOOP_MIN_HZ` with the reason.
+
+    >>> read_position_rate({"SCHED_LOOP_RATE": 400.0}, "ardupilot").hz
+    400.0
+    >>> r = read_position_rate({"EKF2_PREDICT_US": 10000.0, "IMU_INTEG_RATE": 250.0}, "px4")
+    >>> r.hz, r.read
+    (83.33333333333333, True)
+    >>> read_position_rate({"EKF2_PREDICT_US": 10000.0}, "px4").hz
+    100.0
+    >>> r = read_position_rate({"SCHED_LOOP_RATE": 0.0}, "ardupilot")
+    >>> r.hz, r.read, r.source
+    (50.0, False, 'SCHED_LOOP_RATE = 0 implausible (50-2000 Hz): 50 Hz assumed')
+    >>> read_position_rate({}, "px4").source
+    'neither SCHED_LOOP_RATE nor EKF2_PREDICT_US read: 50 Hz assumed'
+    """
+    order = ("px4", "ardupilot") if family == "px4" else ("ardupilot", "px4")
+    for fam in order:
+        name = POSITION_RATE_PARAMS[fam][0]
+        if name in values:
+            v = float(values[name])
+            return _ardupilot_rate(v) if fam == "ardupilot" else _px4_rate(
+                v, values.get(POSITION_RATE_PARAMS["px4"][1]))
+    return _fallback("neither SCHED_LOOP_RATE nor EKF2_PREDICT_US read")
+
+
+def _ardupilot_rate(v: float) -> PositionLoopRate:
+    lo, hi = _ARDUPILOT_HZ
+    if not (math.isfinite(v) and lo <= v <= hi):
+        return _fallback(f"SCHED_LOOP_RATE = {v:g} implausible ({lo:g}-{hi:g} Hz)")
+    return PositionLoopRate(v, f"SCHED_LOOP_RATE = {v:g} Hz read (ArduCopter's main loop)",
+                            True)
+
+
+def _px4_rate(predict_us: float, integ_hz: float | None) -> PositionLoopRate:
+    lo, hi = _PX4_PREDICT_US
+    if not (math.isfinite(predict_us) and lo <= predict_us <= hi):
+        return _fallback(f"EKF2_PREDICT_US = {predict_us:g} implausible "
+                         f"({lo:g}-{hi:g} us)")
+    ilo, ihi = _PX4_INTEG_HZ
+    if integ_hz is not None and math.isfinite(integ_hz) and ilo <= integ_hz <= ihi:
+        # the filter runs every n IMU samples, n rounded half up as PX4's roundf
+        n = max(1, math.floor(predict_us * 1e-6 * integ_hz + 0.5))
+        return PositionLoopRate(float(integ_hz) / n, (
+            f"EKF2_PREDICT_US = {predict_us:g} us, IMU_INTEG_RATE = {integ_hz:g} Hz read "
+            f"(EKF2 every {n} IMU samples)"), True)
+    return PositionLoopRate(1e6 / predict_us,
+                            f"EKF2_PREDICT_US = {predict_us:g} us read (EKF2's filter update)",
+                            True)
+
+
+def vehicle_position_rate(read: Callable[[str], float | None], family: str = ""
+                          ) -> PositionLoopRate:
+    """The position loop's rate of a vehicle, asking it through ``read`` (a parameter's
+    value, None where the vehicle has no such parameter): its family's names first, the
+    other family's where the first is not answered (:func:`read_position_rate`).
+
+    >>> vehicle_position_rate({"SCHED_LOOP_RATE": 500.0}.get, "px4").hz
+    500.0
+    >>> vehicle_position_rate({}.get, "ardupilot").read
+    False
+    """
+    order = ("px4", "ardupilot") if family == "px4" else ("ardupilot", "px4")
+    values: dict[str, float] = {}
+    for fam in order:
+        first, *rest = POSITION_RATE_PARAMS[fam]
+        v = read(first)
+        if v is None:
+            continue
+        values[first] = float(v)
+        for name in rest:
+            if (w := read(name)) is not None:
+                values[name] = float(w)
+        break
+    return read_position_rate(values, family)
 
 
 # ----------------------------------------------------------------------- ArduCopter's cascade

@@ -122,6 +122,11 @@ def report_dict(result: TuneResult) -> dict[str, Any]:
             for k, v in result.hover_check.as_dict().items()},
         # the written set held against the one it replaced (None: not flown)
         "hold_compare": None if result.hold_compare is None else result.hold_compare.as_dict(),
+        # the onboard position loop's rate the altitude and x/y gains were designed for
+        # (read: False where the vehicle did not say and the slowest rate was assumed)
+        "position_loop": None if result.position_loop is None else {
+            k: (_num(v) if isinstance(v, float) else v)
+            for k, v in result.position_loop.as_dict().items()},
         "limits": None if lim is None else {k: _num(v) for k, v in vars(lim).items()},
         "stream": None if st is None else {
             "rate_hz_target": _num(st.rate_hz_target), "rate_hz": _num(st.rate_hz_achieved),

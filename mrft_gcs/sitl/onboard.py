@@ -17,9 +17,11 @@ angle differences for small angles); ``d(rate)/dt`` is low-passed at ``IMU_DGYRO
 
 The structure's own filters and rates are parameters under the firmware's names
 (:func:`structure_specs`), as a ground station reads them from real firmware: PX4-like
-vehicles ``IMU_DGYRO_CUTOFF`` (Hz) and ``IMU_GYRO_RATEMAX`` (the rate loop's rate, Hz);
-ArduPilot-like ones ``ATC_RAT_RLL_FLTT`` / ``ATC_RAT_PIT_FLTT`` (rate target low-pass, Hz),
-``ATC_RAT_RLL_FLTD`` / ``ATC_RAT_PIT_FLTD`` (D low-pass, Hz) and ``SCHED_LOOP_RATE`` (Hz).
+vehicles ``IMU_DGYRO_CUTOFF`` (Hz), ``IMU_GYRO_RATEMAX`` (the rate loop's rate, Hz) and
+``IMU_INTEG_RATE`` (Hz) with ``EKF2_PREDICT_US`` (us), which set the position loop's rate as
+on PX4 (docs/onboard-rates.md); ArduPilot-like ones ``ATC_RAT_RLL_FLTT`` / ``ATC_RAT_PIT_FLTT``
+(rate target low-pass, Hz), ``ATC_RAT_RLL_FLTD`` / ``ATC_RAT_PIT_FLTD`` (D low-pass, Hz) and
+``SCHED_LOOP_RATE`` (Hz: the rate loop's and, as on ArduCopter, the position loop's).
 A filter written takes effect at once; a loop rate, as on the firmware, only after a reboot
 (never, in the simulator).
 
@@ -174,7 +176,9 @@ def structure_specs(spec: OnboardSpec | None = None) -> dict[str, ParamSpec]:
     with ``spec``'s values as defaults (ranges as the firmware's).
 
     >>> sorted(structure_specs(OnboardSpec()))
-    ['IMU_DGYRO_CUTOFF', 'IMU_GYRO_RATEMAX']
+    ['EKF2_PREDICT_US', 'IMU_DGYRO_CUTOFF', 'IMU_GYRO_RATEMAX', 'IMU_INTEG_RATE']
+    >>> structure_specs(OnboardSpec(loop_hz=500.0, position_loop_hz=125.0))["EKF2_PREDICT_US"]
+    ParamSpec(default=8000.0, low=1000.0, high=20000.0, unit='us')
     >>> structure_specs(OnboardSpec(style="ardupilot", target_cutoff_hz=15.0))["ATC_RAT_RLL_FLTT"]
     ParamSpec(default=15.0, low=0.0, high=500.0, unit='Hz')
     """
@@ -185,8 +189,14 @@ def structure_specs(spec: OnboardSpec | None = None) -> dict[str, ParamSpec]:
                 "ATC_RAT_RLL_FLTD": ParamSpec(sp.dgyro_cutoff_hz, 0.0, 500.0, "Hz"),
                 "ATC_RAT_PIT_FLTD": ParamSpec(sp.dgyro_cutoff_hz, 0.0, 500.0, "Hz"),
                 "SCHED_LOOP_RATE": ParamSpec(sp.loop_hz, 50.0, 2000.0, "Hz")}
+    # the position loop runs on each EKF2 update: every round(EKF2_PREDICT_US / IMU period)
+    # samples of vehicle_imu, published at IMU_INTEG_RATE (here the rate loop's rate)
+    every = max(1, round(sp.loop_hz / sp.position_loop_hz))
     return {"IMU_DGYRO_CUTOFF": ParamSpec(sp.dgyro_cutoff_hz, 0.0, 1000.0, "Hz"),
-            "IMU_GYRO_RATEMAX": ParamSpec(sp.loop_hz, 100.0, 2000.0, "Hz")}
+            "IMU_GYRO_RATEMAX": ParamSpec(sp.loop_hz, 100.0, 2000.0, "Hz"),
+            "IMU_INTEG_RATE": ParamSpec(sp.loop_hz, 100.0, 1000.0, "Hz"),
+            "EKF2_PREDICT_US": ParamSpec(float(round(1e6 * every / sp.loop_hz)), 1000.0,
+                                         20000.0, "us")}
 
 
 class ParamStore:

@@ -120,6 +120,10 @@ def random_airframe(seed: int) -> Airframe:
     style = "ardupilot" if rng.random() < 0.5 else "px4"
     loop_hz = float(rng.choice(LOOP_RATES_HZ))
     pos_every = int(rng.choice([k for k in (1, 2, 4, 5) if loop_hz / k >= 50.0]))
+    if style == "ardupilot":
+        # ArduCopter runs its position controller in the main loop, beside the rate loop
+        # (SCHED_LOOP_RATE): drawn all the same, so that the draws after it stay the seed's
+        pos_every = 1
     onboard = OnboardSpec(
         style=style, loop_hz=loop_hz, position_loop_hz=loop_hz / pos_every,
         dgyro_cutoff_hz=round(_logu(rng, 15.0, 60.0) if style == "px4"

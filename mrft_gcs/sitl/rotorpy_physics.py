@@ -210,8 +210,8 @@ def rotorpy_airframe(name: str | None = None, seed: int | None = None) -> Rotorp
             position_noise_m=_logu(rng, 5e-4, 3e-3), velocity_noise_m_s=_logu(rng, 2e-3, 8e-3),
             hover_estimate_factor=_logu(rng, 0.85, 1.15),
             onboard=OnboardSpec(
-                style=style, loop_hz=_LOOP_HZ, position_loop_hz=_LOOP_HZ / float(
-                    rng.choice([1, 2, 5])),
+                style=style, loop_hz=_LOOP_HZ,
+                position_loop_hz=_position_hz(style, float(rng.choice([1, 2, 5]))),
                 dgyro_cutoff_hz=round(_logu(rng, 20.0, 50.0), 1),
                 target_cutoff_hz=round(_logu(rng, 15.0, 40.0), 1) if style == "ardupilot"
                 else 0.0,
@@ -225,6 +225,12 @@ def rotorpy_airframe(name: str | None = None, seed: int | None = None) -> Rotorp
         f"{ob.style}-like onboard at {ob.loop_hz:.0f}/{ob.position_loop_hz:.0f} Hz"))
     af.validate()
     return RotorpySpec(name, MappingProxyType(p), af)
+
+
+def _position_hz(style: str, every: float) -> float:
+    """The position loop's rate: every ``every`` rate-loop ticks on a PX4-like vehicle (its
+    EKF2 rate); ArduCopter runs its position controller in the main loop, at its rate."""
+    return _LOOP_HZ if style == "ardupilot" else _LOOP_HZ / every
 
 
 class RotorpyMultirotor(Multirotor):
