@@ -88,3 +88,29 @@ def test_channel_measures_a_ringing_pitch_and_yaw_stops_waiting():
     assert float(np.max(ch.rp_rms)) < RING_RMS_RAD_S / 10
     assert yaw_wait_over(1.0, ch.rp_rms) is None
     assert yaw_wait_over(YAW_AFTER_ROLL_PITCH_S + 0.01, ch.rp_rms) is not None
+
+
+def test_check_probe_settles_on_its_centre_and_flags_a_growing_swing():
+    """The rate path's in-air check holds its centre after the square waves (the input
+    shaping put back mid-swing carried ArduCopter SITL's target to 49 deg) and flags a
+    swing past ``CHECK_SWING`` amplitudes (the caller lands on the vehicle's own gains)."""
+    from mrft_gcs.flight.inair import SquareWaveProbe, plan_check
+    from mrft_gcs.flight.ratepath import CHECK_AMPLITUDE_RAD, CHECK_SETTLE_S, CHECK_SWING
+
+    plan = plan_check(InnerModel(40.0, 0.03, 0.2, 0.01), PD(0.8, 0.1), CHECK_AMPLITUDE_RAD)
+    probe = SquareWaveProbe({Loop.ROLL: plan}, (0.01, 0.0), swing_limit=CHECK_SWING,
+                            settle_s=CHECK_SETTLE_S)
+    t, out = 0.0, []
+    while not probe.done:
+        out.append((t, *probe.step(t, t, 0.01, 0.0)))
+        t += 0.004
+    a = np.array(out)
+    waves = a[a[:, 0] < plan.duration_s - 0.01]
+    after = a[a[:, 0] > plan.duration_s + 0.01]
+    assert np.ptp(waves[:, 1]) == pytest.approx(2 * CHECK_AMPLITUDE_RAD)
+    assert after[-1, 0] >= plan.duration_s + CHECK_SETTLE_S - 0.01
+    assert np.all(after[:, 1] == 0.01) and probe.swing_over is None
+    probe.step(t, t, 0.01 + 0.9 * CHECK_SWING * CHECK_AMPLITUDE_RAD, 0.0)
+    assert probe.swing_over is None
+    probe.step(t + 0.004, t + 0.004, 0.01 - 1.1 * CHECK_SWING * CHECK_AMPLITUDE_RAD, 0.0)
+    assert probe.swing_over is not None and probe.swing_over[0] is Loop.ROLL

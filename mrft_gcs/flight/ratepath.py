@@ -75,7 +75,9 @@ from mrft_gcs.telemetry import (
 __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignment",
            "check_feed_forward", "rate_path_refusal", "body_rates", "LINK_LOSS_GUARD",
            "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE", "TARGET_SET_PARAM",
-           "CHECK_PARAMS", "CHECK_SPAN_S", "INAIR_CHECK", "TUNE_YAW", "RATE_I_DECADE",
+           "CHECK_PARAMS", "CHECK_SPAN_S", "CHECK_AMPLITUDE_RAD", "CHECK_SWING", "CHECK_SETTLE_S",
+           "INAIR_CHECK",
+           "TUNE_YAW", "RATE_I_DECADE",
            "YAW_RATE_I_DECADE", "YAW_AFTER_ROLL_PITCH_S", "RING_RMS_RAD_S", "yaw_wait_over",
            "YawDesign",
            "yaw_design", "yaw_names"]
@@ -155,6 +157,19 @@ CHECK_PARAMS = {"ATC_ACCEL_R_MAX": 0.0, "ATC_ACCEL_P_MAX": 0.0, "ATC_INPUT_TC": 
 #: the in-air check's measured cycles span at least this on this path (s): crossovers of
 #: 60-90 rad/s give 3 cycles of 0.2-0.3 s, too few ATTITUDE_TARGET samples at 250 Hz
 CHECK_SPAN_S = 1.0
+#: the in-air check's square wave on this path (rad): the check flies with angle P linear
+#: (:data:`CHECK_PARAMS`), nothing bounds a swing that grows; 1 deg (half the torque
+#: path's) keeps a 20 deg loop's resonance near 3 deg
+CHECK_AMPLITUDE_RAD = math.radians(1.0)
+#: a swing off the check's centre past this many square-wave amplitudes stops the check
+#: (the vehicle's own gains back, landing): a loop at the 15 deg floor peaks at ~3.8x,
+#: one left to grow flipped ArduCopter SITL at the tilt limit
+CHECK_SWING = 5.0
+#: the check's centre held this long after its last square wave, before :data:`CHECK_PARAMS`
+#: are put back (s): with no input shaping the onboard target's rate is 1/0.01 s times the
+#: set point's error, and the shaping put back in the middle of a swing carried the target
+#: on to 49 deg of pitch on ArduCopter SITL (the tilt limit then landed it)
+CHECK_SETTLE_S = 0.5
 #: roll/pitch: the written rate I's zero sits this factor below the written loop's crossover
 #: on the cascade (0: rate I written 0, the identified PD alone). With P alone the rate loop
 #: leaves a rate error wherever the body must be held against a torque or the target's
@@ -1031,6 +1046,18 @@ class RatePath:
         self.changes = tuple(ParamChange(n, self.originals.get(n, math.nan), v)
                              for n, v in self.staged.items())
         return tuple(rest)
+
+    def keep_integrator_zero(self, values: Mapping[str, float]) -> dict[str, float]:
+        """``values`` (gains re-written after the hand-over, their rate I as the PD mapping
+        gives it: 0) with each roll/pitch rate I at the new rate P times the zero written at
+        the hand-over (``I / P``), the zero the in-air check's cascade model holds."""
+        out, final = dict(values), self._final()
+        for name in self.params.rate_p[:2]:
+            i_name = name.removesuffix("P") + "I"
+            p0, i0 = final.get(name, 0.0), final.get(i_name, 0.0)
+            if name in out and i_name in out and p0 > 0 and math.isfinite(i0) and i0 > 0:
+                out[i_name] = out[name] * i0 / p0
+        return out
 
     def inner_due(self, roll_pitch_tuned: bool) -> bool:
         """True once roll and pitch are identified and the hand-over has not run: the side
