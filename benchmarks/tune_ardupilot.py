@@ -316,6 +316,11 @@ def tune_run(run: int, serial0: str, obs: Observer, hold: Callable[[], dict[str,
         "written": {c.name: [c.old, c.new] for c in result.parameters},
         "hover_check": str(result.hover_check), "notes": notes, "before": before,
         "hold_compare": result.hold_compare.as_dict() if result.hold_compare else None}
+    if result.yaw is not None:  # the rate path's yaw relay: tuned or held, and why
+        y = result.yaw
+        row["yaw"] = {"state": y.state, "reason": y.reason, "steady_after_s": y.steady_after_s,
+                      "pm_predicted_deg": y.pm_predicted_deg, "note": y.note}
+        print(f"run {run}: yaw {y.state}: {y.reason or y.note}", flush=True)
     if result.hold_compare is not None:
         print(f"run {run}: {result.hold_compare.line()}", flush=True)
     obs.land_and_wait()

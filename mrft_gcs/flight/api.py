@@ -90,7 +90,10 @@ from mrft_gcs.flight.onboard import (
 )
 from mrft_gcs.flight.phases.yaw import IDENTIFY_AS as YAW_IDENTIFY_AS
 from mrft_gcs.flight.phases.yaw import YawOutcome
+from mrft_gcs.flight.ratepath import CHECK_AMPLITUDE_RAD as RATE_CHECK_AMPLITUDE_RAD
+from mrft_gcs.flight.ratepath import CHECK_SETTLE_S as RATE_CHECK_SETTLE_S
 from mrft_gcs.flight.ratepath import CHECK_SPAN_S as RATE_CHECK_SPAN_S
+from mrft_gcs.flight.ratepath import CHECK_SWING as RATE_CHECK_SWING
 from mrft_gcs.flight.ratepath import GCS_PD_SCALE as RATE_GCS_PD_SCALE
 from mrft_gcs.flight.ratepath import INAIR_CHECK as RATE_INAIR_CHECK
 from mrft_gcs.flight.ratepath import STREAM_HZ as RATE_STREAM_HZ
@@ -1218,7 +1221,8 @@ class _Run:
                                               d_over_p_s=self.d_over_p[lp], d_filter_hz=st.d_hz)
 
         def plan_for(lp: Loop, model: InnerModel, gains: PD) -> CheckPlan:
-            plan = plan_check(model, gains, CHECK_AMPLITUDE_RAD, cascade=cascades.get(lp))
+            amp = RATE_CHECK_AMPLITUDE_RAD if on_rate else CHECK_AMPLITUDE_RAD
+            plan = plan_check(model, gains, amp, cascade=cascades.get(lp))
             if not on_rate:
                 return plan
             return dataclasses.replace(plan, cycles=max(plan.cycles, math.ceil(
@@ -1327,7 +1331,10 @@ class _Run:
     def _probe(self, plans: dict) -> dict:
         """Fly the square waves of ``plans`` and return ``{loop: (plan, InAirCheck)}``."""
         assert self.streamer is not None
-        probe = SquareWaveProbe(plans, self._probe_centre())
+        on_rate = self.rate is not None
+        probe = SquareWaveProbe(plans, self._probe_centre(),
+                                swing_limit=RATE_CHECK_SWING if on_rate else None,
+                                settle_s=RATE_CHECK_SETTLE_S if on_rate else 0.0)
         # the heading held through the check: the one flown now (a fresh reader has none)
         s = self.vehicle.telemetry.latest() if self.vehicle is not None else None
         self.probe_yaw = s.yaw_rad if s is not None else (self.seq.yaw_ref if self.seq else 0.0)
@@ -1347,6 +1354,14 @@ class _Run:
                         if isinstance(sp, AttitudeSetpoint):
                             probe.track(sp.t_s, sp.roll_rad, sp.pitch_rad)
                     self._check_stream()
+                    if probe.swing_over is not None:
+                        # the abort restores the vehicle's own gains before the landing
+                        lp, swing = probe.swing_over
+                        raise SafetyAbort(
+                            f"in-air check: {lp.value} swung {math.degrees(swing):.1f} deg off "
+                            f"its centre on a {math.degrees(probe.plans[lp].amplitude):.1f} "
+                            f"deg square wave (limit {RATE_CHECK_SWING:g}x): the written gains "
+                            f"ring; the vehicle's own gains back, landing commanded")
             finally:
                 self.probe = None
                 if asked:  # the rate path keeps the stream it aligns its rates with
@@ -1396,6 +1411,8 @@ class _Run:
         ranged = params_in_range(self.prof, {lp: PDGains(g.Kc, g.Kd) for lp, g in gains.items()},
                                  self.hover)
         values = {**ranged.values, **rate_d_values(self.prof, ranged.gains, self.d_over_p)}
+        if self.rate is not None and self.rate.handed_over:
+            values = self.rate.keep_integrator_zero(values)
         result = client.write(values, self.backup_dir, label="backup-recheck")
         first = {c.name: c for c in self.changes}
         merged = {c.name: c for c in self.changes}

@@ -89,7 +89,10 @@ class SequenceConfig:
     #: stiff for the loop's delay, it chatters at its limits and never hands back)
     catch_chatter_flips: int = 4
     #: factor on the identified attitude PDs while they run on the GCS (during the side
-    #: tests and the hover); the written gains are never scaled
+    #: tests and the hover): on Kd, and its square on Kc (the loop is nearly a double
+    #: integrator, whose crossover follows Kd: the PD's zero moves down with it and its lead
+    #: at the crossover stays; both scaled alike, the zero stays and the lead shrinks). The
+    #: written gains are never scaled
     gcs_attitude_pd_scale: float = 1.0
     #: relay noise band = this many standard deviations of the signal's noise, measured on
     #: the ground before the take-off (the classifiers were trained with 4 sigma)

@@ -245,7 +245,7 @@ class SequenceDriver:
                 scale = seq.config.gcs_attitude_pd_scale
                 if inner is not None and scale != 1.0:  # the inner PD the side relay flew
                     g = inner.gains
-                    inner = dataclasses.replace(inner, gains=PD(scale * g.Kc, scale * g.Kd))
+                    inner = dataclasses.replace(inner, gains=PD(scale**2 * g.Kc, scale * g.Kd))
                 if seq.config.actuation is Actuation.ATTITUDE:
                     # the autopilot's attitude loop flew the side relay (also once the rate
                     # path wrote the identified gains): measured from its cycles

@@ -528,10 +528,17 @@ class SquareWaveProbe:
     """
 
     def __init__(self, plans: dict[Loop, CheckPlan],
-                 centre: tuple[float, float] = (0.0, 0.0)) -> None:
+                 centre: tuple[float, float] = (0.0, 0.0),
+                 swing_limit: float | None = None, settle_s: float = 0.0) -> None:
         self.plans = dict(plans)
         self.centre = centre
-        self.duration_s = max(p.duration_s for p in self.plans.values())
+        #: the centre alone is flown this long after the square waves (s) before :attr:`done`
+        self.settle_s = settle_s
+        #: a swing off the centre past this many of a loop's amplitudes is recorded in
+        #: :attr:`swing_over` (the caller stops the check); None: not watched
+        self.swing_limit = swing_limit
+        self.waves_s = max(p.duration_s for p in self.plans.values())
+        self.duration_s = self.waves_s + settle_s
         self.reset()
 
     def reset(self) -> None:
@@ -543,6 +550,8 @@ class SquareWaveProbe:
         self.tracked: dict[float, tuple[float, float]] = {}
         #: per loop, whether :meth:`points` took the input from that record
         self.used_tracked: dict[Loop, bool] = {}
+        #: the first loop that swung past ``swing_limit`` and its swing (rad), else None
+        self.swing_over: tuple[Loop, float] | None = None
 
     def track(self, t_s: float, roll: float, pitch: float) -> None:
         """One set point the vehicle reported tracking (vehicle clock, s; rad)."""
@@ -558,9 +567,14 @@ class SquareWaveProbe:
             self.t0 = now_s
         self.offset = min(self.offset, now_s - t_att_s)
         self.smp[t_att_s] = (roll, pitch)
+        if self.swing_limit is not None and self.swing_over is None:
+            for lp, y, c in zip((Loop.ROLL, Loop.PITCH), (roll, pitch), self.centre, strict=True):
+                p = self.plans.get(lp)
+                if p is not None and abs(y - c) > self.swing_limit * p.amplitude:
+                    self.swing_over = (lp, abs(y - c))
         t = now_s - self.t0
-        out = [c + (square_wave(t, p.period_s, p.amplitude) if (p := self.plans.get(lp))
-                    else 0.0)
+        out = [c + (square_wave(t, p.period_s, p.amplitude)
+                    if (p := self.plans.get(lp)) and t < self.waves_s else 0.0)
                for lp, c in zip((Loop.ROLL, Loop.PITCH), self.centre, strict=True)]
         self.cmd.append((now_s, out[0], out[1]))
         return out[0], out[1]

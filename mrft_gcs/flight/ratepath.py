@@ -75,8 +75,10 @@ from mrft_gcs.telemetry import (
 __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignment",
            "check_feed_forward", "rate_path_refusal", "body_rates", "LINK_LOSS_GUARD",
            "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE", "TARGET_SET_PARAM",
-           "CHECK_PARAMS", "CHECK_SPAN_S", "INAIR_CHECK", "TUNE_YAW", "RATE_I_DECADE",
-           "YAW_RATE_I_DECADE",
+           "CHECK_PARAMS", "CHECK_SPAN_S", "CHECK_AMPLITUDE_RAD", "CHECK_SWING", "CHECK_SETTLE_S",
+           "INAIR_CHECK",
+           "TUNE_YAW", "RATE_I_DECADE",
+           "YAW_RATE_I_DECADE", "YAW_AFTER_ROLL_PITCH_S", "RING_RMS_RAD_S", "yaw_wait_over",
            "YawDesign",
            "yaw_design", "yaw_names"]
 
@@ -111,11 +113,12 @@ TARGET_SET_PARAM = "ATC_RATE_FF_ENAB"
 #: a dozen set points at 250 Hz, so that one has surely been applied
 ALIGN_HOLD_S = 0.05
 #: factor on the identified roll/pitch PDs while the ground station flies them on this
-#: path (``SequenceConfig.gcs_attitude_pd_scale``; the written gains are not scaled). The
-#: designed PD keeps ~17 deg of phase margin at a ~70 rad/s crossover on ArduCopter SITL's
-#: quad; the GCS loop's stream jitter and telemetry lag took it unstable at full gain
-#: (roll diverged within 0.2 s). At 0.5 the crossover halves and 4 ms more delay still
-#: leaves a gain margin of 2 (identified roll model).
+#: path (``SequenceConfig.gcs_attitude_pd_scale``: on Kd, its square on Kc; the written
+#: gains are not scaled). The designed PD keeps ~17 deg of phase margin at a ~70 rad/s
+#: crossover on ArduCopter SITL's quad; the GCS loop's stream jitter and telemetry lag took
+#: it unstable at full gain (roll diverged within 0.2 s). Both gains halved, 8 ms of delay
+#: more than identified left 0-18 deg (identified models of five runs), and pitch rang at
+#: 200 deg/s rms beside the yaw relay; Kd halved and Kc quartered leaves 18-41 deg
 GCS_PD_SCALE = 0.5
 #: the yaw hold's output limit on this path (normalised yaw command)
 YAW_LIMIT = 0.5
@@ -154,6 +157,19 @@ CHECK_PARAMS = {"ATC_ACCEL_R_MAX": 0.0, "ATC_ACCEL_P_MAX": 0.0, "ATC_INPUT_TC": 
 #: the in-air check's measured cycles span at least this on this path (s): crossovers of
 #: 60-90 rad/s give 3 cycles of 0.2-0.3 s, too few ATTITUDE_TARGET samples at 250 Hz
 CHECK_SPAN_S = 1.0
+#: the in-air check's square wave on this path (rad): the check flies with angle P linear
+#: (:data:`CHECK_PARAMS`), nothing bounds a swing that grows; 1 deg (half the torque
+#: path's) keeps a 20 deg loop's resonance near 3 deg
+CHECK_AMPLITUDE_RAD = math.radians(1.0)
+#: a swing off the check's centre past this many square-wave amplitudes stops the check
+#: (the vehicle's own gains back, landing): a loop at the 15 deg floor peaks at ~3.8x,
+#: one left to grow flipped ArduCopter SITL at the tilt limit
+CHECK_SWING = 5.0
+#: the check's centre held this long after its last square wave, before :data:`CHECK_PARAMS`
+#: are put back (s): with no input shaping the onboard target's rate is 1/0.01 s times the
+#: set point's error, and the shaping put back in the middle of a swing carried the target
+#: on to 49 deg of pitch on ArduCopter SITL (the tilt limit then landed it)
+CHECK_SETTLE_S = 0.5
 #: roll/pitch: the written rate I's zero sits this factor below the written loop's crossover
 #: on the cascade (0: rate I written 0, the identified PD alone). With P alone the rate loop
 #: leaves a rate error wherever the body must be held against a torque or the target's
@@ -166,6 +182,20 @@ RATE_I_DECADE = 10.0
 #: keeps ``d / Kc`` of error under a yaw torque ``d`` (the motors' own torque imbalance,
 #: a yaw-twisted frame); the I removes it
 YAW_RATE_I_DECADE = 10.0
+#: once roll and pitch are identified, yaw's relay gets this long more for a steady cycle
+#: (s) before it gives up to the vehicle's own yaw gains: the zero-gain window (roll and
+#: pitch on the ground station's PDs) closes only when yaw is done
+YAW_AFTER_ROLL_PITCH_S = 4.0
+#: roll or pitch body-rate rms (rad/s, over :data:`RING_TAU_S`) on the ground station's PDs
+#: that ends yaw's test at once, so that the hand-over puts roll and pitch on the onboard
+#: loop: a PD that rings shakes the heading (no steady yaw cycle comes) and, left to ring,
+#: flips the vehicle. Relay tests swing the body at 20-35 deg/s rms, the PDs at rest at
+#: under 10; ringing ran at 100-230
+RING_RMS_RAD_S = math.radians(80.0)
+#: time constant of the body-rate rms (s), and how long after roll and pitch are both
+#: identified it is first judged (their relays' last swings pass first)
+RING_TAU_S = 0.25
+RING_AFTER_S = 0.5
 _ATTITUDE_TARGET_ID = 83
 _PID_TUNING_ID = 194
 _AXES = ("roll", "pitch", "yaw")
@@ -485,6 +515,33 @@ def yaw_design(ident: Identification, names: Mapping[str, str], target_filter_hz
                      else None)
 
 
+def yaw_wait_over(waited_s: float, rp_rms: np.ndarray) -> str | None:
+    """Why yaw's relay stops waiting for a steady cycle, ``waited_s`` after roll and pitch
+    were identified, their body rates at ``rp_rms`` (rad/s, roll and pitch) on the ground
+    station's PDs; None: it waits on.
+
+    >>> yaw_wait_over(1.0, np.radians([5.0, 8.0])) is None
+    True
+    >>> yaw_wait_over(1.0, np.radians([5.0, 200.0]))[:40]
+    "pitch rang on the ground station's PD (2"
+    >>> yaw_wait_over(0.2, np.radians([5.0, 200.0])) is None  # its relay's last swings
+    True
+    >>> yaw_wait_over(YAW_AFTER_ROLL_PITCH_S + 0.1, np.zeros(2))[:30]
+    'no steady relay cycle within 4'
+    """
+    worst = float(np.max(rp_rms))
+    if waited_s > RING_AFTER_S and worst > RING_RMS_RAD_S:
+        return (f"{_AXES[int(np.argmax(rp_rms))]} rang on the ground station's PD "
+                f"({math.degrees(worst):.0f} deg/s rms body rate, limit "
+                f"{math.degrees(RING_RMS_RAD_S):.0f}) {waited_s:.1f} s after roll and pitch "
+                f"were identified: yaw's test ended so that roll and pitch go onto the "
+                f"onboard loop at once")
+    if waited_s > YAW_AFTER_ROLL_PITCH_S:
+        return (f"no steady relay cycle within {YAW_AFTER_ROLL_PITCH_S:g} s of roll and pitch "
+                f"identified")
+    return None
+
+
 # ---------------------------------------------------------------------- streaming state
 class RateChannel:
     """Torque set points -> body-rate set points, on the stream's ticks.
@@ -507,6 +564,23 @@ class RateChannel:
         self.worst_thrust_rad = 0.0
         self.worst_heading_rad = 0.0
         self.last_thrust = 0.0
+        #: roll and pitch body rates' mean square (rad^2/s^2, over RING_TAU_S) and the
+        #: vehicle time of the sample it last took
+        self.rp_ms = np.zeros(2)
+        self._t_rate_s = math.nan
+
+    @property
+    def rp_rms(self) -> np.ndarray:
+        """Roll and pitch body rates' rms over the last :data:`RING_TAU_S` (rad/s)."""
+        return np.sqrt(self.rp_ms)
+
+    def _see_rates(self, s: FlightState) -> None:
+        dt = s.t_att_s - self._t_rate_s
+        self._t_rate_s = s.t_att_s
+        if not dt > 0:
+            return  # ticks between telemetry samples repeat the state
+        a = min(1.0, dt / RING_TAU_S)
+        self.rp_ms += a * (np.array([s.p_rad_s, s.q_rad_s]) ** 2 - self.rp_ms)
 
     def see_target(self, sp: AttitudeSetpoint) -> None:
         self.target = sp
@@ -516,6 +590,8 @@ class RateChannel:
         :attr:`hold_body`, the body's attitude as an attitude set point instead (the
         hand-over sets the onboard target onto it)."""
         self.last_thrust = out.thrust
+        if s is not None:
+            self._see_rates(s)
         if self.hold_body and s is not None:
             return AttitudeTarget(out.t_s, quat_from_euler(s.roll_rad, s.pitch_rad, s.yaw_rad),
                                   out.thrust)
@@ -570,6 +646,9 @@ class RatePath:
         self.yaw_flte = 0.0  # the vehicle's own yaw rate-error filter (Hz; 0: none)
         self.yaw_staged: dict[str, float] = {}
         self._yaw_gcs_s = math.nan  # monotonic time the yaw gains were designed
+        self._t_rp_s = math.nan  # monotonic time roll and pitch were first seen identified
+        #: largest roll, pitch body-rate rms on the ground station's PDs while yaw waited
+        self.rp_rms_max = np.zeros(2)
         self._stack = contextlib.ExitStack()
         self._targets = self._stack.enter_context(link.subscribe(AttitudeSetpoint))
         self._pid = self._stack.enter_context(link.subscribe(PidTuning))
@@ -714,6 +793,10 @@ class RatePath:
                 m = ident.model
                 when += (f"; identified K {m.K:.3g}, T_prop {m.T_prop:.3g} s, T1 {m.T1:.3g} s, "
                          f"tau {m.tau:.3g} s, period {ident.period_s:.3f} s")
+            if math.isfinite(self._t_rp_s):
+                rp = np.degrees(self.rp_rms_max)
+                when += (f"; roll/pitch body rates on the ground station's PDs while yaw waited "
+                         f"up to {rp[0]:.0f}/{rp[1]:.0f} deg/s rms")
             self.yaw_note = (f"yaw held on its own gains: {relay.why}; the ground station "
                              f"held it on the vehicle's own yaw gains, which are restored"
                              f"{when}")
@@ -964,13 +1047,42 @@ class RatePath:
                              for n, v in self.staged.items())
         return tuple(rest)
 
+    def keep_integrator_zero(self, values: Mapping[str, float]) -> dict[str, float]:
+        """``values`` (gains re-written after the hand-over, their rate I as the PD mapping
+        gives it: 0) with each roll/pitch rate I at the new rate P times the zero written at
+        the hand-over (``I / P``), the zero the in-air check's cascade model holds."""
+        out, final = dict(values), self._final()
+        for name in self.params.rate_p[:2]:
+            i_name = name.removesuffix("P") + "I"
+            p0, i0 = final.get(name, 0.0), final.get(i_name, 0.0)
+            if name in out and i_name in out and p0 > 0 and math.isfinite(i0) and i0 > 0:
+                out[i_name] = out[name] * i0 / p0
+        return out
+
     def inner_due(self, roll_pitch_tuned: bool) -> bool:
         """True once roll and pitch are identified and the hand-over has not run: the side
         tests then fly on the written gains onboard (as on the attitude path), and the
         zero-gain window closes there. A yaw relay must be done too (identified or given
         up: it gives up within its own time limit)."""
+        if roll_pitch_tuned and not self.handed_over:
+            self._yaw_wait()
         yaw_done = self.yaw is None or self.yaw.done
         return roll_pitch_tuned and yaw_done and not self.handed_over and self.backup is not None
+
+    def _yaw_wait(self) -> None:
+        """Roll and pitch are identified and fly on the ground station's PDs: yaw's relay
+        gives up where they ring (:data:`RING_RMS_RAD_S`) or after
+        :data:`YAW_AFTER_ROLL_PITCH_S`, so that the hand-over comes."""
+        relay, now = self.yaw, time.monotonic()
+        if not math.isfinite(self._t_rp_s):
+            self._t_rp_s = now
+        if relay is None or relay.done or relay.state is YawState.READY:
+            return  # READY: its cycles are being identified
+        waited, rms = now - self._t_rp_s, self.channel.rp_rms
+        if waited > RING_AFTER_S:
+            self.rp_rms_max = np.maximum(self.rp_rms_max, rms)
+        if (why := yaw_wait_over(waited, rms)) is not None:
+            relay.give_up(why)
 
     def merged_backup(self, other: str | None) -> str:
         """A backup file with the values from before the tune of every parameter it wrote:

@@ -316,7 +316,7 @@ class TuningSequence:
             lo, hi = {Loop.ALTITUDE: (0.0, 1.0), Loop.X: (-lim, lim),
                       Loop.Y: (-lim, lim)}.get(loop, (-1.0, 1.0))
             k = self.config.gcs_attitude_pd_scale if loop in (Loop.ROLL, Loop.PITCH) else 1.0
-            t.pd = PDLoop(k * ident.gains.Kc, k * ident.gains.Kd, trim, lo, hi)
+            t.pd = PDLoop(k * k * ident.gains.Kc, k * ident.gains.Kd, trim, lo, hi)
             t.identification = ident
             t.relay = None
             t.state = LoopState.TUNED
