@@ -10,15 +10,18 @@ bundled classifiers exist.
 
 from __future__ import annotations
 
+import functools
 import math
+import sys
 import warnings
 from collections.abc import Callable
+from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
 
 from mrft_gcs.flight.driver import SequenceDriver
-from mrft_gcs.flight.sequence import Phase, TuningSequence
+from mrft_gcs.flight.sequence import Phase, SequenceConfig, TuningSequence
 from mrft_gcs.flight.source import VehicleMode
 from mrft_gcs.flight.timeliness import HostTooSlow
 from mrft_gcs.loops import LoopKind
@@ -38,6 +41,23 @@ SIDE_RELAY = TRUTH_RELAYS[LoopKind.SIDE]
 
 
 T = TypeVar("T")
+
+
+def lockstep_with_events(monkeypatch, seed: int, **cfg) -> tuple[dict, list[str]]:
+    """The population benchmark's lockstep tune of random vehicle ``seed`` (its link delays)
+    with ``cfg`` overriding the sequence's defaults; its record and the sequence's events."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import tune_population as tp
+
+    seqs: list[TuningSequence] = []
+
+    def sequence(*args, **kw):
+        seqs.append(TuningSequence(*args, **kw))
+        return seqs[-1]
+
+    monkeypatch.setattr(tp, "SequenceConfig", functools.partial(SequenceConfig, **cfg))
+    monkeypatch.setattr(tp, "TuningSequence", sequence)
+    return tp.run_lockstep(seed), seqs[0].events
 
 
 def again_if_host_stalled(flight: Callable[[], T]) -> T:

@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import functools
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-from flight_sim import ALT_RELAY, ATT_RELAY
+from flight_sim import ALT_RELAY, ATT_RELAY, lockstep_with_events
 
 from mrft_gcs.flight.phases.state import LoopState
 from mrft_gcs.flight.sequence import SequenceConfig, TuningSequence
@@ -67,28 +63,13 @@ def test_a_set_point_step_mid_swing_waits_for_the_relays_next_switch():
     assert shortest[False] < 0.3, shortest  # the step taken at once: what the rule prevents
 
 
-def _lockstep(monkeypatch, seed: int, **cfg):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import tune_population as tp
-
-    seqs: list = []
-
-    def sequence(*args, **kw):
-        seqs.append(TuningSequence(*args, **kw))
-        return seqs[-1]
-
-    monkeypatch.setattr(tp, "SequenceConfig", functools.partial(SequenceConfig, **cfg))
-    monkeypatch.setattr(tp, "TuningSequence", sequence)
-    return tp.run_lockstep(seed), seqs[0].events
-
-
 def test_a_relay_resized_to_a_smaller_h_goes_on_from_the_turn_of_the_axis(monkeypatch):
     """An 82 g in-domain vehicle: its pitch relay's first swing and then its steady period
     swing over 1.25 x ``att_amp_max_rad``. The smaller h taken at the turn of the axis,
     without the catch's wait at rest (up to three periods each), tunes it sooner, to gains
     as good."""
-    on, events = _lockstep(monkeypatch, 3)
-    off, events_off = _lockstep(monkeypatch, 3, att_resize_at_turn=False)
+    on, events = lockstep_with_events(monkeypatch, 3)
+    off, events_off = lockstep_with_events(monkeypatch, 3, att_resize_at_turn=False)
     assert any("pitch: relay sized on a period" in e and "from this turn of the axis" in e
                for e in events), events
     assert not any("from this turn" in e for e in events_off), events_off

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import functools
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from flight_sim import lockstep_with_events
 
 from mrft_gcs.flight.phases.attitude import predicted_swing, torque_bias_fit
 from mrft_gcs.flight.sequence import SequenceConfig, TuningSequence
@@ -65,30 +63,13 @@ def test_no_swing_predicted_without_lead_delay_or_lag():
     assert all(math.isnan(x) for x in predicted_swing(nodelay, 0.06, 0.0))
 
 
-def _lockstep_take_off(monkeypatch, seed: int, **cfg) -> tuple[dict, list[str]]:
-    """The population benchmark's lockstep tune of random vehicle ``seed`` (its link delays)
-    with ``cfg`` overriding the sequence's defaults; its record and the sequence's events."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import tune_population as tp
-
-    seqs: list = []
-
-    def sequence(*args, **kw):
-        seqs.append(TuningSequence(*args, **kw))
-        return seqs[-1]
-
-    monkeypatch.setattr(tp, "SequenceConfig", functools.partial(SequenceConfig, **cfg))
-    monkeypatch.setattr(tp, "TuningSequence", sequence)
-    return tp.run_lockstep(seed), seqs[0].events
-
-
 def test_a_swing_the_fit_predicts_too_large_is_braked_and_the_relay_lowered(monkeypatch):
     """An 82 g vehicle behind 30-40 ms of loop delay: at the starting h its roll relay's
     first swings tilt it 23 deg with pitch's. The fit of its first swings predicts that
     cycle; the push then starting brakes the swing under way harder, and the relay takes
     the smaller h from the axis' turn on: it tilts less at take-off and still tunes."""
-    on, events = _lockstep_take_off(monkeypatch, 3)
-    off, events_off = _lockstep_take_off(monkeypatch, 3, att_pred_amp_rad=0.0)
+    on, events = lockstep_with_events(monkeypatch, 3)
+    off, events_off = lockstep_with_events(monkeypatch, 3, att_pred_amp_rad=0.0)
     assert any("roll: the fit predicts" in e and "braked" in e for e in events), events
     assert not any("the fit predicts" in e for e in events_off), events_off
     assert on["outcome"] == off["outcome"] == "completed"
@@ -137,7 +118,7 @@ def test_a_relay_that_keeps_running_away_stops_the_tests_before_the_drift_limit(
     from mrft_gcs.flight import safety
 
     monkeypatch.setattr(safety, "DRIFT_GUARD_FRACTION", 10.0)
-    rec, _ = _lockstep_take_off(monkeypatch, 9, att_ref_at_switch=False)
+    rec, _ = lockstep_with_events(monkeypatch, 9, att_ref_at_switch=False)
     assert rec["outcome"] == "refused" and "ran away 5 times" in rec["reason"], rec["reason"]
-    rec, _ = _lockstep_take_off(monkeypatch, 9, att_ref_at_switch=False, max_runaways=10 ** 6)
+    rec, _ = lockstep_with_events(monkeypatch, 9, att_ref_at_switch=False, max_runaways=10 ** 6)
     assert rec["outcome"] == "aborted" and "5 m limit" in rec["reason"], rec["reason"]

@@ -58,14 +58,18 @@ def _square_wave_test(true: InnerModel, gains: PD, period: float, amp: float, *,
     return t, u, t, y
 
 
+def _points(true: InnerModel, gains: PD, plan, cascade: OnboardCascade | None = None):
+    """The harmonic points of the 0.05 rad square-wave test of ``plan`` flown on ``true``."""
+    return harmonic_points(*_square_wave_test(true, gains, plan.period_s, 0.05, cascade=cascade),
+                           plan.period_s, plan.period_s, 3)
+
 @pytest.mark.parametrize("extra_s, gain", [(0.0, 1.0), (0.004, 1.0), (-0.004, 1.0),
                                            (0.0, 1.3), (0.004, 1.3), (0.008, 1.0)])
 def test_measured_margin_matches_the_true_onboard_loop(extra_s, gain):
     gains = _optimal(MODEL)
     plan = plan_check(MODEL, gains, 0.05)
     true = InnerModel(MODEL.K * gain, MODEL.T_prop, MODEL.T1, MODEL.tau + extra_s)
-    w, T, se = harmonic_points(*_square_wave_test(true, gains, plan.period_s, 0.05),
-                               plan.period_s, plan.period_s, 3)
+    w, T, se = _points(true, gains, plan)
     check = check_margin(plan, w, T, se)
     assert abs(check.measured_pm_deg - _pm(true, gains)) < AGREE_DEG
     assert check.extra_delay_s == pytest.approx(extra_s, abs=1.5e-3)
@@ -75,8 +79,7 @@ def test_measured_margin_matches_the_true_onboard_loop(extra_s, gain):
 def test_prediction_agrees_when_the_model_is_the_truth():
     gains = _optimal(MODEL)
     plan = plan_check(MODEL, gains, 0.05)
-    w, T, se = harmonic_points(*_square_wave_test(MODEL, gains, plan.period_s, 0.05),
-                               plan.period_s, plan.period_s, 3)
+    w, T, se = _points(MODEL, gains, plan)
     check = check_margin(plan, w, T, se)
     assert plan.predicted_pm_deg == pytest.approx(20.0, abs=0.5)
     assert check.agrees and check.passed
@@ -192,8 +195,7 @@ def test_ardupilot_cascade_is_measured_on_its_own_structure(extra_s, gain):
     plan = plan_check(MODEL, gains, 0.05, cascade=ARDU)
     assert plan.predicted_pm_deg == pytest.approx(_cascade_pm(MODEL, gains, ARDU), abs=0.5)
     true = InnerModel(MODEL.K * gain, MODEL.T_prop, MODEL.T1, MODEL.tau + extra_s)
-    pts = harmonic_points(*_square_wave_test(true, gains, plan.period_s, 0.05, cascade=ARDU),
-                          plan.period_s, plan.period_s, 3)
+    pts = _points(true, gains, plan, ARDU)
     check = check_margin(plan, *pts)
     assert abs(check.measured_pm_deg - _cascade_pm(true, gains, ARDU)) < AGREE_DEG
     assert check.extra_delay_s == pytest.approx(extra_s, abs=1.5e-3)
@@ -275,8 +277,7 @@ def test_a_loop_on_a_rate_target_filter_is_tightened_on_that_structure():
     pm_now = _cascade_pm(MODEL, cautious, fltt)
     assert 21.0 < pm_now < 25.0  # inside the band: the plain rule would leave it
     plan = plan_check(MODEL, cautious, 0.05)  # the plain check, as on the torque path
-    pts = harmonic_points(*_square_wave_test(MODEL, cautious, plan.period_s, 0.05,
-                                             cascade=fltt), plan.period_s, plan.period_s, 3)
+    pts = _points(MODEL, cautious, plan, fltt)
     check = check_margin(plan, *pts)
     assert check.passed
     new, gain = structured_redesign(plan, check, hz)
@@ -287,8 +288,7 @@ def test_a_loop_on_a_rate_target_filter_is_tightened_on_that_structure():
     assert redesigned_gains(plan, check, target_hz=hz) == new
     # at the design's own margin there is nothing to gain
     plan = plan_check(MODEL, best.gains, 0.05)
-    pts = harmonic_points(*_square_wave_test(MODEL, best.gains, plan.period_s, 0.05,
-                                             cascade=fltt), plan.period_s, plan.period_s, 3)
+    pts = _points(MODEL, best.gains, plan, fltt)
     assert structured_redesign(plan, check_margin(plan, *pts), hz)[1] < STRUCT_TIGHTEN_GAIN
 
 
@@ -309,8 +309,7 @@ def test_a_loop_with_rate_d_is_checked_and_backed_off_on_its_structure(extra_s, 
     plan = plan_check(MODEL, gains, 0.05, cascade=cas)
     assert plan.predicted_pm_deg == pytest.approx(_cascade_pm(MODEL, gains, cas), abs=0.5)
     true = InnerModel(MODEL.K * gain, MODEL.T_prop, MODEL.T1, MODEL.tau + extra_s)
-    pts = harmonic_points(*_square_wave_test(true, gains, plan.period_s, 0.05, cascade=cas),
-                          plan.period_s, plan.period_s, 3)
+    pts = _points(true, gains, plan, cas)
     check = check_margin(plan, *pts)
     assert abs(check.measured_pm_deg - _cascade_pm(true, gains, cas)) < AGREE_DEG
     # inverted without the D the same points read as another plant
