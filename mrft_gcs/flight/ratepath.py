@@ -698,6 +698,8 @@ class RatePath:
             raise LinkError("the vehicle refused to stream ATTITUDE_TARGET, which the rate "
                             "path needs to align its rates: use --actuation attitude")
         self._ask(_PID_TUNING_ID, STREAM_HZ)
+        # read before the zero-gain window opens (the roll/pitch design models them)
+        self.rp_filters = {axis: self._rp_filters(client, axis) for axis in (0, 1)}
         result = client.write(dict(self.params.test_params), self.backup_dir, label="rate-test")
         self.backup = result.backup_path
         self.originals = {c.name: c.old for c in result.changes}
@@ -705,7 +707,6 @@ class RatePath:
         # the written yaw gains are checked through the vehicle's own rate-error filter
         flte = self.originals.get(yaw_names(self.params)["flte"], 0.0)
         self.yaw_flte = float(flte) if math.isfinite(flte) and flte > 0 else 0.0
-        self.rp_filters = {axis: self._rp_filters(client, axis) for axis in (0, 1)}
         self.t_engaged = time.monotonic()
         self._checking = True
         self.channel.worst_thrust_rad = self.channel.worst_heading_rad = 0.0
