@@ -22,6 +22,7 @@ from mrft_gcs.flight.api import _optional_reader, tune
 from mrft_gcs.flight.holdcompare import WORSE_SLACK, judge_holds
 from mrft_gcs.flight.onboard import vehicle_position_rate
 from mrft_gcs.flight.ratepath import INAIR_CHECK
+from mrft_gcs.flight.structure import RATE_D_OVER_P_S, WRITE_RATE_D
 from mrft_gcs.link import VehicleLink, measure_link, require_relay_capable
 from mrft_gcs.link.firmware import detect_firmware
 from mrft_gcs.link.quality import RTT_TIMESYNC, _param_read_rtts
@@ -480,6 +481,14 @@ def test_rate_path_tunes_roll_pitch_altitude_x_y_and_hands_over(copter, tmp_path
                 assert "no rate I (even with its zero" in note, note
             else:
                 assert 0.2 < i / p < 20.0 and ", rate I " in note, (i, p, note)
+            # rate D at ArduCopter's own D/P ratio where the design on the cascade found it
+            # lowers the ISE (the note says which), written and read back (below)
+            d = written[f"ATC_RAT_{ax}_D"].new
+            if WRITE_RATE_D and d > 0:
+                assert d / p == pytest.approx(RATE_D_OVER_P_S, rel=1e-3), (d, p)
+                assert ", rate D " in note and "ISE" in note, note
+            else:
+                assert d == 0.0 and (not WRITE_RATE_D or "no rate D" in note), note
         assert any("zero-gain window" in n for n in result.notes), result.notes
         _check_yaw(result, before, serial1)
         # scripting is on: the link-loss guard covered the zero-gain window

@@ -1078,7 +1078,7 @@ class _Run:
                 continue  # its own gains go back (the hand-over restores them)
             # not re-targeted: the identified gains, with the ground station's delay left in,
             # checked on ArduCopter's cascade as it flies them (rate-target filter, loop rate)
-            # and scaled down where they fall short of the margin there
+            # and scaled down where they fall short of the margin there, or with rate D
             m = t.identification.model
             g = t.identification.gains
             if isinstance(m, InnerModel):
@@ -1100,7 +1100,8 @@ class _Run:
         self.notes.append(
             "rate path: roll and pitch gains written as soon as both were identified, as "
             "identified where they keep their margin on ArduCopter's cascade (not re-targeted "
-            "for the GCS delay); the side tests flew attitude set points on them")
+            "for the GCS delay), or re-designed there with rate D where that lowers the ISE; "
+            "the side tests flew attitude set points on them")
 
     def _hold(self, seconds: float) -> None:
         end = time.monotonic() + seconds

@@ -81,6 +81,7 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "onboard_side_gains", "onboard_extra_delay_s", "CAP_SHARE", "CERTAIN_CAP_SHARE",
            "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ", "CascadeGains", "cascade_gains",
            "CASCADE_LOOP_HZ", "rate_loop_gains", "RATE_I_LOWEST", "PositionLoopRate",
+           "cascade_controller", "cascade_process",
            "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate"]
 
 
@@ -780,6 +781,57 @@ def vehicle_position_rate(read: Callable[[str], float | None], family: str = ""
 CASCADE_LOOP_HZ = 400.0
 
 
+def _lag(s: np.ndarray, hz: float) -> np.ndarray | float:
+    """``1 / (1 + s / (2 pi hz))``, or 1 for ``hz`` 0 (no filter)."""
+    return 1.0 / (1.0 + s / (2 * np.pi * hz)) if hz > 0 else 1.0
+
+
+def cascade_controller(gains: PD, w: np.ndarray, target_hz: float = 0.0, error_hz: float = 0.0,
+                       integrator_zero_rad_s: float = 0.0, d_over_p_s: float = 0.0,
+                       d_hz: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(Cr, Cy)`` of ArduCopter's attitude cascade on written ``gains``: ``u = Cr r - Cy y``
+    on ``w`` (rad/s). The one model of that cascade, which every design and check of written
+    roll/pitch/yaw gains goes through (:func:`cascade_gains`,
+    :func:`mrft_gcs.flight.structure.structure_controller`).
+
+    Angle P ``Kc/Kd`` makes a rate target, low-passed at ``target_hz`` (``ATC_RAT_*_FLTT``);
+    the rate error (that target less the gyro) is low-passed at ``error_hz`` (``FLTE``) and
+    goes through ``AC_PID``: P ``Kd``, I ``Kd w_i`` (``integrator_zero_rad_s``), D
+    ``Kd d_over_p_s`` on the filtered error's derivative low-passed at ``d_hz`` (``FLTD``):
+
+    ``u = (1 + w_i / s + r s F_D) F_E (Kc F_T (x - y) - Kd s y)``
+
+    (0 for any filter: none). The square-root angle controller is taken linear.
+
+    >>> Cr, Cy = cascade_controller(PD(2.0, 0.1), np.array([1.0]))
+    >>> complex(Cr[0]), complex(Cy[0])
+    ((2+0j), (2+0.1j))
+    >>> Cr, Cy = cascade_controller(PD(2.0, 0.1), np.array([2.0]), integrator_zero_rad_s=1.0,
+    ...                             d_over_p_s=0.5)
+    >>> bool(np.isclose(Cr[0], 2 * (1 + 1 / 2j + 0.5 * 2j)))
+    True
+    """
+    s = 1j * np.asarray(w, float)
+    ft, fe = _lag(s, target_hz), _lag(s, error_hz)
+    kernel = np.ones_like(s)
+    if integrator_zero_rad_s > 0:
+        kernel = kernel + integrator_zero_rad_s / s
+    if d_over_p_s > 0:
+        kernel = kernel + d_over_p_s * s * _lag(s, d_hz)
+    Cr = kernel * fe * gains.Kc * ft
+    return Cr, kernel * fe * (gains.Kc * ft + gains.Kd * s)
+
+
+def cascade_process(model: InnerModel, w: np.ndarray) -> np.ndarray:
+    """The process the written cascade closes, on ``w`` (rad/s): ``model`` with its
+    identified delay (the ground station's part left in: the onboard loop has less) plus
+    half a period of :data:`CASCADE_LOOP_HZ`. The model every check and design of written
+    gains on ArduCopter's cascade on the rate path uses: re-targeted gains (hotter) took the
+    loop near its margin there and lost the altitude relay (docs/ardupilot.md)."""
+    return inner_response(model.K, model.T_prop, model.T1,
+                          model.tau + 0.5 / CASCADE_LOOP_HZ, w)[0]
+
+
 @dataclass(frozen=True)
 class CascadeGains:
     """Roll or pitch gains for ArduCopter's attitude cascade, checked as it flies them.
@@ -787,14 +839,16 @@ class CascadeGains:
     The cascade closes ``u = Kd (F_T(s) Kc/Kd (x - y) - s y)`` (angle P ``Kc/Kd`` into a rate
     target, low-passed by the rate loop's target filter ``F_T`` at ``target_filter_hz``,
     ``ATC_RAT_*_FLTT``; rate P ``Kd``), so its feedback is ``Kc F_T + Kd s``, not the
-    ``Kc + Kd s`` the ground station flew, plus half a period of the loop's rate. Angle P's
+    ``Kc + Kd s`` the ground station flew, plus half a period of the loop's rate; rate I
+    and D (:func:`cascade_controller`) where written. Angle P's
     square-root controller is linear within ``accel / P^2`` of error and softer beyond
     (a lower crossover): the linear loop is its worst case.
 
     Attributes
     ----------
     gains : PD
-        The gains to write: the identified ones times ``scale``.
+        The gains to write: the identified ones times ``scale`` (or, with rate D, the
+        design of :func:`mrft_gcs.flight.structure.cascade_design`).
     scale : float
         1 where the identified gains keep ``pm_min_deg`` on the cascade; below, the largest
         factor on both that does.
@@ -822,11 +876,22 @@ class CascadeGains:
     integrator_zero_rad_s: float = 0.0
     #: a rate I was asked for but none keeps the margin (:func:`rate_loop_gains`)
     integrator_refused: bool = False
+    #: rate D per unit of rate P (s; 0: D written 0), on the error's derivative low-passed
+    #: at :attr:`d_hz` (``ATC_RAT_*_FLTD``; 0: none)
+    d_over_p_s: float = 0.0
+    d_hz: float = 0.0
+    #: how rate D was decided (empty: it was not considered)
+    d_note: str = ""
 
     @property
     def rate_i(self) -> float:
         """Rate I to write (normalised output per rad of rate error; 0: none)."""
         return self.gains.Kd * self.integrator_zero_rad_s
+
+    @property
+    def rate_d(self) -> float:
+        """Rate D to write (normalised output per rad/s^2 of rate error; 0: none)."""
+        return round(self.gains.Kd * self.d_over_p_s, 9) if self.d_over_p_s > 0 else 0.0
 
     def note(self) -> str:
         f = (f"{self.target_filter_hz:g} Hz rate-target filter" if self.target_filter_hz > 0
@@ -840,30 +905,32 @@ class CascadeGains:
         elif self.integrator_refused:
             f += (f", no rate I (even with its zero {1 / RATE_I_LOWEST:.0f} x below the "
                   f"crossover it takes the margin under the floor)")
+        if self.d_over_p_s > 0:
+            f += (f", rate D {self.rate_d:.4g} ({self.d_over_p_s * 1e3:.1f} ms x rate P, "
+                  f"through {self.d_hz:g} Hz)")
         out = (f"predicted PM {self.pm_deg:.0f} deg at {self.wc_rad_s:.0f} rad/s on ArduCopter's "
                f"cascade ({f}, {CASCADE_LOOP_HZ:g} Hz loop, the identified delay kept)")
         if self.scale < 1.0:
             out += (f"; the identified gains (PM {self.pm_identified_deg:.0f} deg there) scaled "
                     f"by {self.scale:.2f}")
+        if self.d_note:
+            out += f"; {self.d_note}"
         return out
 
 
 def _cascade_pm(model: InnerModel, gains: PD, target_filter_hz: float,
                 w: np.ndarray, error_filter_hz: float = 0.0,
-                integrator_zero_rad_s: float = 0.0) -> tuple[float, float]:
-    s = 1j * w
-    g = inner_response(model.K, model.T_prop, model.T1, model.tau + 0.5 / CASCADE_LOOP_HZ, w)[0]
-    f = 1.0 / (1.0 + s / (2 * np.pi * target_filter_hz)) if target_filter_hz > 0 else 1.0
-    # the error filter low-passes the rate P's input, so the whole feedback path
-    fe = 1.0 / (1.0 + s / (2 * np.pi * error_filter_hz)) if error_filter_hz > 0 else 1.0
-    # rate I acts on the same (filtered) rate error as rate P: the PID is Kd (1 + w_i/s)
+                integrator_zero_rad_s: float = 0.0, d_over_p_s: float = 0.0,
+                d_hz: float = 0.0) -> tuple[float, float]:
     wi = integrator_zero_rad_s
-    integ = 1.0 + wi / s if wi > 0 else 1.0
-    m = margins(fe * integ * (gains.Kc * f + gains.Kd * s) * g, w)
+    Cy = cascade_controller(gains, w, target_filter_hz, error_filter_hz, wi, d_over_p_s,
+                            d_hz)[1]
+    m = margins(Cy * cascade_process(model, w), w)
     # with a rate I the loop has two integrators: its phase starts at -180 deg, and below
     # it where the drag pole lies under the I's zero, which the Nyquist count of margins()
     # (written for one integrator) takes for an encirclement; the closed loop's poles decide
-    stable = (_cascade_poles_stable(model, gains, target_filter_hz, error_filter_hz, wi)
+    stable = (_cascade_poles_stable(model, gains, target_filter_hz, error_filter_hz, wi,
+                                    d_over_p_s, d_hz)
               if wi > 0 else m.stable)
     return (float(m.pm_deg) if stable else -math.inf), float(m.wc)
 
@@ -873,7 +940,8 @@ _PADE_ORDER = 6
 
 
 def _cascade_poles_stable(model: InnerModel, gains: PD, target_filter_hz: float,
-                          error_filter_hz: float, integrator_zero_rad_s: float) -> bool:
+                          error_filter_hz: float, integrator_zero_rad_s: float,
+                          d_over_p_s: float = 0.0, d_hz: float = 0.0) -> bool:
     """Whether the closed cascade of :func:`_cascade_pm` (with a rate I) has all its poles in
     the left half plane, the delay as a Pade approximation of order :data:`_PADE_ORDER`."""
     n = _PADE_ORDER
@@ -887,11 +955,19 @@ def _cascade_poles_stable(model: InnerModel, gains: PD, target_filter_hz: float,
     def lag(hz: float) -> np.ndarray:  # 1 + s / (2 pi hz), or 1
         return np.array([1.0 / (2 * np.pi * hz), 1.0]) if hz > 0 else np.array([1.0])
 
-    ft, fe = lag(target_filter_hz), lag(error_filter_hz)
-    # (1 + w_i/s) (Kc / ft + Kd s) / fe * K pade / (s (Tp s + 1) (T1 s + 1))
+    ft, fe, fd = lag(target_filter_hz), lag(error_filter_hz), lag(d_hz)
+    wi, r = integrator_zero_rad_s, d_over_p_s
+    # the PID's kernel 1 + w_i/s + r s / fd: (s fd + w_i fd + r s^2) / (s fd), the s
+    # left out of both without an I (a common root at 0 is no pole of the loop)
+    if wi > 0:
+        k_num = np.polyadd(np.polymul([1.0, wi], fd), [r, 0.0, 0.0] if r > 0 else [0.0])
+        k_den = np.polymul([1.0, 0.0], fd)
+    else:
+        k_num, k_den = np.polyadd(fd, [r, 0.0] if r > 0 else [0.0]), fd
+    # kernel (Kc / ft + Kd s) / fe * K pade / (s (Tp s + 1) (T1 s + 1))
     ctrl = np.polyadd(gains.Kc * np.ones(1), np.polymul([gains.Kd, 0.0], ft))
-    num = model.K * np.polymul(np.polymul([1.0, integrator_zero_rad_s], ctrl), pade_num)
-    den = np.polymul(np.polymul([1.0, 0.0], ft), fe)
+    num = model.K * np.polymul(np.polymul(k_num, ctrl), pade_num)
+    den = np.polymul(np.polymul(k_den, ft), fe)
     den = np.polymul(den, np.polymul([1.0, 0.0], np.polymul([model.T_prop, 1.0],
                                                             [model.T1, 1.0])))
     den = np.polymul(den, pade_den)
@@ -901,13 +977,15 @@ def _cascade_poles_stable(model: InnerModel, gains: PD, target_filter_hz: float,
 def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
                   pm_min_deg: float = PM_ROBUST_DEG,
                   error_filter_hz: float = 0.0,
-                  integrator_zero_rad_s: float = 0.0) -> CascadeGains:
+                  integrator_zero_rad_s: float = 0.0, d_over_p_s: float = 0.0,
+                  d_hz: float = 0.0) -> CascadeGains:
     """The identified roll/pitch (or yaw) ``gains`` checked on ArduCopter's cascade (see
     :class:`CascadeGains`), on ``model`` with its identified delay (the ground station's
     delay left in: the onboard loop has less) plus half a loop period; scaled down together
     until they keep ``pm_min_deg`` where they do not. ``error_filter_hz``: the rate loop's
     error filter (Hz; 0: none). ``integrator_zero_rad_s``: a rate I with its zero there
-    (rad/s; 0: none), kept at that frequency while the gains are scaled.
+    (rad/s; 0: none), kept at that frequency while the gains are scaled. ``d_over_p_s``: a
+    rate D of that share of rate P, through ``d_hz`` (:func:`cascade_controller`).
 
     Examples
     --------
@@ -922,22 +1000,24 @@ def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     wi = max(float(integrator_zero_rad_s), 0.0)
     w = frequency_grid(model.T_prop, model.T1, model.tau,
                        extra_T=(1.0 / wi,) if wi > 0 else ())
-    fe = error_filter_hz
-    pm0, wc0 = _cascade_pm(model, gains, target_filter_hz, w, fe, wi)
+    fe, dd = error_filter_hz, (max(float(d_over_p_s), 0.0), d_hz)
+    pm0, wc0 = _cascade_pm(model, gains, target_filter_hz, w, fe, wi, *dd)
     if pm0 >= pm_min_deg:
-        return CascadeGains(gains, 1.0, pm0, pm0, target_filter_hz, wc0, fe, wi)
+        return CascadeGains(gains, 1.0, pm0, pm0, target_filter_hz, wc0, fe, wi,
+                            d_over_p_s=dd[0], d_hz=d_hz)
     lo, hi = 0.0, 1.0  # the largest factor that keeps the margin, to 0.1 %
     while hi - lo > 1e-3:
         mid = 0.5 * (lo + hi)
         pm_mid, _ = _cascade_pm(model, PD(gains.Kc * mid, gains.Kd * mid), target_filter_hz, w,
-                                fe, wi)
+                                fe, wi, *dd)
         if pm_mid >= pm_min_deg:
             lo = mid
         else:
             hi = mid
     scaled = PD(gains.Kc * lo, gains.Kd * lo)
-    pm, wc = _cascade_pm(model, scaled, target_filter_hz, w, fe, wi)
-    return CascadeGains(scaled, round(lo, 3), pm, pm0, target_filter_hz, wc, fe, wi)
+    pm, wc = _cascade_pm(model, scaled, target_filter_hz, w, fe, wi, *dd)
+    return CascadeGains(scaled, round(lo, 3), pm, pm0, target_filter_hz, wc, fe, wi,
+                        d_over_p_s=dd[0], d_hz=d_hz)
 
 
 #: the lowest rate-I zero :func:`rate_loop_gains` moves to, as a share of the crossover
@@ -946,7 +1026,8 @@ RATE_I_LOWEST = 0.01
 
 def rate_loop_gains(model: InnerModel, gains: PD, target_filter_hz: float,
                     error_filter_hz: float = 0.0, pm_min_deg: float = PM_ROBUST_DEG,
-                    decade: float = 0.0) -> CascadeGains:
+                    decade: float = 0.0, d_over_p_s: float = 0.0,
+                    d_hz: float = 0.0) -> CascadeGains:
     """Roll/pitch gains for ArduCopter's cascade with a rate I (``decade`` > 0).
 
     The P gains are those of :func:`cascade_gains` (the identified ones, scaled down where
@@ -954,7 +1035,8 @@ def rate_loop_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     their crossover on the cascade, or lower, down to :data:`RATE_I_LOWEST` of it, as far
     as keeping ``pm_min_deg`` with the I needs; where even that lowest zero does not keep
     it, no I (the P gains are never lowered for the I: a lower crossover with the same zero
-    costs more phase, not less). ``decade`` 0: no rate I.
+    costs more phase, not less). ``decade`` 0: no rate I. ``d_over_p_s``, ``d_hz``: a rate
+    D in the loop (:func:`cascade_gains`).
 
     >>> m = InnerModel(K=34.0, T_prop=0.0085, T1=0.095, tau=0.006)
     >>> c = rate_loop_gains(m, PD(6.4, 0.21), 20.0, decade=10.0)
@@ -963,7 +1045,9 @@ def rate_loop_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     >>> round(c.wc_rad_s / c.integrator_zero_rad_s)
     10
     """
-    c0 = cascade_gains(model, gains, target_filter_hz, pm_min_deg, error_filter_hz)
+    c0 = cascade_gains(model, gains, target_filter_hz, pm_min_deg, error_filter_hz,
+                       d_over_p_s=d_over_p_s, d_hz=d_hz)
+    dd = (c0.d_over_p_s, c0.d_hz)
     if not (decade > 0 and c0.scale > 0 and math.isfinite(c0.wc_rad_s)):
         return c0
     fe, g = error_filter_hz, c0.gains
@@ -971,7 +1055,7 @@ def rate_loop_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     w = frequency_grid(model.T_prop, model.T1, model.tau, extra_T=(10.0 / lowest,))
 
     def pm(wi: float) -> float:
-        return _cascade_pm(model, g, target_filter_hz, w, fe, wi)[0]
+        return _cascade_pm(model, g, target_filter_hz, w, fe, wi, *dd)[0]
 
     wi = c0.wc_rad_s / decade
     if not pm(wi) >= pm_min_deg:
@@ -982,5 +1066,5 @@ def rate_loop_gains(model: InnerModel, gains: PD, target_filter_hz: float,
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if pm(math.exp(mid)) >= pm_min_deg else (lo, mid)
         wi = math.exp(lo)
-    p, wc = _cascade_pm(model, g, target_filter_hz, w, fe, wi)
+    p, wc = _cascade_pm(model, g, target_filter_hz, w, fe, wi, *dd)
     return dataclasses.replace(c0, pm_deg=p, wc_rad_s=wc, integrator_zero_rad_s=wi)

@@ -48,6 +48,13 @@ from mrft_gcs.flight.onboard import CascadeGains, cascade_gains, rate_loop_gains
 from mrft_gcs.flight.phases.state import CycleSnapshot
 from mrft_gcs.flight.phases.yaw import YawOutcome, YawRelay, YawState
 from mrft_gcs.flight.source import Setpoint
+from mrft_gcs.flight.structure import (
+    DEFAULT_D_HZ,
+    RATE_D_OVER_P_S,
+    WRITE_RATE_D,
+    OnboardStructure,
+    cascade_design,
+)
 from mrft_gcs.identify import Identification
 from mrft_gcs.link.failsafe import rate_path_guard
 from mrft_gcs.link.firmware import Firmware
@@ -634,6 +641,11 @@ class RatePath:
         self.zero_gain_s = math.nan
         self.staged: dict[str, float] = {}  # the tune's written values among test params
         self.rate_i: dict[str, float] = {}  # roll/pitch rate I to write (name -> value)
+        #: roll/pitch rate D to write: its name -> (rate P name, D per unit of rate P, s)
+        self.rate_d: dict[str, tuple[str, float]] = {}
+        #: the roll/pitch rate loop's error and D low-passes as read at :meth:`engage` (Hz;
+        #: not test parameters: they stay as they are); None: not read
+        self.rp_filters: dict[int, tuple[float, float]] | None = None
         self.handed_over = False
         self.changes: tuple[ParamChange, ...] = ()
         self.yaw_note: str | None = None  # how yaw was held, where not the default hold
@@ -686,6 +698,8 @@ class RatePath:
             raise LinkError("the vehicle refused to stream ATTITUDE_TARGET, which the rate "
                             "path needs to align its rates: use --actuation attitude")
         self._ask(_PID_TUNING_ID, STREAM_HZ)
+        # read before the zero-gain window opens (the roll/pitch design models them)
+        self.rp_filters = {axis: self._rp_filters(client, axis) for axis in (0, 1)}
         result = client.write(dict(self.params.test_params), self.backup_dir, label="rate-test")
         self.backup = result.backup_path
         self.originals = {c.name: c.old for c in result.changes}
@@ -904,6 +918,10 @@ class RatePath:
         if not self.handed_over:
             self.staged = {n: v for n, v in values.items() if n in test}
             self.staged.update({n: v for n, v in self.rate_i.items() if n in self.staged})
+            # rate D at its share of the rate P in effect (after any range clamp)
+            self.staged.update({n: round(r * self.staged[p], 6)
+                                for n, (p, r) in self.rate_d.items()
+                                if n in self.staged and p in self.staged})
             self.staged.update(self.yaw_staged)
         return {n: v for n, v in values.items() if n not in test}
 
@@ -990,13 +1008,44 @@ class RatePath:
         hz = self._final().get(name, 0.0)
         return float(hz) if math.isfinite(hz) and hz > 0 else 0.0
 
+    def _rp_filters(self, client: ParamClient, axis: int) -> tuple[float, float]:
+        """``(FLTE, FLTD)`` of roll/pitch ``axis`` as the vehicle has them (Hz; 0: none):
+        an unread FLTE is taken as none (ArduCopter's default), an unread FLTD as
+        :data:`~mrft_gcs.flight.structure.DEFAULT_D_HZ`."""
+        prefix = self.params.rate_p[axis].removesuffix("P")
+        out = []
+        for suffix, default in (("FLTE", 0.0), ("FLTD", DEFAULT_D_HZ)):
+            try:
+                v = float(client.read(prefix + suffix).value)
+            except MrftError:
+                v = default
+            out.append(v if math.isfinite(v) and v >= 0 else default)
+        return out[0], out[1]
+
+    def rp_structure(self, axis: int) -> OnboardStructure:
+        """How ArduCopter closes ``axis`` (0 roll, 1 pitch) after the hand-over: its own
+        rate-target filter (:meth:`target_filter_hz`), error and D low-passes (read at
+        :meth:`engage`), and rate D at ArduCopter's own ratio to rate P
+        (:data:`~mrft_gcs.flight.structure.RATE_D_OVER_P_S`, where
+        :data:`~mrft_gcs.flight.structure.WRITE_RATE_D`)."""
+        fe, fd = (self.rp_filters or {}).get(axis, (0.0, DEFAULT_D_HZ))
+        return OnboardStructure(self.target_filter_hz(axis), "ArduCopter's cascade",
+                                RATE_D_OVER_P_S if WRITE_RATE_D else 0.0, fd, fe)
+
     def roll_pitch_gains(self, model: InnerModel, gains: PD, axis: int) -> CascadeGains:
-        """The written gains of ``axis`` (0 roll, 1 pitch) on ArduCopter's cascade as it
-        flies them after the hand-over (:meth:`target_filter_hz`), with a rate I of
-        :data:`RATE_I_DECADE` (:func:`~mrft_gcs.flight.onboard.rate_loop_gains`), which
-        :meth:`split` writes in place of the I of 0 the PD mapping gives."""
-        c = rate_loop_gains(model, gains, self.target_filter_hz(axis), decade=RATE_I_DECADE)
-        self.rate_i[self.params.rate_p[axis].removesuffix("P") + "I"] = c.rate_i
+        """The written gains of ``axis`` (0 roll, 1 pitch) designed on ArduCopter's cascade
+        as it flies them after the hand-over (:meth:`rp_structure`): the identified
+        gains where they keep the margin there, or gains with rate D where that lowers the
+        ISE (:func:`~mrft_gcs.flight.structure.cascade_design`), with a rate I of
+        :data:`RATE_I_DECADE`. :meth:`split` writes the I and D in place of the 0 the PD
+        mapping gives."""
+        c = cascade_design(model, gains, self.rp_structure(axis), decade=RATE_I_DECADE)
+        prefix = self.params.rate_p[axis].removesuffix("P")
+        self.rate_i[prefix + "I"] = c.rate_i
+        if c.d_over_p_s > 0:
+            self.rate_d[prefix + "D"] = (self.params.rate_p[axis], c.d_over_p_s)
+        else:
+            self.rate_d.pop(prefix + "D", None)
         return c
 
     def cascade(self, client: ParamClient, axis: int) -> OnboardCascade:
@@ -1011,11 +1060,15 @@ class RatePath:
             flte = client.read(prefix + "FLTE").value
         except MrftError:
             flte = 0.0
-        # the written rate I (roll_pitch_gains) closes the loop too: its zero is I / P
+        # the written rate I and D (roll_pitch_gains) close the loop too: I / P, D / P
         p, i = final.get(self.params.rate_p[axis], 0.0), final.get(prefix + "I", 0.0)
+        d = final.get(prefix + "D", 0.0)
         wi = i / p if p > 0 and math.isfinite(i) and i > 0 else 0.0
+        r = d / p if p > 0 and math.isfinite(d) and d > 0 else 0.0
+        fd = (self.rp_filters or {}).get(axis, (0.0, DEFAULT_D_HZ))[1]
         return OnboardCascade(fltt if math.isfinite(fltt) else 0.0, flte,
-                              final.get(self.params.ff[axis], 0.0), integrator_zero_rad_s=wi)
+                              final.get(self.params.ff[axis], 0.0), integrator_zero_rad_s=wi,
+                              d_over_p_s=r, d_filter_hz=fd if r > 0 else 0.0)
 
     @contextlib.contextmanager
     def small_signal(self, client: ParamClient) -> Iterator[None]:
@@ -1048,15 +1101,18 @@ class RatePath:
         return tuple(rest)
 
     def keep_integrator_zero(self, values: Mapping[str, float]) -> dict[str, float]:
-        """``values`` (gains re-written after the hand-over, their rate I as the PD mapping
-        gives it: 0) with each roll/pitch rate I at the new rate P times the zero written at
-        the hand-over (``I / P``), the zero the in-air check's cascade model holds."""
+        """``values`` (gains re-written after the hand-over, their rate I and D as the PD
+        mapping gives them: 0) with each roll/pitch rate I and D at the new rate P times the
+        ratio written at the hand-over (``I / P``, ``D / P``), which the in-air check's
+        cascade model holds."""
         out, final = dict(values), self._final()
         for name in self.params.rate_p[:2]:
-            i_name = name.removesuffix("P") + "I"
-            p0, i0 = final.get(name, 0.0), final.get(i_name, 0.0)
-            if name in out and i_name in out and p0 > 0 and math.isfinite(i0) and i0 > 0:
-                out[i_name] = out[name] * i0 / p0
+            p0 = final.get(name, 0.0)
+            for suffix in ("I", "D"):
+                x_name = name.removesuffix("P") + suffix
+                x0 = final.get(x_name, 0.0)
+                if name in out and x_name in out and p0 > 0 and math.isfinite(x0) and x0 > 0:
+                    out[x_name] = out[name] * x0 / p0
         return out
 
     def inner_due(self, roll_pitch_tuned: bool) -> bool:

@@ -55,7 +55,15 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from mrft_gcs.flight.onboard import PM_ROBUST_DEG, Retarget
+from mrft_gcs.flight.onboard import (
+    PM_ROBUST_DEG,
+    CascadeGains,
+    Retarget,
+    cascade_controller,
+    cascade_gains,
+    cascade_process,
+    rate_loop_gains,
+)
 from mrft_gcs.flight.scoring import general_ise
 from mrft_gcs.identify import Identification
 from mrft_gcs.loops import Loop
@@ -67,7 +75,8 @@ __all__ = ["TARGET_FILTER_PARAMS", "DEFAULT_TARGET_HZ", "D_FILTER_PARAMS", "DEFA
            "RATE_D_OVER_P_S", "WRITE_RATE_D", "D_GAIN_MOVE_MAX", "D_GM_MIN",
            "D_ANGLE_P_MOVE_MAX", "OnboardStructure",
            "read_structure", "vehicle_structure", "rate_d_values",
-           "structure_controller", "StructuredDesign", "structured_pd", "structured_retarget"]
+           "structure_controller", "StructuredDesign", "structured_pd", "structured_retarget",
+           "cascade_design"]
 
 #: the rate-target low-pass of each attitude axis, under ArduPilot's names (Hz)
 TARGET_FILTER_PARAMS: dict[Loop, str] = {Loop.ROLL: "ATC_RAT_RLL_FLTT",
@@ -113,12 +122,15 @@ class OnboardStructure:
         rate error, low-passed at ``d_hz``.
     d_hz : float
         Low-pass on the rate D term (Hz; 0: none).
+    error_hz : float
+        Low-pass on the rate error, before P, I and D (Hz; 0: none; ``ATC_RAT_*_FLTE``).
     """
 
     target_hz: float = 0.0
     source: str = ""
     d_over_p_s: float = 0.0
     d_hz: float = 0.0
+    error_hz: float = 0.0
 
     def rate_d(self, gains: PD) -> float:
         """The rate D written with ``gains`` (normalised output per rad/s^2; 0: none).
@@ -214,15 +226,9 @@ def structure_controller(gains: PD, st: OnboardStructure, w: np.ndarray
     >>> bool(np.isclose(lead, 1 + 0.5j))
     True
     """
-    s = 1j * np.asarray(w, float)
-    f = 1.0 / (1.0 + s / (2 * np.pi * st.target_hz)) if st.target_hz > 0 else np.ones_like(s)
-    Cr, Cy = gains.Kc * f, gains.Kc * f + gains.Kd * s
-    if st.d_over_p_s > 0:
-        # rate D on the rate error (the filtered target less the gyro): both paths
-        fd = 1.0 / (1.0 + s / (2 * np.pi * st.d_hz)) if st.d_hz > 0 else 1.0
-        lead = 1.0 + st.d_over_p_s * s * fd
-        Cr, Cy = Cr * lead, Cy * lead
-    return Cr, Cy
+    # the one cascade model (rate D on the rate error: the filtered target less the gyro)
+    return cascade_controller(gains, w, st.target_hz, st.error_hz, 0.0, st.d_over_p_s,
+                              st.d_hz)
 
 
 @dataclass(frozen=True)
@@ -398,3 +404,58 @@ def rate_d_values(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
         lo, hi = profile.param_ranges.get(names.rate_d, (0.0, math.inf))
         out[names.rate_d] = min(max(v, lo), hi)
     return out
+
+
+def cascade_design(model: InnerModel, gains: PD, st: OnboardStructure,
+                   decade: float = 0.0) -> CascadeGains:
+    """Roll/pitch gains for ArduCopter's cascade on the rate path, with rate D where it pays.
+
+    Without D the identified ``gains`` are kept where they hold
+    :data:`~mrft_gcs.flight.onboard.PM_ROBUST_DEG` on the cascade (scaled down together
+    where not: :func:`~mrft_gcs.flight.onboard.cascade_gains`). With ``st``'s rate D
+    (``st.d_over_p_s`` of rate P through ``st.d_hz``) the ISE-optimal gains on the same
+    process (:func:`~mrft_gcs.flight.onboard.cascade_process`: the identified delay kept,
+    half a loop period more) are searched from those, within :data:`D_GAIN_MOVE_MAX` of
+    each gain and :data:`D_ANGLE_P_MOVE_MAX` of the angle P, at phase margin
+    :data:`~mrft_gcs.pd_design.PM_MIN_DEG` (5 deg above the floor without D: D amplifies
+    the gyro's noise, which the model does not see) and gain margin :data:`D_GM_MIN`; they
+    are written only where their ISE is below that of the best gains without D at the same
+    margin (where not, the identified gains stay, as without D). A rate I with
+    its zero ``decade`` below the crossover goes on top
+    (:func:`~mrft_gcs.flight.onboard.rate_loop_gains`, the margin kept at
+    :data:`~mrft_gcs.flight.onboard.PM_ROBUST_DEG` with it).
+
+    Examples
+    --------
+    >>> m = InnerModel(K=34.0, T_prop=0.0085, T1=0.095, tau=0.006)
+    >>> c = cascade_design(m, PD(6.4, 0.21), OnboardStructure(20.0, "", RATE_D_OVER_P_S, 20.0))
+    >>> c.rate_d > 0, c.pm_deg >= 20.0, c.gains.Kd <= 0.21 * D_GAIN_MOVE_MAX
+    (True, True, True)
+    >>> cascade_design(m, PD(6.4, 0.21), OnboardStructure(20.0)).rate_d
+    0.0
+    """
+    base = cascade_gains(model, gains, st.target_hz, PM_ROBUST_DEG, st.error_hz)
+    chosen, r, why = base.gains, 0.0, ""
+    if st.d_over_p_s > 0 and base.scale > 0 and math.isfinite(base.wc_rad_s):
+        w = frequency_grid(model.T_prop, model.T1, model.tau)
+        G = cascade_process(model, w)
+        b = base.gains
+        # D is judged against the best the two numbers do on the same cascade at the same
+        # margin (not against the identified gains: that would credit D with the re-design)
+        two = structured_pd(G, w, dataclasses.replace(st, d_over_p_s=0.0),
+                            pm_min_deg=PM_MIN_DEG, starts=(b,))
+        des = structured_pd(G, w, st, pm_min_deg=PM_MIN_DEG, starts=(b,), gm_min=D_GM_MIN,
+                            most=PD(b.Kc * D_GAIN_MOVE_MAX, b.Kd * D_GAIN_MOVE_MAX),
+                            most_ratio=b.Kc / b.Kd * D_ANGLE_P_MOVE_MAX)
+        if des.ise < two.ise and des.pm_deg >= PM_MIN_DEG - 1e-6:
+            chosen, r = des.gains, st.d_over_p_s
+            why = (f"rate D designed on the cascade: ISE {100 * (1 - des.ise / two.ise):.0f} % "
+                   f"below the best without D at {PM_MIN_DEG:g} deg, PM {des.pm_deg:.0f} deg "
+                   f"before rate I")
+        else:
+            why = (f"no rate D (on the cascade it did not lower the ISE below the best without "
+                   f"D at {PM_MIN_DEG:g} deg)")
+    c = rate_loop_gains(model, chosen, st.target_hz, st.error_hz, decade=decade,
+                        d_over_p_s=r, d_hz=st.d_hz)
+    return dataclasses.replace(c, scale=base.scale, pm_identified_deg=base.pm_identified_deg,
+                               d_note=why)

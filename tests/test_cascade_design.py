@@ -1,0 +1,148 @@
+"""Rate D on ArduCopter's rate path: the roll/pitch design on the one cascade model
+(:func:`mrft_gcs.flight.structure.cascade_design` on
+:func:`mrft_gcs.flight.onboard.cascade_controller`).
+
+Each figure the design claims is recomputed here from the model directly (the process with
+its delay, the controller's paths), not read from the design's own output.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mrft_gcs.flight.onboard import (
+    PM_ROBUST_DEG,
+    _cascade_poles_stable,
+    cascade_controller,
+    cascade_gains,
+    cascade_process,
+    rate_loop_gains,
+)
+from mrft_gcs.flight.scoring import general_ise
+from mrft_gcs.flight.structure import (
+    D_ANGLE_P_MOVE_MAX,
+    D_GAIN_MOVE_MAX,
+    D_GM_MIN,
+    RATE_D_OVER_P_S,
+    OnboardStructure,
+    cascade_design,
+    structure_controller,
+    structured_pd,
+)
+from mrft_gcs.pd_design import PM_MIN_DEG, frequency_grid, margins, optimal_pd
+from mrft_gcs.plant import PD, InnerModel, inner_response
+
+#: ArduCopter SITL's quad as the rate path identified it, and vehicles around it
+MODELS = [InnerModel(K=34.0, T_prop=0.0085, T1=0.095, tau=0.006),
+          InnerModel(K=120.0, T_prop=0.03, T1=0.5, tau=0.02),
+          InnerModel(K=34.0, T_prop=0.03, T1=0.095, tau=0.04),
+          InnerModel(K=60.0, T_prop=0.015, T1=0.3, tau=0.012)]
+
+
+def _identified(m: InnerModel) -> PD:
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    return optimal_pd(inner_response(m.K, m.T_prop, m.T1, m.tau, w)[0], w).pd
+
+
+def _pm_gm(m: InnerModel, g: PD, st: OnboardStructure, wi: float = 0.0) -> tuple[float, float]:
+    w = frequency_grid(m.T_prop, m.T1, m.tau, extra_T=(1.0 / wi,) if wi > 0 else ())
+    Cy = cascade_controller(g, w, st.target_hz, st.error_hz, wi, st.d_over_p_s, st.d_hz)[1]
+    mm = margins(Cy * cascade_process(m, w), w)
+    return float(mm.pm_deg), float(mm.gm)
+
+
+@pytest.mark.parametrize("m", MODELS)
+def test_rate_d_written_only_with_a_lower_ise_bounded_and_at_the_margins(m):
+    st = OnboardStructure(20.0, "", RATE_D_OVER_P_S, 20.0)
+    g = _identified(m)
+    c = cascade_design(m, g, st, decade=10.0)
+    base = cascade_gains(m, g, 20.0, PM_ROBUST_DEG)
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    G = cascade_process(m, w)
+    two = structured_pd(G, w, OnboardStructure(20.0), pm_min_deg=PM_MIN_DEG,
+                        starts=(base.gains,))
+    assert c.rate_d > 0, c.note()  # these vehicles all gain from it
+    assert c.rate_d == pytest.approx(RATE_D_OVER_P_S * c.gains.Kd, rel=1e-6)
+    ise_d = general_ise(*structure_controller(c.gains, st, w), G, w)
+    assert ise_d < two.ise, (ise_d, two.ise)
+    # bounds: each gain and the angle P against the gains without D
+    b = base.gains
+    assert c.gains.Kc <= b.Kc * D_GAIN_MOVE_MAX * (1 + 1e-9)
+    assert c.gains.Kd <= b.Kd * D_GAIN_MOVE_MAX * (1 + 1e-9)
+    assert c.gains.Kc / c.gains.Kd <= b.Kc / b.Kd * D_ANGLE_P_MOVE_MAX * (1 + 1e-6)
+    # margins on the model, recomputed: PM 20 and GM 2 before rate I, the floor with it
+    pm, gm = _pm_gm(m, c.gains, st)
+    assert pm >= PM_MIN_DEG - 1e-6 and gm >= D_GM_MIN - 1e-6, (pm, gm)
+    assert c.integrator_zero_rad_s > 0
+    pm_i, _ = _pm_gm(m, c.gains, st, c.integrator_zero_rad_s)
+    assert pm_i >= PM_ROBUST_DEG - 1e-6 and pm_i == pytest.approx(c.pm_deg, abs=0.5)
+    assert "rate D" in c.note() and "ISE" in c.note()
+
+
+def test_no_rate_d_where_it_does_not_lower_the_ise_and_the_gains_stay_main_s():
+    """A D low-pass of 2 Hz turns the D into lag: no D, and the gains and rate I are those
+    the rate path wrote without D (:func:`rate_loop_gains` on the identified gains)."""
+    m = MODELS[0]
+    g = _identified(m)
+    c = cascade_design(m, g, OnboardStructure(20.0, "", RATE_D_OVER_P_S, 2.0), decade=10.0)
+    old = rate_loop_gains(m, g, 20.0, decade=10.0)
+    assert c.rate_d == 0.0 and c.d_over_p_s == 0.0
+    assert c.gains == old.gains and c.rate_i == pytest.approx(old.rate_i)
+    assert c.pm_deg == pytest.approx(old.pm_deg)
+    assert "no rate D" in c.note()
+
+
+def test_without_rate_d_the_design_is_the_rate_path_s_old_check():
+    for m in MODELS:
+        g = _identified(m)
+        c = cascade_design(m, g, OnboardStructure(20.0), decade=10.0)
+        old = rate_loop_gains(m, g, 20.0, decade=10.0)
+        assert (c.gains, c.rate_i, c.pm_deg, c.rate_d) == (old.gains, old.rate_i, old.pm_deg,
+                                                            0.0)
+
+
+def test_the_structure_controller_is_the_cascade_model():
+    """The bundled path's structure and the rate path's cascade are one model: the same
+    paths for the same parameters (an error filter included), and the rate PID's I and D
+    add (``1 + w_i/s + r s F_D``), as ArduCopter's AC_PID sums its terms."""
+    w = np.logspace(-1, 3, 50)
+    g = PD(5.0, 0.15)
+    st = OnboardStructure(18.0, "", 0.03, 25.0, 10.0)
+    a = structure_controller(g, st, w)
+    b = cascade_controller(g, w, 18.0, 10.0, 0.0, 0.03, 25.0)
+    assert np.allclose(a[0], b[0]) and np.allclose(a[1], b[1])
+    s = 1j * w
+    ft, fe, fd = (1 / (1 + s / (2 * np.pi * hz)) for hz in (18.0, 10.0, 25.0))
+    cr, cy = cascade_controller(g, w, 18.0, 10.0, 3.0, 0.03, 25.0)
+    kernel = 1 + 3.0 / s + 0.03 * s * fd
+    assert np.allclose(cy, kernel * fe * (g.Kc * ft + g.Kd * s))
+    assert np.allclose(cr, kernel * fe * g.Kc * ft)
+
+
+@pytest.mark.parametrize("scale", [0.5, 1.0, 2.0, 4.0, 8.0])
+def test_pole_check_with_rate_d_agrees_with_the_nyquist_count(scale):
+    """Without rate I margins() counts right; the closed loop's poles (with rate D and its
+    filter in the polynomial) must agree, on both sides of instability."""
+    m = MODELS[0]
+    g = PD(6.0 * scale, 0.2 * scale)
+    w = frequency_grid(m.T_prop, m.T1, m.tau)
+    Cy = cascade_controller(g, w, 20.0, 0.0, 0.0, RATE_D_OVER_P_S, 20.0)[1]
+    nyq = margins(Cy * cascade_process(m, w), w).stable
+    poles = _cascade_poles_stable(m, g, 20.0, 0.0, 0.0, RATE_D_OVER_P_S, 20.0)
+    assert nyq == poles, (scale, nyq, poles)
+
+
+@pytest.mark.parametrize("fe", [0.0, 40.0])
+def test_yaw_s_check_is_unchanged_by_the_rate_d_argument(fe):
+    """Yaw goes through cascade_gains with its error filter and rate I: a D of 0 leaves it
+    exactly as before (no D term, no pole-polynomial change)."""
+    m = InnerModel(K=60.7, T_prop=0.046, T1=4.3, tau=0.00165)
+    g = PD(23.1, 2.74)
+    a = cascade_gains(m, g, 20.0, error_filter_hz=fe, integrator_zero_rad_s=1.4)
+    b = cascade_gains(m, g, 20.0, error_filter_hz=fe, integrator_zero_rad_s=1.4,
+                      d_over_p_s=0.0, d_hz=20.0)
+    assert (a.gains, a.scale, a.pm_deg, a.wc_rad_s) == (b.gains, b.scale, b.pm_deg, b.wc_rad_s)
+    assert a.rate_d == b.rate_d == 0.0 and (fe > 0 or math.isfinite(a.pm_deg))
