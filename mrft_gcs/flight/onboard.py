@@ -695,10 +695,10 @@ def shared_side_gains(loops: Sequence[SideLoop], pm_min_deg: float = PM_ROBUST_D
     Each loop's own design (:func:`onboard_side_gains`) is for its own cascade: behind
     attitude gains written apart for roll and pitch, x's and y's differ. Writing the
     smaller of each gain (what one parameter pair of two designs falls back on) leaves the
-    faster loop well below its own, with more margin than asked. Here, of the blends of the
-    two designs (on a log scale, in 2.5 % steps), from the slower up, the first that leaves the
-    faster loop's nominal ISE within :data:`SHARED_ISE_SLACK` of its own design's is taken
-    (none: the one nearest both designs' ISE, either way), under ``pm_min_deg`` on every
+    faster loop well below its own, with more margin than asked. Here, from those smaller
+    gains up to the faster design (on a log scale, in 2.5 % steps), the first that leaves
+    every loop's nominal ISE within :data:`SHARED_ISE_SLACK` of its own design's is taken
+    (none: the one nearest the designs' ISE, either way), under ``pm_min_deg`` on every
     loop's checked cascades (as :func:`onboard_side_gains`). Where no blend keeps the
     margin on both, or the designs agree, the smaller gains are kept.
 
@@ -739,16 +739,16 @@ def shared_side_gains(loops: Sequence[SideLoop], pm_min_deg: float = PM_ROBUST_D
     best = small
     if len(own) == 2 and own[0] != own[1]:
         ref = {i: c.ise(c.result.gains) for i, c in live.items()}
-        slow, fast = sorted(own, key=lambda g: g.Kd)
-        lo = np.log([[slow.Kc, slow.Kd], [fast.Kc, fast.Kd]])
+        fast = max(own, key=lambda g: g.Kd)
+        lo = np.log([[small.Kc, small.Kd], [fast.Kc, fast.Kd]])
 
         def ratios(g: PD) -> list[float]:
             return [c.ise(g) / ref[i] for i, c in live.items()]
 
-        # only blends of the two designs (on a log scale), from the slower one up: each is
-        # its loop's best under its own rule. The least move that brings the faster loop's
-        # ISE within SHARED_ISE_SLACK of its own design's: every step up takes margin from
-        # the slower loop, whose model alone then stands between it and the truth
+        # from the smaller gains up to the faster design (on a log scale): the least move
+        # that brings both loops' ISE within SHARED_ISE_SLACK of their own designs'. Every
+        # step up takes margin from the slower loop, whose model alone then stands between
+        # it and the truth
         blends = [PD(*map(float, np.exp((1 - a) * lo[0] + a * lo[1])))
                   for a in np.linspace(0.0, 1.0, 41)]
         ok = [g for g in blends if min(c.pm(g) for c in live.values()) >= pm_min_deg]
