@@ -103,3 +103,20 @@ def test_one_side_loop_alone_keeps_its_own_design():
     shared = shared_side_gains([SideLoop(sx, pitch, rp, 0.0)])
     assert shared[0].gains == own.gains
     assert shared[0].pm_deg == pytest.approx(own.pm_deg)
+
+
+def test_designs_near_each_other_keep_the_smaller_of_each_gain():
+    # roll identified with 1 ms more delay than pitch: the smaller gains already leave both
+    # loops within SHARED_ISE_SLACK of their own designs, and stay what is written
+    af = load_airframe("qdrone")
+    gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.008)
+    pitch, roll = _attitude(af, Loop.PITCH, 0.010), _attitude(af, Loop.ROLL, 0.011)
+    rp, rr = robust_onboard_gains(pitch, gcs), robust_onboard_gains(roll, gcs)
+    sx, sy = _side(af, Loop.X, pitch), _side(af, Loop.Y, roll)
+    gx = onboard_side_gains(sx, pitch, rp, target_hz=0.0).gains
+    gy = onboard_side_gains(sy, roll, rr, target_hz=0.0).gains
+    assert gx != gy
+    shared = shared_side_gains([SideLoop(sx, pitch, rp, 0.0), SideLoop(sy, roll, rr, 0.0)])
+    kd = min(gx.Kd, gy.Kd)
+    assert shared[0].gains.Kd == pytest.approx(kd)
+    assert shared[0].gains.Kc == pytest.approx(min(gx.Kc / gx.Kd, gy.Kc / gy.Kd) * kd)
