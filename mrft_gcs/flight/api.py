@@ -1149,8 +1149,9 @@ class _Run:
                 self.written[lp] = shared[i].gains
                 side_notes.append(f"{lp.value} {shared[i].note()}")
             if len(side_loops) > 1:
-                side_notes.append("one PD for both (they share the autopilot's parameters), "
-                                  "designed for the worse of the two")
+                side_notes.append("one PD for both (they share the autopilot's parameters): "
+                                  "the smaller gains, raised only as far as the faster loop "
+                                  "needs")
         moved = [lp for lp, g in identified.items() if self.written[lp] != g
                  and lp not in SIDE_INNER]
         self.delays.update({lp: delay[lp] for lp in moved})  # the rate path's kept
