@@ -60,10 +60,11 @@ import numpy as np
 from mrft_gcs.errors import IdentificationError, LinkError, MrftError, SafetyAbort
 from mrft_gcs.flight.driver import SequenceDriver
 from mrft_gcs.flight.onboard import (
+    SideLoop,
     measure_gcs_delay,
     onboard_extra_delay_s,
-    onboard_side_gains,
     robust_onboard_gains,
+    shared_side_gains,
     vehicle_position_rate,
 )
 from mrft_gcs.flight.safety import LimitExceeded
@@ -230,12 +231,13 @@ def run_lockstep(seed: int, max_s: float = 70.0,
         rts[lp] = structured_retarget(ident, robust_onboard_gains(
             ident, gcs, onboard_extra_s=onboard_extra_delay_s(lp, pos_rate.hz)), structure[lp])
         delays[lp], written[lp] = rts[lp].delay_s, rts[lp].gains
-    for lp, inner_lp in SIDE_INNER.items():
-        if lp in identified and inner_lp in rts:
-            written[lp] = onboard_side_gains(
-                identified[lp], identified[inner_lp], rts[inner_lp],
-                onboard_extra_s=onboard_extra_delay_s(lp, pos_rate.hz),
-                target_hz=structure[inner_lp].target_hz, d_hz=structure[inner_lp].d_hz).gains
+    side = [lp for lp, inner_lp in SIDE_INNER.items() if lp in identified and inner_lp in rts]
+    shared = shared_side_gains(
+        [SideLoop(identified[lp], identified[SIDE_INNER[lp]], rts[SIDE_INNER[lp]],
+                  structure[SIDE_INNER[lp]].target_hz, structure[SIDE_INNER[lp]].d_hz)
+         for lp in side], onboard_extra_s=onboard_extra_delay_s(Loop.X, pos_rate.hz))
+    for i, lp in enumerate(side):
+        written[lp] = shared[i].gains
     rec["retarget_delay_ms"] = {lp.value: d * 1e3 for lp, d in delays.items()}
     # what the re-target was measured as (benchmarks/structure_loss.py re-designs from these)
     rec["gcs_delay_measured_ms"] = {lp.value: {

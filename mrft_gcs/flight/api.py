@@ -81,11 +81,12 @@ from mrft_gcs.flight.inair import (
 from mrft_gcs.flight.onboard import (
     PositionLoopRate,
     Retarget,
+    SideLoop,
     measure_gcs_delay,
     onboard_extra_delay_s,
     onboard_gains,
-    onboard_side_gains,
     robust_onboard_gains,
+    shared_side_gains,
     vehicle_position_rate,
 )
 from mrft_gcs.flight.phases.yaw import IDENTIFY_AS as YAW_IDENTIFY_AS
@@ -1131,18 +1132,27 @@ class _Run:
             if rt.d_over_p_s > 0:
                 self.d_over_p[lp] = rt.d_over_p_s
         side_notes = []
+        side_loops: dict[Loop, SideLoop] = {}
         for lp, inner_lp in SIDE_INNER.items():
             # flown behind the written attitude gains, not the GCS's PD it was identified behind
             inner, ident = seq.loops[inner_lp].identification, seq.loops[lp].identification
             if (lp in self.written and inner_lp in retargets and inner is not None
                     and ident is not None and self.gcs_delay_s is None):
                 st = self.structure.get(inner_lp)
-                side = onboard_side_gains(
-                    ident, inner, retargets[inner_lp],
-                    onboard_extra_s=onboard_extra_delay_s(lp, self.position_loop.hz),
-                    target_hz=st.target_hz if st else None, d_hz=st.d_hz if st else 0.0)
-                self.written[lp] = side.gains
-                side_notes.append(f"{lp.value} {side.note()}")
+                side_loops[lp] = SideLoop(ident, inner, retargets[inner_lp],
+                                          st.target_hz if st else None, st.d_hz if st else 0.0)
+        if side_loops:
+            # x and y share the autopilot's position and velocity P: one PD designed for both
+            shared = shared_side_gains(
+                list(side_loops.values()),
+                onboard_extra_s=onboard_extra_delay_s(Loop.X, self.position_loop.hz))
+            for i, lp in enumerate(side_loops):
+                self.written[lp] = shared[i].gains
+                side_notes.append(f"{lp.value} {shared[i].note()}")
+            if len(side_loops) > 1:
+                side_notes.append("one PD for both (they share the autopilot's parameters): "
+                                  "the smaller gains, raised only as far as the faster loop "
+                                  "needs")
         moved = [lp for lp, g in identified.items() if self.written[lp] != g
                  and lp not in SIDE_INNER]
         self.delays.update({lp: delay[lp] for lp in moved})  # the rate path's kept

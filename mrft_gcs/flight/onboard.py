@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,7 +78,8 @@ from mrft_gcs.plant import (
 __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s",
            "first_answers", "GcsDelay", "measure_gcs_delay", "Retarget",
            "robust_onboard_gains", "PM_ROBUST_DEG", "ROUND_TRIP_SLACK_S", "SideRetarget",
-           "onboard_side_gains", "onboard_extra_delay_s", "CAP_SHARE", "CERTAIN_CAP_SHARE",
+           "onboard_side_gains", "SideLoop", "shared_side_gains", "SHARED_ISE_SLACK",
+           "onboard_extra_delay_s", "CAP_SHARE", "CERTAIN_CAP_SHARE",
            "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ", "CascadeGains", "cascade_gains",
            "CASCADE_LOOP_HZ", "rate_loop_gains", "RATE_I_LOWEST", "PositionLoopRate",
            "cascade_controller", "cascade_process",
@@ -118,6 +119,9 @@ CERTAIN_CAP_SHARE = 0.95
 #: (Hz; the slowest either firmware runs by default): its sample-and-hold is delay the
 #: altitude and side loops have onboard and did not have during the GCS-side tests
 POSITION_LOOP_MIN_HZ = 50.0
+#: x and y share one PD (:func:`shared_side_gains`): how much more ISE than its own design
+#: (as a share of it) the loop with the faster design is left with
+SHARED_ISE_SLACK = 0.05
 #: the lowest rate-target low-pass (Hz) an autopilot's attitude loop is allowed to have
 #: unseen (ArduPilot's ATC_RAT_*_FLTT): it slows the closed attitude loop the side loops
 #: are flown behind
@@ -556,9 +560,43 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
     >>> r.gains.Kc > 0.3, r.pm_deg >= 15.0
     (True, True)
     """
+    case = _side_case(side, inner, inner_rt, pm_min_deg, onboard_extra_s, target_hz, d_hz)
+    return case.result if case is not None else SideRetarget(side.gains, 0.0, math.nan)
+
+
+@dataclass(frozen=True)
+class _SideCase:
+    """One side loop's onboard cascades (nominal, and those the margin is checked on) on
+    the grid ``w``, the tuning rule's ``scale`` (identified over ISE-optimal gains on the
+    GCS-side cascade) and its own design."""
+
+    w: np.ndarray
+    nominal: np.ndarray
+    worst: tuple[np.ndarray, ...]
+    scale: PD
+    result: SideRetarget
+
+    def pm(self, g: PD) -> float:
+        """The least phase margin of ``g`` over the checked cascades (deg; -inf: unstable)."""
+        s = 1j * self.w
+        out = math.inf
+        for G in self.worst:
+            m = margins((g.Kc + g.Kd * s) * G, self.w)
+            out = min(out, m.pm_deg if m.stable else -math.inf)
+        return out
+
+    def ise(self, g: PD) -> float:
+        """ISE of ``g`` on the nominal cascade, in the tuning rule's units."""
+        return ise(g.Kc / self.scale.Kc, g.Kd / self.scale.Kd, self.nominal, self.w)
+
+
+def _side_case(side: Identification, inner: Identification, inner_rt: Retarget,
+               pm_min_deg: float, onboard_extra_s: float, target_hz: float | None,
+               d_hz: float) -> _SideCase | None:
+    """The work of :func:`onboard_side_gains` (None: not an inner and a side model)."""
     mi, ms = inner.model, side.model
     if not isinstance(mi, InnerModel) or not isinstance(ms, SideModel):
-        return SideRetarget(side.gains, 0.0, math.nan)
+        return None
     w = frequency_grid(mi.T_prop, mi.T1, mi.tau, extra_T=(ms.T2, ms.tau))
     s = 1j * w
     extra = max(float(onboard_extra_s), 0.0)
@@ -621,7 +659,108 @@ def onboard_side_gains(side: Identification, inner: Identification, inner_rt: Re
                 or ise(cand.Kc / scale.Kc, cand.Kd / scale.Kd, g_nom, w)
                 < ise(best.Kc / scale.Kc, best.Kd / scale.Kd, g_nom, w)):
             best, pm_best = cand, pm_cand
-    return SideRetarget(best, share, float(pm_best))
+    return _SideCase(w, g_on * np.exp(-0.5 * extra * s), tuple(worst),
+                     PD(side.gains.Kc / p0.Kc, side.gains.Kd / p0.Kd),
+                     SideRetarget(best, share, float(pm_best)))
+
+
+@dataclass(frozen=True)
+class SideLoop:
+    """What :func:`onboard_side_gains` designs one side loop from (see there).
+
+    Attributes
+    ----------
+    side, inner : Identification
+        The side loop's and its attitude loop's identifications.
+    inner_rt : Retarget
+        The attitude loop's written gains (:func:`robust_onboard_gains`).
+    target_hz : float or None
+        The attitude loop's rate-target low-pass (Hz; None: not read).
+    d_hz : float
+        Its rate D's low-pass (Hz; 0: none).
+    """
+
+    side: Identification
+    inner: Identification
+    inner_rt: Retarget
+    target_hz: float | None = None
+    d_hz: float = 0.0
+
+
+def shared_side_gains(loops: Sequence[SideLoop], pm_min_deg: float = PM_ROBUST_DEG, *,
+                      onboard_extra_s: float = 0.5 / POSITION_LOOP_MIN_HZ
+                      ) -> dict[int, SideRetarget]:
+    """One PD for side loops that share the autopilot's parameters (x and y: one position P
+    and one velocity P on both firmwares), designed for all of them.
+
+    Each loop's own design (:func:`onboard_side_gains`) is for its own cascade: behind
+    attitude gains written apart for roll and pitch, x's and y's differ. Writing the
+    smaller of each gain (what one parameter pair of two designs falls back on) leaves the
+    faster loop well below its own, with more margin than asked. Here, from those smaller
+    gains up to the faster design (on a log scale, in 2.5 % steps), the first that leaves
+    every loop's nominal ISE within :data:`SHARED_ISE_SLACK` of its own design's is taken
+    (none: the one nearest the designs' ISE, either way), under ``pm_min_deg`` on every
+    loop's checked cascades (as :func:`onboard_side_gains`). Where no blend keeps the
+    margin on both, or the designs agree, the smaller gains are kept.
+
+    Returns
+    -------
+    dict
+        ``{index in loops: SideRetarget}``: the shared gains, with each loop's own share
+        and its margin (deg) under them; a loop not designable (not a side and an
+        attitude model) keeps its identified gains and is left out of the shared design.
+
+    Examples
+    --------
+    >>> from mrft_gcs.loops import LoopKind
+    >>> mp = InnerModel(K=40.0, T_prop=0.02, T1=0.3, tau=0.03)
+    >>> mr = InnerModel(K=40.0, T_prop=0.02, T1=0.3, tau=0.02)
+    >>> ip = Identification(LoopKind.ATTITUDE, mp, 0, 1.0, -0.8, 0.1, 0.25, 0.03, PD(2.0, 0.2))
+    >>> ir = Identification(LoopKind.ATTITUDE, mr, 0, 1.0, -0.8, 0.1, 0.25, 0.03, PD(2.6, 0.22))
+    >>> ms = SideModel(K=9.8, T2=1.5, tau=0.01)
+    >>> si = Identification(LoopKind.SIDE, ms, 0, 1.0, -0.8, 0.1, 1.0, 0.1, PD(0.3, 0.25))
+    >>> d = GcsDelay(0.012, 0.010, 0.016, 0.002, True, "", 0.01)
+    >>> x = SideLoop(si, ip, robust_onboard_gains(ip, d))
+    >>> y = SideLoop(si, ir, robust_onboard_gains(ir, d))
+    >>> r = shared_side_gains([x, y])
+    >>> r[0].gains == r[1].gains, min(r[0].pm_deg, r[1].pm_deg) >= 15.0
+    (True, True)
+    """
+    extra = max(float(onboard_extra_s), 0.0)
+    cases = {i: _side_case(lp.side, lp.inner, lp.inner_rt, pm_min_deg, extra, lp.target_hz,
+                           lp.d_hz) for i, lp in enumerate(loops)}
+    out = {i: SideRetarget(loops[i].side.gains, 0.0, math.nan)
+           for i, c in cases.items() if c is None}
+    live = {i: c for i, c in cases.items() if c is not None}
+    if not live:
+        return out
+    own = [c.result.gains for c in live.values()]
+    small = PD(min(g.Kc / g.Kd for g in own) * min(g.Kd for g in own),
+               min(g.Kd for g in own))
+    best = small
+    if len(own) == 2 and own[0] != own[1]:
+        ref = {i: c.ise(c.result.gains) for i, c in live.items()}
+        fast = max(own, key=lambda g: g.Kd)
+        lo = np.log([[small.Kc, small.Kd], [fast.Kc, fast.Kd]])
+
+        def ratios(g: PD) -> list[float]:
+            return [c.ise(g) / ref[i] for i, c in live.items()]
+
+        # from the smaller gains up to the faster design (on a log scale): the least move
+        # that brings both loops' ISE within SHARED_ISE_SLACK of their own designs'. Every
+        # step up takes margin from the slower loop, whose model alone then stands between
+        # it and the truth
+        blends = [PD(*map(float, np.exp((1 - a) * lo[0] + a * lo[1])))
+                  for a in np.linspace(0.0, 1.0, 41)]
+        ok = [g for g in blends if min(c.pm(g) for c in live.values()) >= pm_min_deg]
+        near = [g for g in ok if max(ratios(g)) <= 1.0 + SHARED_ISE_SLACK]
+        if near:
+            best = near[0]
+        elif ok:  # none that near: the blend nearest both designs (either way)
+            best = min(ok, key=lambda g: max(abs(math.log(r)) for r in ratios(g)))
+    for i, c in live.items():
+        out[i] = SideRetarget(best, c.result.share, float(c.pm(best)))
+    return out
 
 
 def onboard_extra_delay_s(loop: Loop, position_hz: float = POSITION_LOOP_MIN_HZ) -> float:
