@@ -93,3 +93,50 @@ def test_relay_frequency_is_where_the_mrft_phase_is():
     wr = relay_frequency(m, -0.7)
     ph = np.angle(inner_response(m.K, m.T_prop, m.T1, m.tau, [wr])[0][0]) - 2 * math.pi
     assert math.degrees(ph) == pytest.approx(-180.0 + math.degrees(math.asin(-0.7)), abs=0.5)
+
+
+def _truth_at(G: np.ndarray, wg: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``G`` (on the grid ``wg``) at ``w``: log-magnitude and unwrapped phase interpolated."""
+    lw = np.log(wg)
+    mag = np.interp(np.log(w), lw, np.log(np.abs(G)))
+    ph = np.interp(np.log(w), lw, np.unwrap(np.angle(G)))
+    return np.exp(mag + 1j * ph)
+
+
+@pytest.mark.parametrize("seed,lp", [(3, "roll"), (19, "pitch")])
+def test_the_check_measures_the_vehicles_margin_from_its_exact_points(seed, lp):
+    # noise-free closed-loop points of the vehicle's own loop (the onboard truth) at the
+    # check's harmonics: the margin the check reads from them is the truth's, though the
+    # identified model it corrects is off the vehicle's by more than a gain and a delay
+    from mrft_gcs.flight.inair import CHECK_HARMONICS, check_margin
+    from mrft_gcs.flight.scoring import onboard_controller, onboard_process
+    from mrft_gcs.loops import Loop
+    from mrft_gcs.sitl.onboard import ParamStore
+
+    af = random_airframe(seed)
+    assert domain_check(af).category == "in-domain"
+    r = tp.run_lockstep(seed)
+    assert r["outcome"] == "completed", r.get("reason")
+    loop = Loop(lp)
+    prm = dict(ParamStore(af.hover_thrust * af.hover_estimate_factor, af.onboard).values)
+    prm.update(r["written"])
+    ax = _AXES[lp]
+    kd = prm[f"MC_{ax}RATE_P"]
+    gains = PD(prm[f"MC_{ax}_P"] * kd, kd)
+    m = r["identified"][lp]["model"]
+    onboard = InnerModel(m["K"], m["T_prop"], m["T1"],
+                         max(m["tau"] - r["retarget_delay_ms"][lp] * 1e-3, 1e-4))
+    d = prm[f"MC_{ax}RATE_D"]
+    cascade = (OnboardCascade(af.onboard.target_cutoff_hz, target_rate_ff=False,
+                              d_over_p_s=d / kd if d > 0 else 0.0,
+                              d_filter_hz=af.onboard.dgyro_cutoff_hz)
+               if af.onboard.style == "ardupilot" else None)
+    plan = plan_check(onboard, gains, CHECK_AMPLITUDE_RAD, cascade=cascade)
+    G, wg = onboard_process(af, loop, prm)
+    truth = margins(onboard_controller(af, loop, prm, wg)[1] * G, wg)
+    w = plan.wc_rad_s * np.asarray(CHECK_HARMONICS, float)
+    Gw = _truth_at(G, wg, w)
+    cr, cy = onboard_controller(af, loop, prm, w)
+    T = cr * Gw / (1.0 + cy * Gw)
+    check = check_margin(plan, w, T, np.full(w.size, 0.05))
+    assert check.measured_pm_deg == pytest.approx(truth.pm_deg, abs=1.0), (plan, truth)
