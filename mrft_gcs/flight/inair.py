@@ -9,9 +9,10 @@ Fourier coefficients over whole cycles, the set point integrated exactly as held
 levels). With the written cascade ``u = Kc (r - y) - Kd dy/dt`` (angle-P ``Kc/Kd``
 feeding rate-P ``Kd``), ``T = Kc G / (1 + (Kc + Kd s) G)``, so each point gives the
 onboard plant ``G = T / (Kc - T (Kc + Kd s))`` and the open loop
-``L = (Kc + Kd s) G``. What one short test leaves open is fitted as a gain ``k`` and
-an extra delay ``d`` on the predicted onboard model (``G_true = k e^{-d s} G``); the
-measured phase margin is that of the corrected loop. Where it is short of
+``L = (Kc + Kd s) G``. What one short test leaves open is taken as a gain ``k`` and
+an extra delay ``d`` on the predicted onboard model (``G_true = k e^{-d s} G``), matched at
+the fundamental (the predicted crossover); the measured phase margin is that of the
+corrected loop. Where it is short of
 :data:`PASS_PM_DEG`, or beyond :data:`PM_HIGH_DEG` (gains more cautious than the loop needs),
 the gains are re-designed on the corrected model (the project's ISE-optimal PD, PM >= 20
 deg on it) and written and checked again.
@@ -334,9 +335,9 @@ def check_margin(plan: CheckPlan, w, T, se) -> InAirCheck:
     """Measured phase margin of ``plan.gains`` from closed-loop points ``(w, T, se)``.
 
     The onboard plant at each point, ``G = T / (Kc - T (Kc + Kd s))`` (with a cascade
-    ``T / (C_r - T C_y)``), is compared with the predicted model: ``ln k`` is the weighted
-    mean of the log-magnitude ratios and the extra delay the weighted fit of the phase
-    differences ``-w d``.
+    ``T / (C_r - T C_y)``), is compared with the predicted model: ``k`` and the extra delay
+    ``d`` make it match at the fundamental (the predicted crossover); the harmonics give the
+    misfit of that correction (``fit_rms``).
     """
     w, T, se = np.asarray(w, float), np.asarray(T, complex), np.asarray(se, float)
     g = plan.gains
@@ -350,10 +351,13 @@ def check_margin(plan: CheckPlan, w, T, se) -> InAirCheck:
     # C_y / C_r)
     amp = np.abs(1.0 / (1.0 - T * cy / cr))
     sg = np.maximum(se * amp, 1e-3)
-    wt = 1.0 / sg**2
-    lnk = float(np.sum(wt * np.log(np.abs(ratio))) / np.sum(wt))
-    ph = np.angle(ratio)
-    d = float(-np.sum(wt * w * ph) / np.sum(wt * w * w))
+    # the gain and delay from the fundamental alone: it lies at the predicted crossover, where
+    # the margin is, and the model's error is no pure gain and delay (the identified shape
+    # leaves the vehicle's above the relay's frequency): fitted over the harmonics, the delay
+    # (weighted by w^2, the 5th harmonic's) moved the corrected phase at the crossover
+    i = int(np.argmin(w))
+    lnk = float(np.log(np.abs(ratio[i])))
+    d = float(-np.angle(ratio[i]) / w[i])
     fitted = np.exp(lnk - 1j * w * d)
     resid = np.abs(np.log(ratio / fitted)) / sg
     grid = frequency_grid(m.T_prop, m.T1, m.tau + max(d, 0.0))

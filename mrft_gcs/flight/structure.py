@@ -39,9 +39,11 @@ optimised: the design is linear and noise-free, where more D always looks better
 vehicle D amplifies gyro noise by ``r 2 pi f_d`` over rate P (some 3.4 x at 20 Hz); at the
 default ratio that is the noise every stock ArduCopter already flies with. With D the gains
 stay within :data:`D_GAIN_MOVE_MAX` of the two-number design's, the angle P within
-:data:`D_ANGLE_P_MOVE_MAX` of its, and they keep a gain margin of :data:`D_GM_MIN` besides both
-phase margins: D's lead would otherwise move the crossover far above the frequency the relay
-identified the model at, and the angle P into the square-root controller's soft part. Where
+:data:`D_ANGLE_P_MOVE_MAX` of its, they keep a gain margin of :data:`D_GM_MIN` besides both
+phase margins, and their crossover stays within :data:`D_WC_MAX_RATIO` of the relay cycle's
+frequency: D's lead would otherwise move the crossover far above the frequency the relay
+identified the model at (where the margin predicted, and checked in the air, is no longer the
+vehicle's), and the angle P into the square-root controller's soft part. Where
 D does not lower the design's ISE, none is written.
 """
 
@@ -72,8 +74,8 @@ from mrft_gcs.plant import PD, InnerModel, inner_response
 from mrft_gcs.profiles import AutopilotProfile, PDGains
 
 __all__ = ["TARGET_FILTER_PARAMS", "DEFAULT_TARGET_HZ", "D_FILTER_PARAMS", "DEFAULT_D_HZ",
-           "RATE_D_OVER_P_S", "WRITE_RATE_D", "D_GAIN_MOVE_MAX", "D_GM_MIN",
-           "D_ANGLE_P_MOVE_MAX", "OnboardStructure",
+           "RATE_D_OVER_P_S", "WRITE_RATE_D", "D_GAIN_MOVE_MAX", "D_GM_MIN", "D_WC_MAX_RATIO",
+           "D_ANGLE_P_MOVE_MAX", "OnboardStructure", "relay_frequency",
            "read_structure", "vehicle_structure", "rate_d_values",
            "structure_controller", "StructuredDesign", "structured_pd", "structured_retarget",
            "cascade_design"]
@@ -101,6 +103,11 @@ WRITE_RATE_D = True
 D_GAIN_MOVE_MAX = 1.5
 #: and a gain margin of at least this (ratio) on the nominal and the worst process
 D_GM_MIN = 2.0
+#: and the gain crossover on the model at most this many times the relay cycle's frequency
+#: (:func:`relay_frequency`): the cycle pins the identified model there, and the model's phase
+#: error grows above it; D's lead carried the crossover 2-3 x above it, where the margin on the
+#: vehicle lay well off the one predicted (the in-air check's, :mod:`mrft_gcs.flight.inair`)
+D_WC_MAX_RATIO = 1.5
 #: and the angle P (``Kc/Kd``) at most this many times the two-number design's: ArduPilot's
 #: square-root angle controller is linear only within ``accel_max / P^2`` of error, and a
 #: higher P leaves larger errors to its softer part
@@ -250,7 +257,8 @@ def structured_pd(G: np.ndarray, w: np.ndarray, st: OnboardStructure, *,
                   pm_min_deg: float = PM_MIN_DEG, worst: Sequence[np.ndarray] = (),
                   pm_worst_deg: float = PM_ROBUST_DEG,
                   starts: Sequence[PD] = (), gm_min: float = 0.0,
-                  most: PD | None = None, most_ratio: float = math.inf) -> StructuredDesign:
+                  most: PD | None = None, most_ratio: float = math.inf,
+                  wc_max: float = math.inf) -> StructuredDesign:
     """ISE-optimal written gains for the loop ``G`` closes under ``st``.
 
     Parameters
@@ -270,6 +278,8 @@ def structured_pd(G: np.ndarray, w: np.ndarray, st: OnboardStructure, *,
         The most each gain may be (the search is clipped there).
     most_ratio : float
         The most ``Kc / Kd`` (the angle P written, 1/s) may be.
+    wc_max : float
+        The highest gain crossover on ``G`` (rad/s; inf: none).
 
     The margins are honoured: the optimum is scaled down (a pure gain change) until they
     hold where the penalised search ends short of them.
@@ -289,6 +299,10 @@ def structured_pd(G: np.ndarray, w: np.ndarray, st: OnboardStructure, *,
         return min(float(margins(structure_controller(g, st, w)[1] * Gx, w).gm)
                    for Gx in (G, *worst)) if gm_min > 0 else math.inf
 
+    def wc_of(g: PD) -> float:
+        return (float(margins(structure_controller(g, st, w)[1] * G, w).wc)
+                if np.isfinite(wc_max) else 0.0)
+
     top = np.log([most.Kc, most.Kd]) if most is not None else np.array([np.inf, np.inf])
 
     def gains_of(x: np.ndarray) -> PD:
@@ -306,6 +320,8 @@ def structured_pd(G: np.ndarray, w: np.ndarray, st: OnboardStructure, *,
         short = max(0.0, pm_min_deg - pm) + max(0.0, pm_worst_deg - pmw)
         if gm_min > 0:  # in dB-like units: 1 for each 5 % short of the gain margin
             short += 20.0 * max(0.0, math.log(gm_min / gm_of(g)))
+        if np.isfinite(wc_max):  # alike: 1 for each 5 % above the crossover allowed
+            short += 20.0 * max(0.0, math.log(wc_of(g) / wc_max))
         return q * (1.0 + 0.05 * short + 0.02 * short ** 2) if np.isfinite(q) else 1e12
 
     best = None
@@ -319,12 +335,26 @@ def structured_pd(G: np.ndarray, w: np.ndarray, st: OnboardStructure, *,
     pm, pmw = pm_all(g)
     k = 1.0
     while (pm < pm_min_deg or pmw < pm_worst_deg or gm_of(PD(g.Kc * k, g.Kd * k)) < gm_min
-           ) and k > 1e-3:
+           or wc_of(PD(g.Kc * k, g.Kd * k)) > wc_max) and k > 1e-3:
         k *= 0.98  # the search ended short of a margin: less gain until they hold
         pm, pmw = pm_all(PD(g.Kc * k, g.Kd * k))
     g = PD(g.Kc * k, g.Kd * k)
     Cr, Cy = structure_controller(g, st, w)
     return StructuredDesign(g, general_ise(Cr, Cy, G, w), pm, pmw)
+
+
+def relay_frequency(model: InnerModel, beta: float) -> float:
+    """The frequency (rad/s) of the relay cycle that identified ``model`` (the ground station's
+    loop, its delay in): where the model's phase is ``-180 deg + arcsin(beta)``, the point the
+    cycle pins it at (the describing function's; inf where it never gets there).
+
+    >>> round(relay_frequency(InnerModel(100.0, 0.02, 0.5, 0.02), -0.7), 1)
+    22.4
+    """
+    w = frequency_grid(model.T_prop, model.T1, model.tau, n=2000)
+    ph = np.unwrap(np.angle(inner_response(1.0, model.T_prop, model.T1, model.tau, w)[0]))
+    hit = np.flatnonzero(ph <= -math.pi + math.asin(beta))
+    return float(w[hit[0]]) if hit.size else math.inf
 
 
 def structured_retarget(ident: Identification, rt: Retarget, st: OnboardStructure,
@@ -371,7 +401,8 @@ def structured_retarget(ident: Identification, rt: Retarget, st: OnboardStructur
         most = PD(two.gains.Kc * D_GAIN_MOVE_MAX, two.gains.Kd * D_GAIN_MOVE_MAX)
         des = structured_pd(G, w, st, pm_min_deg=pm_min_deg, worst=(Gw,),
                             starts=(two.gains,), gm_min=D_GM_MIN, most=most,
-                            most_ratio=two.gains.Kc / two.gains.Kd * D_ANGLE_P_MOVE_MAX)
+                            most_ratio=two.gains.Kc / two.gains.Kd * D_ANGLE_P_MOVE_MAX,
+                            wc_max=D_WC_MAX_RATIO * relay_frequency(m, ident.beta))
         if not two.ise > des.ise:  # D that does not pay for itself is not written
             des, st = two, dataclasses.replace(st, d_over_p_s=0.0)
             what += ", no rate D (it did not lower the ISE)"
