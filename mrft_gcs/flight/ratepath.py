@@ -1092,9 +1092,11 @@ class RatePath:
 
     def roll_pitch_due(self, roll_pitch_tuned: bool) -> bool:
         """True once roll and pitch are identified, where they go onboard ahead of yaw
-        (:data:`HAND_ROLL_PITCH_FIRST`) and neither hand-over has run."""
-        return (HAND_ROLL_PITCH_FIRST and roll_pitch_tuned and not self.rp_onboard
-                and not self.handed_over and self.backup is not None)
+        (:data:`HAND_ROLL_PITCH_FIRST`), yaw's relay still runs (done, or none: the one
+        hand-over writes all three at once) and neither hand-over has run."""
+        yaw_running = self.yaw is not None and not self.yaw.done
+        return (HAND_ROLL_PITCH_FIRST and roll_pitch_tuned and yaw_running
+                and not self.rp_onboard and not self.handed_over and self.backup is not None)
 
     def hand_over_roll_pitch(self, client: ParamClient, hold: Callable[[float], None],
                              refs: Callable[[], tuple[float, float]]) -> None:
