@@ -163,6 +163,15 @@ def test_channel_with_roll_pitch_onboard_sends_their_attitude_and_yaw_as_feed_fo
     ch.hold_body = True
     c = ch.step(out, _state(roll=0.1, yaw=1.0))
     assert c.q_wxyz == pytest.approx(quat_from_euler(0.1, 0.0, 1.0)) and c.body_rates
+    # the sequence on attitude set points (its side tests): their roll and pitch are sent,
+    # at the heading the target integrates, yaw's torque beside them
+    ch.hold_body = False
+    d = ch.step_attitude(AttitudeTarget(0.0, quat_from_euler(-0.04, 0.06, 0.2), 0.5),
+                         _state(yaw=1.0), 0.1)
+    assert _euler(d.q_wxyz)[:2] == pytest.approx((-0.04, 0.06)) and d.thrust == 0.5
+    assert _euler(d.q_wxyz)[2] == pytest.approx(1.0, abs=0.05)
+    assert _quat_matrix(d.q_wxyz) @ d.body_rates == pytest.approx([0, 0, 0.1 / rp.k[2]])
+    ch.hold_body = True
     ch.released = True  # yaw's own hand-over: nothing fed forward
     assert ch.step(out, _state(roll=0.1, yaw=1.0)).body_rates is None
 

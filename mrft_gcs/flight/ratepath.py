@@ -580,6 +580,18 @@ def _rotation_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
     return _rotation(np.array(quat_from_euler(roll, pitch, yaw)))
 
 
+def _euler(q: tuple[float, float, float, float]) -> tuple[float, float, float]:
+    """ZYX Euler angles (rad) of the unit quaternion ``q`` (w, x, y, z).
+
+    >>> [round(v, 9) for v in _euler(quat_from_euler(0.1, -0.2, 2.5))]
+    [0.1, -0.2, 2.5]
+    """
+    w, x, y, z = q
+    return (math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+            math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x)))),
+            math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+
+
 def beside_yaw(yaw_torque: float, yaw_rate: float, ff: float, rate_p: float,
                desired_rpy: tuple[float, float, float],
                target_to_body: np.ndarray | None = None) -> tuple[float, float, float]:
@@ -637,6 +649,7 @@ class RateChannel:
         #: the desired heading sent (rad): the target's own, as it integrates yaw's rates
         self.yaw_d = math.nan
         self._t_yaw_d = math.nan
+        self._att_refs: tuple[float, float] | None = None  # from the sequence's attitude
 
     @property
     def rp_rms(self) -> np.ndarray:
@@ -686,12 +699,22 @@ class RateChannel:
         return RateTarget(out.t_s, float(w[0]), float(w[1]), float(w[2]), out.thrust)
 
 
+    def step_attitude(self, out: AttitudeTarget, s: FlightState,
+                      yaw_torque: float) -> RateTarget | AttitudeTarget:
+        """Roll and pitch onboard, the sequence flying attitude set points (its side tests):
+        ``out``'s roll and pitch as the set point, yaw's ``yaw_torque`` (its relay's, which
+        the sequence no longer steps) beside them, as :meth:`step` sends them."""
+        roll, pitch, _ = _euler(out.q_wxyz)
+        self._att_refs = (roll, pitch)
+        return self.step(ActuatorTarget(out.t_s, 0.0, 0.0, yaw_torque, out.thrust), s)
+
     def _beside(self, out: ActuatorTarget, s: FlightState,
                 tb: np.ndarray | None) -> AttitudeTarget:
         """Roll and pitch onboard: the sequence's roll/pitch set points as the attitude, at
         the heading the target integrates (so that ArduCopter's shaping adds no yaw rate of
         its own), and yaw's torque as the body-rate feed-forward (:func:`beside_yaw`)."""
-        roll, pitch = self.refs() if self.refs is not None else (0.0, 0.0)
+        roll, pitch = (self._att_refs if self._att_refs is not None else
+                       self.refs() if self.refs is not None else (0.0, 0.0))
         now = time.monotonic()
         if not math.isfinite(self.yaw_d):
             self.yaw_d, self._t_yaw_d = s.yaw_rad, now
@@ -771,6 +794,14 @@ class RatePath:
                     channel.see_target(sp)
             if isinstance(out, ActuatorTarget):
                 return channel.step(out, s)
+            if (isinstance(out, AttitudeTarget) and channel.rp_onboard and not self.handed_over
+                    and s is not None and self.yaw is not None):
+                # roll and pitch onboard, the side tests on attitude set points: yaw's relay
+                # (or, once done, its PD) still flies through the feed-forward until its
+                # hand-over
+                _, _, yaw_ref = _euler(out.q_wxyz)
+                u = self.yaw.step(yaw_ref, s.yaw_rad, s.r_rad_s, s.t_att_s)
+                return channel.step_attitude(out, s, u)
             return out
 
         return rate_tick
