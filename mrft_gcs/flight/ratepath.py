@@ -1149,13 +1149,14 @@ class RatePath:
         final = self._final()
         names = roll_pitch_names(p)
         t0 = time.monotonic()
+        # roll and pitch's rate loops are no longer pure feed-forward from the first write
+        self._onboard_axes.update((1, 2))
         self._write(client, {n: final[n] for n in p.rate_p[:2]})
         channel.rate_p[:2] = [final[n] for n in p.rate_p[:2]]
         hold(STAGE_HOLD_S)
         self._write(client, {n: final[n] for n in p.ff[:2]})
         channel.ff[:2] = [final[n] for n in p.ff[:2]]
         hold(STAGE_HOLD_S)
-        self._onboard_axes.update((1, 2))
         off = channel.last
         aligned = TARGET_SET_PARAM in p.test_params
         channel.refs = refs
