@@ -129,6 +129,83 @@ class YawTrace:
                  states=np.array([s.value for s in _STATES]))
 
 
+class RateProbe:
+    """Records, while a run flies, the rate path's sequencing: when roll and pitch were first
+    seen identified, when they went onto the onboard cascade (where the code does that before
+    yaw's hand-over), when the full hand-over came, and the body rates in between, from which
+    the roll/pitch rms during yaw's test (the real classes wrapped, put back after)."""
+
+    def __init__(self) -> None:
+        self.rate: ratepath.RatePath | None = None
+        self.rows: list[tuple[float, float, float]] = []
+        self.t_rp = self.t_ho = math.nan
+        self._saved: dict[str, object] = {}
+
+    def __enter__(self) -> RateProbe:
+        probe, rp, ch = self, ratepath.RatePath, ratepath.RateChannel
+        self._saved = {"init": rp.__init__, "due": rp.inner_due, "ho": rp.hand_over,
+                       "see": ch._see_rates}
+        init, due, ho, see = (self._saved[k] for k in ("init", "due", "ho", "see"))
+
+        def p_init(rate: ratepath.RatePath, *a: object, **k: object) -> None:
+            init(rate, *a, **k)  # type: ignore[operator]
+            probe.rate = rate
+
+        def p_due(rate: ratepath.RatePath, tuned: bool) -> bool:
+            if tuned and not math.isfinite(probe.t_rp):
+                probe.t_rp = time.monotonic()
+            return due(rate, tuned)  # type: ignore[operator]
+
+        def p_ho(rate: ratepath.RatePath, *a: object, **k: object) -> object:
+            if not math.isfinite(probe.t_ho):
+                probe.t_ho = time.monotonic()
+            return ho(rate, *a, **k)  # type: ignore[operator]
+
+        def p_see(channel: ratepath.RateChannel, s: object) -> None:
+            probe.rows.append((time.monotonic(), s.p_rad_s, s.q_rad_s))  # type: ignore[attr-defined]
+            see(channel, s)  # type: ignore[operator]
+
+        rp.__init__ = p_init  # type: ignore[method-assign]
+        rp.inner_due = p_due  # type: ignore[method-assign]
+        rp.hand_over = p_ho  # type: ignore[method-assign]
+        ch._see_rates = p_see  # type: ignore[method-assign]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        rp, ch = ratepath.RatePath, ratepath.RateChannel
+        rp.__init__ = self._saved["init"]  # type: ignore[method-assign]
+        rp.inner_due = self._saved["due"]  # type: ignore[method-assign]
+        rp.hand_over = self._saved["ho"]  # type: ignore[method-assign]
+        ch._see_rates = self._saved["see"]  # type: ignore[method-assign]
+
+    def record(self) -> dict[str, object]:
+        """Roll/pitch body rates from 0.5 s after both were identified to the full hand-over
+        (yaw's test beside them): rms and the largest 0.25 s rms (deg/s); the zero-gain
+        windows per axis (s)."""
+        out: dict[str, object] = {}
+        rate = self.rate
+        a = np.asarray(self.rows, float).reshape(-1, 3)
+        if math.isfinite(self.t_rp) and math.isfinite(self.t_ho):
+            out["yaw_beside_rp_s"] = self.t_ho - self.t_rp
+            w = a[(a[:, 0] > self.t_rp + 0.5) & (a[:, 0] < self.t_ho)]
+            if len(w) > 5:
+                out["rp_rms_deg_s"] = np.degrees(np.sqrt((w[:, 1:] ** 2).mean(0))).tolist()
+                win = []
+                for t0 in np.arange(w[0, 0], w[-1, 0] - 0.25, 0.05):
+                    m = w[(w[:, 0] >= t0) & (w[:, 0] < t0 + 0.25)]
+                    if len(m) > 3:
+                        win.append(np.sqrt((m[:, 1:] ** 2).mean(0)))
+                if win:
+                    out["rp_rms_max_025s_deg_s"] = np.degrees(np.max(win, 0)).tolist()
+        if rate is not None:
+            zg = getattr(rate, "zero_gain_axes_s", None)
+            out["zero_gain_s"] = _num(rate.zero_gain_s)
+            out["zero_gain_axes_s"] = ({k: _num(v) for k, v in zg.items()} if zg else
+                                       {k: _num(rate.zero_gain_s) for k in
+                                        ("roll", "pitch", "yaw")})
+        return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=1)
@@ -166,7 +243,7 @@ def main() -> int:
             check = args.inair_check_runs > 0 and run >= args.runs - args.inair_check_runs
             api.RATE_INAIR_CHECK = check or ratepath.INAIR_CHECK
             rec["inair_check"] = api.RATE_INAIR_CHECK
-            with YawTrace() as trace:
+            with YawTrace() as trace, RateProbe() as probe:
                 try:
                     result = tune(sitl.serial0, "ardupilot", backup_dir=tmp, tlog_path=tlog,
                                   heartbeat_timeout_s=10, actuation="rate")
@@ -185,6 +262,8 @@ def main() -> int:
                   f"({result.duration_s:.1f} s from take-off, load "
                   f"{os.getloadavg()[0]:.1f}); yaw written {written} {error}", flush=True)
             rec.update(run_record(result, status, error, time.monotonic() - t))
+            rec["sequencing"] = sq = probe.record()
+            print(f"run {run}: sequencing {sq}", flush=True)
             for note in result.notes:
                 if note.startswith(("yaw", "rate path: zero-gain", "rate path: roll written",
                                     "rate path: pitch written", "in-air")):

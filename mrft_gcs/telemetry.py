@@ -86,11 +86,14 @@ class ActuatorTarget:
 
 @dataclass(frozen=True, slots=True)
 class AttitudeTarget:
-    """Attitude quaternion (w, x, y, z) and thrust setpoint (SET_ATTITUDE_TARGET)."""
+    """Attitude quaternion (w, x, y, z) and thrust setpoint (SET_ATTITUDE_TARGET);
+    ``body_rates`` (roll, pitch, yaw, rad/s) sent with it as the feed-forward where given
+    (ArduCopter: the rate path's yaw beside roll and pitch held onboard), else ignored."""
 
     t_s: float
     q_wxyz: tuple[float, float, float, float]
     thrust: float
+    body_rates: tuple[float, float, float] | None = None
 
 
 def quat_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:

@@ -4,6 +4,7 @@ ArduCopter's own SITL in tests/test_ardupilot_sitl.py."""
 from __future__ import annotations
 
 import math
+import time
 import tomllib
 
 import numpy as np
@@ -16,9 +17,12 @@ from mrft_gcs.flight.ratepath import (
     K_CORRECT,
     RateChannel,
     alignment,
+    beside_yaw,
     body_rates,
     check_feed_forward,
     rate_path_refusal,
+    roll_pitch_names,
+    yaw_wait_over,
 )
 from mrft_gcs.link.firmware import Firmware
 from mrft_gcs.loops import Loop
@@ -112,6 +116,84 @@ def test_channel_rotates_by_the_latest_target_and_zeroes_once_released():
     b = ch.step(out, _state(roll=0.1, pitch=-0.2, yaw=1.0))
     assert isinstance(b, AttitudeTarget) and b.thrust == 0.4
     assert b.q_wxyz == pytest.approx(quat_from_euler(0.1, -0.2, 1.0))
+
+
+def _quat_matrix(q):
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+@pytest.mark.parametrize("desired", [(0.0, 0.0, 0.0), (0.15, -0.1, 2.0), (-0.3, 0.2, -1.0)])
+@pytest.mark.parametrize("target", [(0.0, 0.0, 0.0), (0.1, 0.05, 0.3)])
+def test_yaw_beside_roll_pitch_onboard_gives_the_body_its_yaw_torque_alone(desired, target):
+    """ArduCopter takes the rates sent with an attitude as the desired attitude's
+    (``q_desired * rates``) and feeds the target's rate forward rotated into the body: the
+    body's rate target must be yaw's ``d`` alone, nothing on roll and pitch."""
+    body = (0.02, -0.03, target[2] - 0.1)
+    a = alignment(target, body)
+    ff, p, r, torque = 1.0, 0.0, 0.2, 0.05
+    v = np.array(beside_yaw(torque, r, ff, p, desired, a.target_to_body))
+    target_rate = _quat_matrix(quat_from_euler(*desired)) @ v
+    body_rate = a.target_to_body @ target_rate
+    assert body_rate == pytest.approx([0.0, 0.0, torque / ff], abs=1e-12)
+    # with yaw's rate P written (the hand-over's first stage) the loop's P term is inverted
+    v2 = beside_yaw(torque, r, ff, 0.5, desired)
+    d = _quat_matrix(quat_from_euler(*desired)) @ np.array(v2)
+    assert ff * d[2] + 0.5 * (d[2] - r) == pytest.approx(torque)
+
+
+def test_channel_with_roll_pitch_onboard_sends_their_attitude_and_yaw_as_feed_forward():
+    rp = load_profile("ardupilot").rate_path
+    assert rp is not None
+    ch = RateChannel(rp)
+    ch.rp_onboard, ch.refs = True, lambda: (0.05, -0.08)
+    out = ActuatorTarget(0.0, 0.3, -0.3, 0.1, 0.45)  # roll/pitch torques no longer sent
+    a = ch.step(out, _state(yaw=0.7))
+    assert isinstance(a, AttitudeTarget) and a.thrust == 0.45 and a.body_rates is not None
+    r, pch, y = _euler(a.q_wxyz)
+    assert (r, pch, y) == pytest.approx((0.05, -0.08, 0.7))
+    assert _quat_matrix(a.q_wxyz) @ a.body_rates == pytest.approx([0, 0, 0.1 / rp.k[2]])
+    # the heading sent follows what the target integrates: yaw's rate over time
+    time.sleep(0.05)
+    b = ch.step(out, _state(yaw=0.7))
+    assert 0.7 < _euler(b.q_wxyz)[2] < 0.7 + 0.1 / rp.k[2] * 0.2
+    # the hand-over's alignment: the body's attitude, yaw's rate beside it
+    ch.hold_body = True
+    c = ch.step(out, _state(roll=0.1, yaw=1.0))
+    assert c.q_wxyz == pytest.approx(quat_from_euler(0.1, 0.0, 1.0)) and c.body_rates
+    # the sequence on attitude set points (its side tests): their roll and pitch are sent,
+    # at the heading the target integrates, yaw's torque beside them
+    ch.hold_body = False
+    d = ch.step_attitude(AttitudeTarget(0.0, quat_from_euler(-0.04, 0.06, 0.2), 0.5),
+                         _state(yaw=1.0), 0.1)
+    assert _euler(d.q_wxyz)[:2] == pytest.approx((-0.04, 0.06)) and d.thrust == 0.5
+    assert _euler(d.q_wxyz)[2] == pytest.approx(1.0, abs=0.05)
+    assert _quat_matrix(d.q_wxyz) @ d.body_rates == pytest.approx([0, 0, 0.1 / rp.k[2]])
+    ch.hold_body = True
+    ch.released = True  # yaw's own hand-over: nothing fed forward
+    assert ch.step(out, _state(roll=0.1, yaw=1.0)).body_rates is None
+
+
+def _euler(q):
+    w, x, y, z = q
+    return (math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+            math.asin(2 * (w * y - z * x)),
+            math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+
+
+def test_roll_pitch_hand_over_leaves_yaw_and_the_shared_parameters_for_later():
+    rp = load_profile("ardupilot").rate_path
+    assert rp is not None
+    names = set(roll_pitch_names(rp))
+    assert {*rp.rate_p[:2], *rp.ff[:2], *rp.angle_p[:2]} <= names
+    assert not names & {rp.rate_p[2], rp.ff[2], rp.angle_p[2], "ATC_RATE_FF_ENAB",
+                        "ATC_ACCEL_Y_MAX", "GUID_TIMEOUT", "GCS_PID_MASK"}
+    assert names <= set(rp.test_params)
+    # yaw's wait counts on: its reason names where roll and pitch are
+    assert "onboard" in yaw_wait_over(99.0, np.zeros(2), onboard=True)
+    assert "the onboard cascade" in yaw_wait_over(1.0, np.radians([90.0, 0.0]), onboard=True)
 
 
 def test_feed_forward_check_corrects_small_and_refuses_large_errors():

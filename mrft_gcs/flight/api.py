@@ -1058,18 +1058,20 @@ class _Run:
             time.sleep(0.01)
             self._check_stream()
             drv.supervise()
-            if self.rate is not None and self.rate.inner_due(all(
-                    seq.loops[lp].state is LoopState.TUNED for lp in _ATTITUDE_LOOPS)):
-                self._rate_inner_hand_over()
+            if self.rate is not None:
+                rp_tuned = all(seq.loops[lp].state is LoopState.TUNED for lp in _ATTITUDE_LOOPS)
+                if self.rate.roll_pitch_due(rp_tuned):
+                    self._rate_roll_pitch_hand_over()
+                if self.rate.inner_due(rp_tuned):
+                    self._rate_inner_hand_over()
             if time.monotonic() >= next_progress:
                 next_progress = time.monotonic() + 0.1
                 self._progress()
         self._progress()
 
-    def _rate_inner_hand_over(self) -> None:
-        """Rate path: the identified roll and pitch gains into the onboard cascade now (the
-        rest of the test parameters restored with them), then the sequence flies attitude
-        set points for the side tests, as on the attitude path."""
+    def _rate_roll_pitch_values(self) -> None:
+        """Rate path: roll and pitch's written gains designed on ArduCopter's cascade and
+        staged for the hand-over (:meth:`RatePath.split`)."""
         seq, rate = self.seq, self.rate
         assert seq is not None and rate is not None
         gains: dict[Loop, PDGains] = {}
@@ -1092,6 +1094,29 @@ class _Run:
         if ranged is not None:
             self.notes.extend(ranged.notes)
         rate.split(ranged.values if ranged is not None else {})
+
+    def _rate_roll_pitch_hand_over(self) -> None:
+        """Rate path, yaw's relay still running: roll and pitch onto the onboard cascade now
+        (:meth:`RatePath.hand_over_roll_pitch`), then the sequence flies attitude set points
+        for the side tests, as on the attitude path, yaw's relay going on beside them."""
+        seq, rate = self.seq, self.rate
+        assert seq is not None and rate is not None and self.driver is not None
+        self._rate_roll_pitch_values()
+        rate.hand_over_roll_pitch(ParamClient(self.link), self._hold, lambda: seq.tilt_cmd)
+        seq.config = dataclasses.replace(seq.config, actuation=Actuation.ATTITUDE)
+        self.driver.autopilot_attitude_note = ("tuned on the rate path and written at its "
+                                               "hand-over; the side test flew on the written "
+                                               "gains")
+
+    def _rate_inner_hand_over(self) -> None:
+        """Rate path: the identified roll and pitch gains into the onboard cascade now (the
+        rest of the test parameters restored with them; roll and pitch already there where
+        they went ahead of yaw), then the sequence flies attitude set points for the side
+        tests, as on the attitude path."""
+        seq, rate = self.seq, self.rate
+        assert seq is not None and rate is not None
+        if not rate.rp_onboard:
+            self._rate_roll_pitch_values()
         rate.hand_over(ParamClient(self.link), self._hold)
         seq.config = dataclasses.replace(seq.config, actuation=Actuation.ATTITUDE)
         assert self.driver is not None

@@ -26,6 +26,12 @@ then the feed-forward, then the rates go to zero, the onboard attitude target is
 the body, and the written angle P and every other test parameter go in at once
 (:meth:`RatePath.hand_over`). On any abort the test
 parameters are restored *before* the landing command (a landing on zero gains would tumble).
+
+Roll and pitch go onto the onboard cascade the moment both are identified
+(:meth:`RatePath.hand_over_roll_pitch`, the same stages on their parameters alone), while
+yaw's relay test goes on through the rate feed-forward: the set point from then on is the
+sequence's roll/pitch attitude with yaw's rate as the body-rate feed-forward
+(:data:`HAND_ROLL_PITCH_FIRST`). Yaw's hand-over then writes the rest.
 """
 
 from __future__ import annotations
@@ -86,6 +92,7 @@ __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignmen
            "INAIR_CHECK",
            "TUNE_YAW", "RATE_I_DECADE",
            "YAW_RATE_I_DECADE", "YAW_AFTER_ROLL_PITCH_S", "RING_RMS_RAD_S", "yaw_wait_over",
+           "HAND_ROLL_PITCH_FIRST", "roll_pitch_names", "beside_yaw",
            "YawDesign",
            "yaw_design", "yaw_names"]
 
@@ -190,9 +197,15 @@ RATE_I_DECADE = 10.0
 #: a yaw-twisted frame); the I removes it
 YAW_RATE_I_DECADE = 10.0
 #: once roll and pitch are identified, yaw's relay gets this long more for a steady cycle
-#: (s) before it gives up to the vehicle's own yaw gains: the zero-gain window (roll and
-#: pitch on the ground station's PDs) closes only when yaw is done
+#: (s) before it gives up to the vehicle's own yaw gains (counted from the end of roll and
+#: pitch's own hand-over where :data:`HAND_ROLL_PITCH_FIRST`): yaw's zero-gain window
+#: closes only when yaw is done
 YAW_AFTER_ROLL_PITCH_S = 4.0
+#: roll and pitch go onto the onboard cascade (their written gains) as soon as both are
+#: identified, yaw's relay going on beside them through the feed-forward; off: all three
+#: are handed over together once yaw is done, roll and pitch on the ground station's PDs
+#: meanwhile (they rang at 170-250 deg/s there beside the yaw relay at full gain)
+HAND_ROLL_PITCH_FIRST = True
 #: roll or pitch body-rate rms (rad/s, over :data:`RING_TAU_S`) on the ground station's PDs
 #: that ends yaw's test at once, so that the hand-over puts roll and pitch on the onboard
 #: loop: a PD that rings shakes the heading (no steady yaw cycle comes) and, left to ring,
@@ -522,10 +535,11 @@ def yaw_design(ident: Identification, names: Mapping[str, str], target_filter_hz
                      else None)
 
 
-def yaw_wait_over(waited_s: float, rp_rms: np.ndarray) -> str | None:
+def yaw_wait_over(waited_s: float, rp_rms: np.ndarray, onboard: bool = False) -> str | None:
     """Why yaw's relay stops waiting for a steady cycle, ``waited_s`` after roll and pitch
-    were identified, their body rates at ``rp_rms`` (rad/s, roll and pitch) on the ground
-    station's PDs; None: it waits on.
+    were identified (``onboard``: after they went onto the onboard cascade), their body
+    rates at ``rp_rms`` (rad/s, roll and pitch) on the ground station's PDs (or onboard);
+    None: it waits on.
 
     >>> yaw_wait_over(1.0, np.radians([5.0, 8.0])) is None
     True
@@ -538,15 +552,75 @@ def yaw_wait_over(waited_s: float, rp_rms: np.ndarray) -> str | None:
     """
     worst = float(np.max(rp_rms))
     if waited_s > RING_AFTER_S and worst > RING_RMS_RAD_S:
-        return (f"{_AXES[int(np.argmax(rp_rms))]} rang on the ground station's PD "
+        where = "the onboard cascade" if onboard else "the ground station's PD"
+        return (f"{_AXES[int(np.argmax(rp_rms))]} rang on {where} "
                 f"({math.degrees(worst):.0f} deg/s rms body rate, limit "
                 f"{math.degrees(RING_RMS_RAD_S):.0f}) {waited_s:.1f} s after roll and pitch "
-                f"were identified: yaw's test ended so that roll and pitch go onto the "
-                f"onboard loop at once")
+                f"were {'handed over' if onboard else 'identified'}: yaw's test ended so that "
+                f"the hand-over comes at once")
     if waited_s > YAW_AFTER_ROLL_PITCH_S:
         return (f"no steady relay cycle within {YAW_AFTER_ROLL_PITCH_S:g} s of roll and pitch "
-                f"identified")
+                f"{'onboard' if onboard else 'identified'}")
     return None
+
+
+def roll_pitch_names(params: RatePathParams) -> tuple[str, ...]:
+    """The test parameters that roll and pitch's own hand-over puts to their final values:
+    their rate loops' (``<rate P less P>*``), feed-forwards, angle P and acceleration limits
+    (``ATC_ACCEL_R_MAX``/``P_MAX``). Yaw's, the shared ones (the rate feed-forward switch,
+    boosts, ...) and ACRO's stay for the hand-over after yaw.
+
+    >>> from mrft_gcs.profiles import load_profile
+    >>> names = roll_pitch_names(load_profile("ardupilot").rate_path)
+    >>> "ATC_RAT_RLL_I" in names and "ATC_ACCEL_P_MAX" in names and "ATC_ANG_PIT_P" in names
+    True
+    >>> any("YAW" in n for n in names) or "ATC_RATE_FF_ENAB" in names
+    False
+    """
+    prefixes = tuple(n.removesuffix("P") for n in params.rate_p[:2])
+    own = {*params.rate_p[:2], *params.ff[:2], *params.angle_p[:2],
+           "ATC_ACCEL_R_MAX", "ATC_ACCEL_P_MAX"}
+    return tuple(n for n in params.test_params if n in own or n.startswith(prefixes))
+
+
+def _rotation_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    return _rotation(np.array(quat_from_euler(roll, pitch, yaw)))
+
+
+def _euler(q: tuple[float, float, float, float]) -> tuple[float, float, float]:
+    """ZYX Euler angles (rad) of the unit quaternion ``q`` (w, x, y, z).
+
+    >>> [round(v, 9) for v in _euler(quat_from_euler(0.1, -0.2, 2.5))]
+    [0.1, -0.2, 2.5]
+    """
+    w, x, y, z = q
+    return (math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+            math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x)))),
+            math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+
+
+def beside_yaw(yaw_torque: float, yaw_rate: float, ff: float, rate_p: float,
+               desired_rpy: tuple[float, float, float],
+               target_to_body: np.ndarray | None = None) -> tuple[float, float, float]:
+    """The body rates to send with the attitude set point ``desired_rpy`` (ZYX Euler, rad)
+    so that, roll and pitch held onboard, yaw's rate loop (angle P 0) puts out
+    ``yaw_torque``.
+
+    The body's yaw rate must be ``d = (torque + P r) / (ff + P)`` (:func:`body_rates`);
+    ArduCopter rotates the attitude target's rate into the body frame, so the target's rate
+    is ``R^T (0, 0, d)``; it takes the rates sent as the desired attitude's
+    (``ang_vel_target = q_desired * rates``), hence they are that rotated back.
+
+    >>> [round(v, 6) for v in beside_yaw(0.1, 0.0, 1.0, 0.0, (0.0, 0.0, 1.2))]
+    [0.0, 0.0, 0.1]
+    >>> w = beside_yaw(0.1, 0.0, 1.0, 0.0, (0.2, 0.0, 0.0))  # a rolled set point
+    >>> (_rotation_euler(0.2, 0.0, 0.0) @ w).round(6).tolist()  # the target's rate
+    [0.0, 0.0, 0.1]
+    """
+    d = (yaw_torque + rate_p * yaw_rate) / (ff + rate_p)
+    w_t = np.array([0.0, 0.0, d]) if target_to_body is None else target_to_body.T @ [0, 0, d]
+    v = _rotation_euler(*desired_rpy).T @ w_t
+    return float(v[0]), float(v[1]), float(v[2])
 
 
 # ---------------------------------------------------------------------- streaming state
@@ -575,6 +649,14 @@ class RateChannel:
         #: vehicle time of the sample it last took
         self.rp_ms = np.zeros(2)
         self._t_rate_s = math.nan
+        #: roll and pitch held onboard, yaw's torque sent as the feed-forward beside the
+        #: sequence's roll/pitch attitude (``refs()``: roll, pitch set points, rad)
+        self.rp_onboard = False
+        self.refs: Callable[[], tuple[float, float]] | None = None
+        #: the desired heading sent (rad): the target's own, as it integrates yaw's rates
+        self.yaw_d = math.nan
+        self._t_yaw_d = math.nan
+        self._att_refs: tuple[float, float] | None = None  # from the sequence's attitude
 
     @property
     def rp_rms(self) -> np.ndarray:
@@ -600,8 +682,13 @@ class RateChannel:
         if s is not None:
             self._see_rates(s)
         if self.hold_body and s is not None:
+            rates = None
+            if self.rp_onboard and not self.released:  # yaw's test goes on meanwhile
+                self.yaw_d, self._t_yaw_d = s.yaw_rad, time.monotonic()
+                rates = beside_yaw(out.yaw, s.r_rad_s, self.ff[2], self.rate_p[2],
+                                   (s.roll_rad, s.pitch_rad, s.yaw_rad))
             return AttitudeTarget(out.t_s, quat_from_euler(s.roll_rad, s.pitch_rad, s.yaw_rad),
-                                  out.thrust)
+                                  out.thrust, rates)
         if self.released or s is None:
             return RateTarget(out.t_s, 0.0, 0.0, 0.0, out.thrust)
         tb = None
@@ -612,9 +699,40 @@ class RateChannel:
             self.last, tb = a, a.target_to_body
             self.worst_thrust_rad = max(self.worst_thrust_rad, a.thrust_error_rad)
             self.worst_heading_rad = max(self.worst_heading_rad, abs(a.heading_error_rad))
+        if self.rp_onboard:
+            return self._beside(out, s, tb)
         w = body_rates(np.array([out.roll, out.pitch, out.yaw]),
                        np.array([s.p_rad_s, s.q_rad_s, s.r_rad_s]), self.ff, self.rate_p, tb)
         return RateTarget(out.t_s, float(w[0]), float(w[1]), float(w[2]), out.thrust)
+
+
+    def step_attitude(self, out: AttitudeTarget, s: FlightState,
+                      yaw_torque: float) -> RateTarget | AttitudeTarget:
+        """Roll and pitch onboard, the sequence flying attitude set points (its side tests):
+        ``out``'s roll and pitch as the set point, yaw's ``yaw_torque`` (its relay's, which
+        the sequence no longer steps) beside them, as :meth:`step` sends them."""
+        roll, pitch, _ = _euler(out.q_wxyz)
+        self._att_refs = (roll, pitch)
+        return self.step(ActuatorTarget(out.t_s, 0.0, 0.0, yaw_torque, out.thrust), s)
+
+    def _beside(self, out: ActuatorTarget, s: FlightState,
+                tb: np.ndarray | None) -> AttitudeTarget:
+        """Roll and pitch onboard: the sequence's roll/pitch set points as the attitude, at
+        the heading the target integrates (so that ArduCopter's shaping adds no yaw rate of
+        its own), and yaw's torque as the body-rate feed-forward (:func:`beside_yaw`)."""
+        roll, pitch = (self._att_refs if self._att_refs is not None else
+                       self.refs() if self.refs is not None else (0.0, 0.0))
+        now = time.monotonic()
+        if not math.isfinite(self.yaw_d):
+            self.yaw_d, self._t_yaw_d = s.yaw_rad, now
+        rates = beside_yaw(out.yaw, s.r_rad_s, self.ff[2], self.rate_p[2],
+                           (roll, pitch, self.yaw_d), tb)
+        # the heading moves at the target's yaw rate (small tilts: the rate about its z)
+        d = (out.yaw + self.rate_p[2] * s.r_rad_s) / (self.ff[2] + self.rate_p[2])
+        self.yaw_d += d * min(0.1, max(0.0, now - self._t_yaw_d))
+        self._t_yaw_d = now
+        return AttitudeTarget(out.t_s, quat_from_euler(roll, pitch, self.yaw_d), out.thrust,
+                              rates)
 
 
 # ---------------------------------------------------------------------- the path
@@ -661,6 +779,11 @@ class RatePath:
         self._t_rp_s = math.nan  # monotonic time roll and pitch were first seen identified
         #: largest roll, pitch body-rate rms on the ground station's PDs while yaw waited
         self.rp_rms_max = np.zeros(2)
+        #: roll and pitch on the onboard cascade ahead of yaw (:meth:`hand_over_roll_pitch`)
+        self.rp_onboard = False
+        #: each axis' zero-gain window (s): from :meth:`engage` until its gains are onboard
+        self.zero_gain_axes_s: dict[str, float] = {}
+        self._onboard_axes: set[int] = set()  # PID_TUNING axes no longer pure feed-forward
         self._stack = contextlib.ExitStack()
         self._targets = self._stack.enter_context(link.subscribe(AttitudeSetpoint))
         self._pid = self._stack.enter_context(link.subscribe(PidTuning))
@@ -683,6 +806,14 @@ class RatePath:
                     channel.see_target(sp)
             if isinstance(out, ActuatorTarget):
                 return channel.step(out, s)
+            if (isinstance(out, AttitudeTarget) and channel.rp_onboard and not self.handed_over
+                    and s is not None and self.yaw is not None):
+                # roll and pitch onboard, the side tests on attitude set points: yaw's relay
+                # (or, once done, its PD) still flies through the feed-forward until its
+                # hand-over
+                _, _, yaw_ref = _euler(out.q_wxyz)
+                u = self.yaw.step(yaw_ref, s.yaw_rad, s.r_rad_s, s.t_att_s)
+                return channel.step_attitude(out, s, u)
             return out
 
         return rate_tick
@@ -868,14 +999,16 @@ class RatePath:
         """Measure ``k`` from PID_TUNING and the target's alignment; correct or refuse."""
         rows = self._pid_rows
         while (ev := self._pid.get(0.0)) is not None:
-            if not (self._checking and isinstance(ev, PidTuning)) or ev.axis not in rows:
+            if (not (self._checking and isinstance(ev, PidTuning)) or ev.axis not in rows
+                    or ev.axis in self._onboard_axes):
                 continue
             rows[ev.axis].append((ev.desired, ev.ff, max(abs(ev.p), abs(ev.i), abs(ev.d))))
             if len(rows[ev.axis]) > 2000:
                 del rows[ev.axis][:1000]
         if self._checking:
             for axis in (1, 2, 3):
-                self._judge(axis)
+                if axis not in self._onboard_axes:
+                    self._judge(axis)
         self._yaw_step()
         if self.t_engaged is not None and (self.channel.worst_thrust_rad
                                            > math.radians(MAX_THRUST_ERROR_DEG)):
@@ -983,9 +1116,15 @@ class RatePath:
         t_done = time.monotonic()
         if self.t_engaged is not None:
             self.zero_gain_s = t_done - self.t_engaged
+            for name in _AXES:
+                self.zero_gain_axes_s.setdefault(name, self.zero_gain_s)
+        axes = self.zero_gain_axes_s
         self.notes.append(
             f"rate path: zero-gain window {self.zero_gain_s:.1f} s (test parameters written "
-            f"after arming to the written gains in effect); hand-over in "
+            f"after arming to the written gains in effect"
+            + (f"; roll and pitch onboard after {axes['roll']:.1f} s, yaw after "
+               f"{axes['yaw']:.1f} s" if self.rp_onboard and axes else "")
+            + "); hand-over in "
             f"{t_done - t0:.2f} s (rate P, feed-forward, then angle P and the rest); largest "
             f"target-to-body misalignment {math.degrees(self.channel.worst_thrust_rad):.1f} "
             f"deg thrust, {math.degrees(self.channel.worst_heading_rad):.1f} deg heading "
@@ -999,6 +1138,76 @@ class RatePath:
         self.changes = tuple(ParamChange(n, self.originals.get(n, math.nan), v)
                              for n, v in self.staged.items())
         return self.changes
+
+    def roll_pitch_due(self, roll_pitch_tuned: bool) -> bool:
+        """True once roll and pitch are identified, where they go onboard ahead of yaw
+        (:data:`HAND_ROLL_PITCH_FIRST`), yaw's relay still runs (done, or none: the one
+        hand-over writes all three at once) and neither hand-over has run."""
+        yaw_running = self.yaw is not None and not self.yaw.done
+        return (HAND_ROLL_PITCH_FIRST and roll_pitch_tuned and yaw_running
+                and not self.rp_onboard and not self.handed_over and self.backup is not None)
+
+    def hand_over_roll_pitch(self, client: ParamClient, hold: Callable[[float], None],
+                             refs: Callable[[], tuple[float, float]]) -> None:
+        """Roll and pitch onto the onboard cascade, yaw's relay test going on meanwhile.
+
+        :meth:`hand_over`'s stages on roll and pitch's parameters alone
+        (:func:`roll_pitch_names`; :meth:`split` staged their written values): rate P, then
+        the feed-forward (the rates sent invert each), then the onboard target set onto the
+        body (the rate feed-forward switched off, the body's attitude sent with yaw's rate
+        beside it, :func:`beside_yaw`) and their angle P and the rest written, the switch
+        back on. From then the set point is ``refs()`` (the sequence's roll, pitch in rad) as
+        an attitude with yaw's torque as its body-rate feed-forward. PID_TUNING of roll and
+        pitch is no longer judged (their P, I and D are on). Yaw, the shared parameters and
+        the rate feed-forward switch's final value wait for :meth:`hand_over`.
+        """
+        if self.rp_onboard or self.handed_over:
+            return
+        p, channel = self.params, self.channel
+        final = self._final()
+        names = roll_pitch_names(p)
+        t0 = time.monotonic()
+        # roll and pitch's rate loops are no longer pure feed-forward from the first write
+        self._onboard_axes.update((1, 2))
+        self._write(client, {n: final[n] for n in p.rate_p[:2]})
+        channel.rate_p[:2] = [final[n] for n in p.rate_p[:2]]
+        hold(STAGE_HOLD_S)
+        self._write(client, {n: final[n] for n in p.ff[:2]})
+        channel.ff[:2] = [final[n] for n in p.ff[:2]]
+        hold(STAGE_HOLD_S)
+        off = channel.last
+        aligned = TARGET_SET_PARAM in p.test_params
+        channel.refs = refs
+        channel.yaw_d = math.nan
+        channel.rp_onboard = True
+        if aligned:
+            # not recorded as restored: an abort from here puts the vehicle's own value back
+            client.write_known({TARGET_SET_PARAM: 0.0}, self.known)
+            channel.hold_body = True
+            hold(ALIGN_HOLD_S)
+        rest = {n: final[n] for n in p.angle_p[:2]}
+        rest.update({n: final[n] for n in names if n not in rest})
+        try:
+            self._write(client, rest)
+            if aligned:  # the test's value (yaw's feed-forward needs it) until hand_over
+                client.write_known({TARGET_SET_PARAM: p.test_params[TARGET_SET_PARAM]},
+                                   self.known)
+        finally:
+            channel.hold_body = False
+        self.rp_onboard = True
+        t_done = time.monotonic()
+        self._t_rp_s = t_done  # yaw's wait counts from here
+        if self.t_engaged is not None:
+            self.zero_gain_axes_s["roll"] = self.zero_gain_axes_s["pitch"] = (
+                t_done - self.t_engaged)
+        self.notes.append(
+            f"rate path: roll and pitch onto the onboard cascade "
+            f"{self.zero_gain_axes_s.get('roll', math.nan):.1f} s after the test parameters "
+            f"(their zero-gain window), in {t_done - t0:.2f} s (rate P, feed-forward, then "
+            f"angle P and the rest), yaw's relay test going on beside them"
+            + ("" if off is None else
+               f"; the target {math.degrees(off.thrust_error_rad):.1f} deg thrust off the "
+               f"body" + (", set onto it first" if aligned else "")))
 
     def target_filter_hz(self, axis: int) -> float:
         """The rate-target filter (Hz; 0: none) the onboard ``axis`` (0 roll, 1 pitch) flies
@@ -1120,14 +1329,15 @@ class RatePath:
         tests then fly on the written gains onboard (as on the attitude path), and the
         zero-gain window closes there. A yaw relay must be done too (identified or given
         up: it gives up within its own time limit)."""
-        if roll_pitch_tuned and not self.handed_over:
+        if roll_pitch_tuned and not self.handed_over and (self.rp_onboard
+                                                          or not HAND_ROLL_PITCH_FIRST):
             self._yaw_wait()
         yaw_done = self.yaw is None or self.yaw.done
         return roll_pitch_tuned and yaw_done and not self.handed_over and self.backup is not None
 
     def _yaw_wait(self) -> None:
-        """Roll and pitch are identified and fly on the ground station's PDs: yaw's relay
-        gives up where they ring (:data:`RING_RMS_RAD_S`) or after
+        """Roll and pitch are identified (onboard, or on the ground station's PDs): yaw's
+        relay gives up where they ring (:data:`RING_RMS_RAD_S`) or after
         :data:`YAW_AFTER_ROLL_PITCH_S`, so that the hand-over comes."""
         relay, now = self.yaw, time.monotonic()
         if not math.isfinite(self._t_rp_s):
@@ -1137,7 +1347,7 @@ class RatePath:
         waited, rms = now - self._t_rp_s, self.channel.rp_rms
         if waited > RING_AFTER_S:
             self.rp_rms_max = np.maximum(self.rp_rms_max, rms)
-        if (why := yaw_wait_over(waited, rms)) is not None:
+        if (why := yaw_wait_over(waited, rms, self.rp_onboard)) is not None:
             relay.give_up(why)
 
     def merged_backup(self, other: str | None) -> str:

@@ -624,15 +624,21 @@ class VehicleLink:
             "SET_ACTUATOR_CONTROL_TARGET")
 
     def send_attitude_target(self, target: AttitudeTarget) -> None:
-        """SET_ATTITUDE_TARGET: unit quaternion (w, x, y, z) and thrust in [0, 1], rates ignored."""
+        """SET_ATTITUDE_TARGET: unit quaternion (w, x, y, z) and thrust in [0, 1]; the body
+        rates (rad/s) with it where the target has them, else ignored."""
         q = target.q_wxyz
         norm = math.sqrt(sum(v * v for v in q))
-        if not (math.isfinite(norm) and norm > 0 and math.isfinite(target.thrust)):
-            raise LinkError(f"refusing to send a non-finite attitude setpoint {q}, {target.thrust}")
+        rates = target.body_rates
+        if not (math.isfinite(norm) and norm > 0 and math.isfinite(target.thrust)
+                and (rates is None or all(math.isfinite(v) for v in rates))):
+            raise LinkError(f"refusing to send a non-finite attitude setpoint {q}, {target.thrust}"
+                            f"{'' if rates is None else f', {rates}'}")
         qn = [v / norm for v in q]
+        mask, (wr, wp, wy) = ((ATTITUDE_TARGET_IGNORE_RATES, (0.0, 0.0, 0.0)) if rates is None
+                              else (0, rates))
         self._send(lambda mav: mav.set_attitude_target_send(
             self._boot_ms(), self.target_system, self.target_component,
-            ATTITUDE_TARGET_IGNORE_RATES, qn, 0.0, 0.0, 0.0, _clip(target.thrust, 0, 1)),
+            mask, qn, float(wr), float(wp), float(wy), _clip(target.thrust, 0, 1)),
             "SET_ATTITUDE_TARGET")
 
     def send_rate_target(self, target: RateTarget) -> None:
