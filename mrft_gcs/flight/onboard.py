@@ -63,7 +63,7 @@ from scipy.optimize import minimize
 
 from mrft_gcs.identify import Identification
 from mrft_gcs.link.clock import ClockFit
-from mrft_gcs.loops import Loop
+from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.pd_design import frequency_grid, ise, margins, optimal_pd
 from mrft_gcs.plant import (
     PD,
@@ -81,7 +81,8 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "onboard_side_gains", "onboard_extra_delay_s", "CAP_SHARE", "CERTAIN_CAP_SHARE",
            "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ", "CascadeGains", "cascade_gains",
            "CASCADE_LOOP_HZ", "rate_loop_gains", "RATE_I_LOWEST", "PositionLoopRate",
-           "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate"]
+           "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate",
+           "ALT_UNSURE_TOP_PROB", "ALT_UNSURE_EXTRA_PM_DEG", "robust_pm_deg"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -125,6 +126,13 @@ RATE_TARGET_MIN_HZ = 10.0
 #: answering at its next loop (4 ms at 250 Hz, 1 ms at 1 kHz) and the readers; taken off
 #: the round trip for the least GCS delay that is plausible
 ROUND_TRIP_SLACK_S = 0.002
+#: an altitude classifier whose likeliest shape has less probability than this is unsure
+#: between shapes that split the lag differently between the slow pole and the fast lags;
+#: the cycle fits both, but the fast lags it leaves out cost margin onboard
+ALT_UNSURE_TOP_PROB = 0.6
+#: the extra phase margin (deg) the written gains of such an altitude loop keep on its
+#: identified model (:func:`robust_pm_deg`)
+ALT_UNSURE_EXTRA_PM_DEG = 4.0
 
 
 def first_answers(sample_t_s, ages_s) -> np.ndarray:
@@ -388,6 +396,30 @@ def _pm_deg(gains: PD, m: InnerModel, tau: float) -> float:
     return mg.pm_deg if mg.stable else -math.inf
 
 
+def robust_pm_deg(ident: Identification, pm_min_deg: float = PM_ROBUST_DEG) -> float:
+    """The phase margin (deg) the written gains of ``ident`` keep on its identified model:
+    ``pm_min_deg``, plus :data:`ALT_UNSURE_EXTRA_PM_DEG` for an altitude loop whose
+    classifier was unsure (likeliest shape under :data:`ALT_UNSURE_TOP_PROB`). Unsure there
+    means the identified model may have put part of the fast lags (delay, propeller) into
+    a slower ``T1``: the cycle's harmonics fit either, the onboard loop has the lags.
+
+    >>> from mrft_gcs.identify.result import ClassifierVote, Diagnostics
+    >>> from mrft_gcs.loops import LoopKind
+    >>> m = InnerModel(K=70.0, T_prop=0.03, T1=3.7, tau=0.036)
+    >>> vote = ClassifierVote(1, (1, 5, 2), 0.5, 0.0, 1, (0.47, 0.46, 0.05))
+    >>> i = Identification(LoopKind.ALTITUDE, m, 0, 0.6, -0.7, 0.1, 0.56, 0.03, PD(3.8, 0.7),
+    ...                    Diagnostics(classifier=vote))
+    >>> robust_pm_deg(i)
+    19.0
+    >>> robust_pm_deg(dataclasses.replace(i, kind=LoopKind.ATTITUDE))
+    15.0
+    """
+    vote = ident.diagnostics.classifier
+    unsure = (ident.kind is LoopKind.ALTITUDE and vote is not None and len(vote.probs) > 0
+              and vote.probs[0] < ALT_UNSURE_TOP_PROB)
+    return pm_min_deg + (ALT_UNSURE_EXTRA_PM_DEG if unsure else 0.0)
+
+
 def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
                          pm_min_deg: float = PM_ROBUST_DEG, *, onboard_extra_s: float = 0.0,
                          cap_share: float = CAP_SHARE,
@@ -405,6 +437,8 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     delay (``gcs.estimate_s`` where ``gcs.measured``, else the least plausible, ``gcs.lo_s``)
     up to ``certain_share`` of it where that is more: a slow link's measured latency does not
     stay in the written gains.
+    An altitude loop whose classifier was unsure keeps :data:`ALT_UNSURE_EXTRA_PM_DEG` more
+    than ``pm_min_deg`` (:func:`robust_pm_deg`): its re-target is held back further.
 
     Examples
     --------
@@ -449,6 +483,7 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
         p1 = best(max(m.tau - dd, 1e-6))
         return PD(ident.gains.Kc * p1.Kc / p0.Kc, ident.gains.Kd * p1.Kd / p0.Kd)
 
+    pm_min_deg = robust_pm_deg(ident, pm_min_deg)
     g = gains(d)
     pm = _pm_deg(g, m, tau_on)
     if pm < pm_min_deg:
