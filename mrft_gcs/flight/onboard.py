@@ -82,7 +82,8 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ", "CascadeGains", "cascade_gains",
            "CASCADE_LOOP_HZ", "rate_loop_gains", "RATE_I_LOWEST", "PositionLoopRate",
            "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate",
-           "ALT_UNSURE_TOP_PROB", "ALT_UNSURE_EXTRA_PM_DEG", "robust_pm_deg"]
+           "ALT_UNSURE_TOP_PROB", "ALT_UNSURE_EXTRA_PM_DEG", "ALT_UNSURE_RAMP",
+           "robust_pm_deg"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -131,8 +132,10 @@ ROUND_TRIP_SLACK_S = 0.002
 #: the cycle fits both, but the fast lags it leaves out cost margin onboard
 ALT_UNSURE_TOP_PROB = 0.6
 #: the extra phase margin (deg) the written gains of such an altitude loop keep on its
-#: identified model (:func:`robust_pm_deg`)
-ALT_UNSURE_EXTRA_PM_DEG = 4.0
+#: identified model (:func:`robust_pm_deg`), all of it from :data:`ALT_UNSURE_RAMP` below
+#: :data:`ALT_UNSURE_TOP_PROB` down, in proportion above
+ALT_UNSURE_EXTRA_PM_DEG = 6.0
+ALT_UNSURE_RAMP = 0.1
 
 
 def first_answers(sample_t_s, ages_s) -> np.ndarray:
@@ -398,10 +401,12 @@ def _pm_deg(gains: PD, m: InnerModel, tau: float) -> float:
 
 def robust_pm_deg(ident: Identification, pm_min_deg: float = PM_ROBUST_DEG) -> float:
     """The phase margin (deg) the written gains of ``ident`` keep on its identified model:
-    ``pm_min_deg``, plus :data:`ALT_UNSURE_EXTRA_PM_DEG` for an altitude loop whose
-    classifier was unsure (likeliest shape under :data:`ALT_UNSURE_TOP_PROB`). Unsure there
+    ``pm_min_deg``, plus up to :data:`ALT_UNSURE_EXTRA_PM_DEG` for an altitude loop whose
+    classifier was unsure (its likeliest shape's probability under
+    :data:`ALT_UNSURE_TOP_PROB`; all of it :data:`ALT_UNSURE_RAMP` below). Unsure there
     means the identified model may have put part of the fast lags (delay, propeller) into
-    a slower ``T1``: the cycle's harmonics fit either, the onboard loop has the lags.
+    a slower ``T1``: the cycle's harmonics fit either, the onboard loop has the lags. A
+    sure classifier's loop keeps ``pm_min_deg``: its J is not raised.
 
     >>> from mrft_gcs.identify.result import ClassifierVote, Diagnostics
     >>> from mrft_gcs.loops import LoopKind
@@ -410,14 +415,18 @@ def robust_pm_deg(ident: Identification, pm_min_deg: float = PM_ROBUST_DEG) -> f
     >>> i = Identification(LoopKind.ALTITUDE, m, 0, 0.6, -0.7, 0.1, 0.56, 0.03, PD(3.8, 0.7),
     ...                    Diagnostics(classifier=vote))
     >>> robust_pm_deg(i)
-    19.0
+    21.0
     >>> robust_pm_deg(dataclasses.replace(i, kind=LoopKind.ATTITUDE))
     15.0
+    >>> v = dataclasses.replace(vote, probs=(0.55, 0.4, 0.05))  # half-way unsure
+    >>> round(robust_pm_deg(dataclasses.replace(i, diagnostics=Diagnostics(classifier=v))), 6)
+    18.0
     """
     vote = ident.diagnostics.classifier
-    unsure = (ident.kind is LoopKind.ALTITUDE and vote is not None and len(vote.probs) > 0
-              and vote.probs[0] < ALT_UNSURE_TOP_PROB)
-    return pm_min_deg + (ALT_UNSURE_EXTRA_PM_DEG if unsure else 0.0)
+    if ident.kind is not LoopKind.ALTITUDE or vote is None or not vote.probs:
+        return pm_min_deg
+    share = min(max((ALT_UNSURE_TOP_PROB - vote.probs[0]) / ALT_UNSURE_RAMP, 0.0), 1.0)
+    return pm_min_deg + ALT_UNSURE_EXTRA_PM_DEG * share
 
 
 def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
@@ -437,8 +446,8 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     delay (``gcs.estimate_s`` where ``gcs.measured``, else the least plausible, ``gcs.lo_s``)
     up to ``certain_share`` of it where that is more: a slow link's measured latency does not
     stay in the written gains.
-    An altitude loop whose classifier was unsure keeps :data:`ALT_UNSURE_EXTRA_PM_DEG` more
-    than ``pm_min_deg`` (:func:`robust_pm_deg`): its re-target is held back further.
+    An altitude loop whose classifier was unsure keeps up to :data:`ALT_UNSURE_EXTRA_PM_DEG`
+    more than ``pm_min_deg`` (:func:`robust_pm_deg`): its re-target is held back further.
 
     Examples
     --------
