@@ -83,6 +83,7 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "CASCADE_LOOP_HZ", "rate_loop_gains", "RATE_I_LOWEST", "PositionLoopRate",
            "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate",
            "ALT_UNSURE_TOP_PROB", "ALT_UNSURE_EXTRA_PM_DEG", "ALT_UNSURE_RAMP",
+           "ALT_ONBOARD_DELAY_MIN_S",
            "robust_pm_deg"]
 
 
@@ -136,6 +137,10 @@ ALT_UNSURE_TOP_PROB = 0.6
 #: :data:`ALT_UNSURE_TOP_PROB` down, in proportion above
 ALT_UNSURE_EXTRA_PM_DEG = 6.0
 ALT_UNSURE_RAMP = 0.1
+#: the least delay a vehicle's own altitude loop has onboard (s: ESC and motor protocol, the
+#: position estimate): an altitude re-target leaves at least this much of the identified
+#: delay, which may have put part of the GCS delay into the lags (T1, T_prop) instead
+ALT_ONBOARD_DELAY_MIN_S = 0.005
 
 
 def first_answers(sample_t_s, ages_s) -> np.ndarray:
@@ -448,6 +453,9 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     stay in the written gains.
     An altitude loop whose classifier was unsure keeps up to :data:`ALT_UNSURE_EXTRA_PM_DEG`
     more than ``pm_min_deg`` (:func:`robust_pm_deg`): its re-target is held back further.
+    An altitude re-target never leaves less than :data:`ALT_ONBOARD_DELAY_MIN_S` of the
+    identified delay: a GCS delay the identified delay cannot hold beside the vehicle's
+    own went into the identified lags, where removing it from the delay does not take it.
 
     Examples
     --------
@@ -476,6 +484,8 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     # cap_share says; the margin is still checked at the least plausible
     certain = gcs.estimate_s if gcs.measured else gcs.lo_s
     cap = max(cap_share * m.tau, min(certain, certain_share * m.tau))
+    if ident.kind is LoopKind.ALTITUDE:
+        cap = min(cap, max(m.tau - ALT_ONBOARD_DELAY_MIN_S, 0.0))
     lo_d = min(gcs.lo_s, cap) - extra  # the most onboard delay: tau - lo_d
     tau_on = max(m.tau - lo_d, 1e-6)
     d = min(gcs.estimate_s, cap)
