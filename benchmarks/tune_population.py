@@ -98,6 +98,12 @@ def _num(x) -> float | None:
     return float(x) if x is not None and math.isfinite(x) else None
 
 
+def _probs(ident) -> list[float]:
+    """The classifier's three largest probabilities, where a classifier ran."""
+    vote = ident.diagnostics.classifier
+    return [float(p) for p in vote.probs] if vote is not None else []
+
+
 def gcs_delay_s(af) -> float:
     """The ground station's extra delay on the inner loops of ``af`` (see the docstring)."""
     tel = min(RATE_HZ, af.telemetry_max_hz)
@@ -203,7 +209,7 @@ def run_lockstep(seed: int, max_s: float = 70.0,
     identified = {lp: t.identification for lp, t in seq.loops.items()
                   if t.state is LoopState.TUNED and t.identification is not None}
     rec["identified"] = {lp.value: {"class": i.class_index, "model": i.model.as_dict(),
-                                    "Kc": i.gains.Kc, "Kd": i.gains.Kd}
+                                    "Kc": i.gains.Kc, "Kd": i.gains.Kd, "probs": _probs(i)}
                          for lp, i in identified.items()}
     if outcome is not None:
         rec["max_tilt_deg"] = src.max_tilt
@@ -306,7 +312,7 @@ def run_live(seed: int) -> dict:
     identified = {lp: lr.identification for lp, lr in r.loops.items()
                   if lr.identification is not None}
     rec["identified"] = {lp.value: {"class": i.class_index, "model": i.model.as_dict(),
-                                    "Kc": i.gains.Kc, "Kd": i.gains.Kd}
+                                    "Kc": i.gains.Kc, "Kd": i.gains.Kd, "probs": _probs(i)}
                          for lp, i in identified.items()}
     if r.parameters:
         params = dict(ParamStore(af.hover_thrust * af.hover_estimate_factor, af.onboard).values)

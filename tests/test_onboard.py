@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -519,3 +520,55 @@ def test_rate_path_writes_a_rate_i_that_holds_level_against_a_torque():
         sitl, PD(1.3 * 6.4, 1.3 * 0.21), 20.0).gains
     assert edge.integrator_refused and "no rate I (even with its zero 100 x" in edge.note()
     assert "no rate I" not in rate_loop_gains(sitl, PD(6.4, 0.21), 20.0, decade=0.0).note()
+
+
+def _altitude_ident(top_probs: tuple[float, ...]) -> Identification:
+    """An altitude relay cycle (0.556 s) whose classifier put the truth's fast lags partly
+    into a slow ``T1`` (3.7 s against 0.97 s): the harmonics fit both models."""
+    from mrft_gcs.identify.result import ClassifierVote, Diagnostics
+
+    m = InnerModel(K=71.39, T_prop=0.02942, T1=3.712, tau=0.03591)
+    vote = ClassifierVote(1, (1, 5, 2), 0.5, 0.0, 1, top_probs)
+    return Identification(LoopKind.ALTITUDE, m, 1, 0.57, -0.7, 0.1, 0.556, 0.0305,
+                          PD(3.771, 0.7055), Diagnostics(classifier=vote))
+
+
+#: the onboard truth of that altitude loop: K, T_prop, T1, and its delay with the 200 Hz
+#: position loop's hold (s)
+_ALT_TRUTH = (19.53, 0.03438, 0.9746, 0.03455 + 0.0025)
+
+
+def test_unsure_altitude_classifier_keeps_the_margin_on_the_truth():
+    # the classifier's two likeliest shapes were nearly tied: the written gains keep a wider
+    # margin on the identified model, enough for the lags the identification left out
+    gcs = GcsDelay(0.004865, 0.002865, 0.0129, 0.004865, True)
+    unsure = robust_onboard_gains(_altitude_ident((0.467, 0.463, 0.045)), gcs,
+                                  onboard_extra_s=0.0025)
+    assert unsure.held_back and pm_deg(unsure.gains, *_ALT_TRUTH) >= PM_ROBUST_DEG
+    # a sure classifier keeps the plain design (its re-target is not held back for this)
+    sure = robust_onboard_gains(_altitude_ident((0.9, 0.05, 0.03)), gcs, onboard_extra_s=0.0025)
+    assert not sure.held_back and sure.delay_s == pytest.approx(0.004865)
+    assert pm_deg(sure.gains, *_ALT_TRUTH) < PM_ROBUST_DEG
+    assert pm_deg(unsure.gains, *_ALT_TRUTH) > pm_deg(sure.gains, *_ALT_TRUTH)
+
+
+def test_altitude_retarget_leaves_the_vehicles_least_onboard_delay():
+    # a sure classifier's altitude model whose identified delay (18.4 ms) held less than the
+    # measured GCS delay (24.3 ms): the rest went into T1 and T_prop (0.97 s, 29 ms against
+    # the truth's 0.51 s, 21 ms); removing nearly all of the delay overshoots the onboard loop
+    from mrft_gcs.flight.onboard import ALT_ONBOARD_DELAY_MIN_S
+    from mrft_gcs.identify.result import ClassifierVote, Diagnostics
+
+    m = InnerModel(K=28.56, T_prop=0.02913, T1=0.9707, tau=0.01841)
+    vote = ClassifierVote(33, (33, 5, 2), 0.5, 0.0, 1, (0.70, 0.22, 0.05))
+    ident = Identification(LoopKind.ALTITUDE, m, 33, 0.7, -0.7, 0.1, 0.5, 0.03,
+                           PD(5.805, 0.7293), Diagnostics(classifier=vote))
+    gcs = GcsDelay(0.0243, 0.0209, 0.0404, 0.0024, True, round_trip_s=0.0219)
+    hold = 0.004  # a 125 Hz position loop's hold
+    r = robust_onboard_gains(ident, gcs, onboard_extra_s=hold)
+    assert 0.0 < r.delay_s <= m.tau - ALT_ONBOARD_DELAY_MIN_S + 1e-9
+    truth = (14.86, 0.02148, 0.5093, 0.00714 + hold)
+    assert pm_deg(r.gains, *truth) >= PM_ROBUST_DEG
+    # an attitude loop of the same model is not held to it (its onboard delay can be less)
+    att = robust_onboard_gains(dataclasses.replace(ident, kind=LoopKind.ATTITUDE), gcs)
+    assert att.delay_s > m.tau - ALT_ONBOARD_DELAY_MIN_S

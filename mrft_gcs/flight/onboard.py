@@ -63,7 +63,7 @@ from scipy.optimize import minimize
 
 from mrft_gcs.identify import Identification
 from mrft_gcs.link.clock import ClockFit
-from mrft_gcs.loops import Loop
+from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.pd_design import frequency_grid, ise, margins, optimal_pd
 from mrft_gcs.plant import (
     PD,
@@ -83,7 +83,10 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ", "CascadeGains", "cascade_gains",
            "CASCADE_LOOP_HZ", "rate_loop_gains", "RATE_I_LOWEST", "PositionLoopRate",
            "cascade_controller", "cascade_process",
-           "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate"]
+           "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate",
+           "ALT_UNSURE_TOP_PROB", "ALT_UNSURE_EXTRA_PM_DEG", "ALT_UNSURE_RAMP",
+           "ALT_ONBOARD_DELAY_MIN_S",
+           "robust_pm_deg"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -130,6 +133,19 @@ RATE_TARGET_MIN_HZ = 10.0
 #: answering at its next loop (4 ms at 250 Hz, 1 ms at 1 kHz) and the readers; taken off
 #: the round trip for the least GCS delay that is plausible
 ROUND_TRIP_SLACK_S = 0.002
+#: an altitude classifier whose likeliest shape has less probability than this is unsure
+#: between shapes that split the lag differently between the slow pole and the fast lags;
+#: the cycle fits both, but the fast lags it leaves out cost margin onboard
+ALT_UNSURE_TOP_PROB = 0.6
+#: the extra phase margin (deg) the written gains of such an altitude loop keep on its
+#: identified model (:func:`robust_pm_deg`), all of it from :data:`ALT_UNSURE_RAMP` below
+#: :data:`ALT_UNSURE_TOP_PROB` down, in proportion above
+ALT_UNSURE_EXTRA_PM_DEG = 6.0
+ALT_UNSURE_RAMP = 0.1
+#: the least delay a vehicle's own altitude loop has onboard (s: ESC and motor protocol, the
+#: position estimate): an altitude re-target leaves at least this much of the identified
+#: delay, which may have put part of the GCS delay into the lags (T1, T_prop) instead
+ALT_ONBOARD_DELAY_MIN_S = 0.005
 
 
 def first_answers(sample_t_s, ages_s) -> np.ndarray:
@@ -393,6 +409,36 @@ def _pm_deg(gains: PD, m: InnerModel, tau: float) -> float:
     return mg.pm_deg if mg.stable else -math.inf
 
 
+def robust_pm_deg(ident: Identification, pm_min_deg: float = PM_ROBUST_DEG) -> float:
+    """The phase margin (deg) the written gains of ``ident`` keep on its identified model:
+    ``pm_min_deg``, plus up to :data:`ALT_UNSURE_EXTRA_PM_DEG` for an altitude loop whose
+    classifier was unsure (its likeliest shape's probability under
+    :data:`ALT_UNSURE_TOP_PROB`; all of it :data:`ALT_UNSURE_RAMP` below). Unsure there
+    means the identified model may have put part of the fast lags (delay, propeller) into
+    a slower ``T1``: the cycle's harmonics fit either, the onboard loop has the lags. A
+    sure classifier's loop keeps ``pm_min_deg``: its J is not raised.
+
+    >>> from mrft_gcs.identify.result import ClassifierVote, Diagnostics
+    >>> from mrft_gcs.loops import LoopKind
+    >>> m = InnerModel(K=70.0, T_prop=0.03, T1=3.7, tau=0.036)
+    >>> vote = ClassifierVote(1, (1, 5, 2), 0.5, 0.0, 1, (0.47, 0.46, 0.05))
+    >>> i = Identification(LoopKind.ALTITUDE, m, 0, 0.6, -0.7, 0.1, 0.56, 0.03, PD(3.8, 0.7),
+    ...                    Diagnostics(classifier=vote))
+    >>> robust_pm_deg(i)
+    21.0
+    >>> robust_pm_deg(dataclasses.replace(i, kind=LoopKind.ATTITUDE))
+    15.0
+    >>> v = dataclasses.replace(vote, probs=(0.55, 0.4, 0.05))  # half-way unsure
+    >>> round(robust_pm_deg(dataclasses.replace(i, diagnostics=Diagnostics(classifier=v))), 6)
+    18.0
+    """
+    vote = ident.diagnostics.classifier
+    if ident.kind is not LoopKind.ALTITUDE or vote is None or not vote.probs:
+        return pm_min_deg
+    share = min(max((ALT_UNSURE_TOP_PROB - vote.probs[0]) / ALT_UNSURE_RAMP, 0.0), 1.0)
+    return pm_min_deg + ALT_UNSURE_EXTRA_PM_DEG * share
+
+
 def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
                          pm_min_deg: float = PM_ROBUST_DEG, *, onboard_extra_s: float = 0.0,
                          cap_share: float = CAP_SHARE,
@@ -410,6 +456,11 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     delay (``gcs.estimate_s`` where ``gcs.measured``, else the least plausible, ``gcs.lo_s``)
     up to ``certain_share`` of it where that is more: a slow link's measured latency does not
     stay in the written gains.
+    An altitude loop whose classifier was unsure keeps up to :data:`ALT_UNSURE_EXTRA_PM_DEG`
+    more than ``pm_min_deg`` (:func:`robust_pm_deg`): its re-target is held back further.
+    An altitude re-target never leaves less than :data:`ALT_ONBOARD_DELAY_MIN_S` of the
+    identified delay: a GCS delay the identified delay cannot hold beside the vehicle's
+    own went into the identified lags, where removing it from the delay does not take it.
 
     Examples
     --------
@@ -438,6 +489,8 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
     # cap_share says; the margin is still checked at the least plausible
     certain = gcs.estimate_s if gcs.measured else gcs.lo_s
     cap = max(cap_share * m.tau, min(certain, certain_share * m.tau))
+    if ident.kind is LoopKind.ALTITUDE:
+        cap = min(cap, max(m.tau - ALT_ONBOARD_DELAY_MIN_S, 0.0))
     lo_d = min(gcs.lo_s, cap) - extra  # the most onboard delay: tau - lo_d
     tau_on = max(m.tau - lo_d, 1e-6)
     d = min(gcs.estimate_s, cap)
@@ -454,6 +507,7 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
         p1 = best(max(m.tau - dd, 1e-6))
         return PD(ident.gains.Kc * p1.Kc / p0.Kc, ident.gains.Kd * p1.Kd / p0.Kd)
 
+    pm_min_deg = robust_pm_deg(ident, pm_min_deg)
     g = gains(d)
     pm = _pm_deg(g, m, tau_on)
     if pm < pm_min_deg:
