@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from mrft_gcs.flight.onboard import _cascade_poles_stable, cascade_controller
 from mrft_gcs.flight.scoring import general_ise
 from mrft_gcs.flight.structure import (
     D_GM_MIN,
@@ -134,17 +135,18 @@ class OnboardCascade:
         >>> bool(np.allclose(cr, 2 + 2j) and np.allclose(cy, 2 + 2j))
         True
         """
+        # the PID and filters as every design of written gains models them: u = cr x - cy y;
+        # the vehicle's rate FF and the target's own rate (ATC_RATE_FF_ENAB) go on top
+        cr, cy = cascade_controller(gains, w, self.target_filter_hz, self.error_filter_hz,
+                                    self.integrator_zero_rad_s, self.d_over_p_s,
+                                    self.d_filter_hz)
         s = 1j * np.asarray(w, float)
-        def lp(hz: float) -> np.ndarray:
-            return 1.0 / (1.0 + s / (2 * np.pi * hz)) if hz > 0 else np.ones_like(s)
-        ft, fe = lp(self.target_filter_hz), lp(self.error_filter_hz)
-        pa = gains.Kc / gains.Kd
-        wi = self.integrator_zero_rad_s
-        kd = gains.Kd * (1.0 + wi / s) if wi > 0 else gains.Kd
-        if self.d_over_p_s > 0:
-            kd = kd + gains.Kd * self.d_over_p_s * s * lp(self.d_filter_hz)
-        fwd = (kd * fe + self.ff) * ft
-        return fwd * (pa + s if self.target_rate_ff else pa), fwd * pa + kd * fe * s
+        hz = self.target_filter_hz
+        ft = 1.0 / (1.0 + s / (2 * np.pi * hz)) if hz > 0 else np.ones_like(s)
+        ff = self.ff * ft * gains.Kc / gains.Kd
+        if self.target_rate_ff:  # the rate PID on the filtered target rate s x, FF too
+            return cr + ff + (cy - cr) * ft + self.ff * ft * s, cy + ff
+        return cr + ff, cy + ff
 
     def filters(self, w: np.ndarray) -> np.ndarray:
         """The target and error filters in series at ``w`` (rad/s)."""
@@ -258,6 +260,21 @@ def _open_loop(model: InnerModel, gains: PD, w: np.ndarray,
     return _paths(gains, w, cascade)[1] * G
 
 
+def _stable(model: InnerModel, gains: PD, cascade: OnboardCascade | None, nyquist: bool
+            ) -> bool:
+    """Whether the written loop on ``model`` is stable. With a rate I the loop has two
+    integrators and its phase starts at -180 deg: the Nyquist count of
+    :func:`~mrft_gcs.pd_design.margins` (``nyquist``, written for one) takes a drag pole
+    under the I's zero for an encirclement, so the closed loop's poles decide, as in the
+    design (the rate FF, 0 on ArduCopter's roll and pitch, is not in that pole model)."""
+    c = cascade
+    if c is None or c.integrator_zero_rad_s <= 0 or c.ff != 0:
+        return nyquist
+    return _cascade_poles_stable(model, gains, c.target_filter_hz, c.error_filter_hz,
+                                 c.integrator_zero_rad_s, c.d_over_p_s, c.d_filter_hz,
+                                 loop_delay_s=0.0)
+
+
 def plan_check(model: InnerModel, gains: PD, amplitude: float,
                cycles: int = CHECK_CYCLES, cascade: OnboardCascade | None = None) -> CheckPlan:
     """The check of ``gains`` on ``model``: fundamental at the predicted gain crossover.
@@ -268,7 +285,7 @@ def plan_check(model: InnerModel, gains: PD, amplitude: float,
     """
     w = frequency_grid(model.T_prop, model.T1, model.tau)
     m = margins(_open_loop(model, gains, w, cascade), w)
-    if not np.isfinite(m.wc) or not m.stable:
+    if not np.isfinite(m.wc) or not _stable(model, gains, cascade, m.stable):
         raise ValueError("the written loop has no gain crossover on its model, or is unstable")
     return CheckPlan(model, gains, 2 * np.pi / m.wc, float(amplitude), int(cycles),
                      float(m.wc), float(m.pm_deg), cascade)
@@ -363,7 +380,8 @@ def check_margin(plan: CheckPlan, w, T, se) -> InAirCheck:
     grid = frequency_grid(m.T_prop, m.T1, m.tau + max(d, 0.0))
     L = np.exp(lnk - 1j * grid * d) * _open_loop(m, g, grid, plan.cascade)
     mm = margins(L, grid)
-    pm = float(mm.pm_deg) if mm.stable else float("-inf")
+    corrected = InnerModel(m.K * math.exp(lnk), m.T_prop, m.T1, max(m.tau + d, 0.0))
+    pm = float(mm.pm_deg) if _stable(corrected, g, plan.cascade, mm.stable) else float("-inf")
     return InAirCheck(plan.predicted_pm_deg, pm, float(np.exp(lnk)), d, w, T, se,
                       float(np.sqrt(np.mean(resid**2))))
 

@@ -1134,11 +1134,13 @@ _PADE_ORDER = 6
 
 def _cascade_poles_stable(model: InnerModel, gains: PD, target_filter_hz: float,
                           error_filter_hz: float, integrator_zero_rad_s: float,
-                          d_over_p_s: float = 0.0, d_hz: float = 0.0) -> bool:
+                          d_over_p_s: float = 0.0, d_hz: float = 0.0,
+                          loop_delay_s: float = 0.5 / CASCADE_LOOP_HZ) -> bool:
     """Whether the closed cascade of :func:`_cascade_pm` (with a rate I) has all its poles in
-    the left half plane, the delay as a Pade approximation of order :data:`_PADE_ORDER`."""
+    the left half plane, the delay (``model.tau`` plus ``loop_delay_s``, s) as a Pade
+    approximation of order :data:`_PADE_ORDER`."""
     n = _PADE_ORDER
-    tau = model.tau + 0.5 / CASCADE_LOOP_HZ
+    tau = model.tau + loop_delay_s
     c = [math.factorial(2 * n - k) * math.factorial(n)
          / (math.factorial(2 * n) * math.factorial(k) * math.factorial(n - k))
          for k in range(n + 1)]
