@@ -675,10 +675,12 @@ class _Run:
         if status != "ok":
             return None
         mode = self.prof.modes["position"].name
+        why = ("the in-air check does not run on this path" if lp in _ATTITUDE_LOOPS
+               else "the in-air check measures roll and pitch only")
         return Verification(
             f"hover in {mode} on the written gains for {self.hover_check_s:g} s", True,
             note=f"held within {self.hover_error_m:.2f} m; this loop's phase margin is not "
-                 f"measured in the air (the in-air check measures roll and pitch)")
+                 f"measured in the air ({why})")
 
     def _log_notes(self) -> list[str]:
         error = self.link.tlog_error
