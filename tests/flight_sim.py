@@ -150,3 +150,20 @@ def fly_roll_check(v, hover_thrust: float, gains, model, level_ticks: int = 125)
         ap.set_attitude_target(quat_from_euler(r, p, 0.0), hover_thrust)
         v.run(0.004)
     return plan, check_margin(plan, *probe.points()[Loop.ROLL])
+
+
+def identified_side(af, loop, inner):
+    """A side loop of airframe ``af`` as identified behind the ground station's attitude PD
+    (``inner``'s gains): its true model with the optimal PD on that cascade."""
+    from mrft_gcs.identify import Identification
+    from mrft_gcs.loops import LoopKind
+    from mrft_gcs.pd_design import frequency_grid, optimal_pd
+    from mrft_gcs.plant import SideModel, closed_inner_response, inner_response, side_response
+
+    ms = af.linear_models()[loop.value]
+    sm, mi = SideModel(ms["K"], ms["T2"], ms["tau"]), inner.model
+    w = frequency_grid(mi.T_prop, mi.T1, mi.tau, extra_T=(sm.T2, sm.tau))
+    gi = inner_response(mi.K, mi.T_prop, mi.T1, mi.tau, w)
+    G = (closed_inner_response(inner.gains.Kc, inner.gains.Kd, gi, w)
+         * side_response(sm.K, sm.T2, sm.tau, w))[0]
+    return Identification(LoopKind.SIDE, sm, 0, 1.0, -0.8, 0.1, 1.0, 0.1, optimal_pd(G, w).pd)

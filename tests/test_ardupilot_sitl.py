@@ -320,14 +320,7 @@ def test_rate_path_abort_puts_the_gains_back_before_landing(copter, tmp_path):
     backup = next(tmp_path.glob("params-rate-test-*.params"))
     saved = {e.param.name: e.param.value for e in read_params_file(backup)}
     assert saved == pytest.approx({n: before[n] for n in saved})
-    with VehicleLink.connect(serial0, timeout_s=10) as link:
-        after = {n: p.value for n, p in ParamClient(link).read_many(names).items()}
-        assert after == pytest.approx(before), {n: (before[n], after[n]) for n in names
-                                                if after[n] != pytest.approx(before[n])}
-        end = time.monotonic() + 30
-        while time.monotonic() < end and link.heartbeat.armed:
-            time.sleep(0.2)
-        assert not link.heartbeat.armed
+    _assert_all_back_and_disarmed(serial0, before)
 
 
 def test_rate_path_abort_after_roll_pitch_went_onboard_puts_every_gain_back(
@@ -375,7 +368,14 @@ def test_rate_path_abort_after_roll_pitch_went_onboard_puts_every_gain_back(
     assert seen["ATC_ANG_YAW_P"] == 0 and seen["ATC_RATE_FF_ENAB"] == 1, seen
     assert any(n.startswith("rate path: roll and pitch onto the onboard cascade")
                for n in result.notes), result.notes
-    with VehicleLink.connect(serial0, timeout_s=10) as link:
+    _assert_all_back_and_disarmed(serial0, before)
+
+
+def _assert_all_back_and_disarmed(connection: str, before: dict[str, float]) -> None:
+    """Every parameter of ``before`` reads back its value there, and the vehicle disarms
+    (within 30 s: it may still be landing)."""
+    names = list(before)
+    with VehicleLink.connect(connection, timeout_s=10) as link:
         after = {n: p.value for n, p in ParamClient(link).read_many(names).items()}
         assert after == pytest.approx(before), {n: (before[n], after[n]) for n in names
                                                 if after[n] != pytest.approx(before[n])}

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from flight_sim import identified_side
 
 from mrft_gcs.flight.onboard import (
     AGE_CLIP_PERIODS,
@@ -227,17 +228,6 @@ def _identified(af, loop, gcs_delay_s: float) -> Identification:
     return Identification(kind, im, 0, 1.0, -0.8, 0.1, 0.25, 0.03, pd)
 
 
-def _identified_side(af, loop, inner: Identification) -> Identification:
-    """A side loop identified behind the ground station's attitude PD (its optimal PD)."""
-    from mrft_gcs.plant import SideModel, closed_inner_response, side_response
-
-    ms = af.linear_models()[loop.value]
-    sm, mi = SideModel(ms["K"], ms["T2"], ms["tau"]), inner.model
-    w = frequency_grid(mi.T_prop, mi.T1, mi.tau, extra_T=(sm.T2, sm.tau))
-    gi = inner_response(mi.K, mi.T_prop, mi.T1, mi.tau, w)
-    G = (closed_inner_response(inner.gains.Kc, inner.gains.Kd, gi, w)
-         * side_response(sm.K, sm.T2, sm.tau, w))[0]
-    return Identification(LoopKind.SIDE, sm, 0, 1.0, -0.8, 0.1, 1.0, 0.1, optimal_pd(G, w).pd)
 
 
 def _onboard_scores(af, gains, loops):
@@ -298,7 +288,7 @@ def test_side_gains_are_redesigned_behind_the_written_attitude_gains():
     gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.020)
     pitch = _identified(af, Loop.PITCH, 0.022)
     rt = robust_onboard_gains(pitch, gcs)
-    side = _identified_side(af, Loop.X, pitch)
+    side = identified_side(af, Loop.X, pitch)
     new = onboard_side_gains(side, pitch, rt, onboard_extra_s=onboard_extra_delay_s(Loop.X))
     assert new.gains.Kc > side.gains.Kc and new.pm_deg >= PM_ROBUST_DEG
     old = _onboard_scores(af, {Loop.PITCH: rt.gains, Loop.X: side.gains}, [Loop.X])[Loop.X]
@@ -351,7 +341,7 @@ def test_side_gains_keep_their_margin_behind_an_unseen_rate_target_filter():
     gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.008)
     pitch = _identified(af, Loop.PITCH, 0.010)
     rt = robust_onboard_gains(pitch, gcs)
-    side = _identified_side(af, Loop.X, pitch)
+    side = identified_side(af, Loop.X, pitch)
     new = onboard_side_gains(side, pitch, rt, onboard_extra_s=0.0)
     sc = _onboard_scores(af, {Loop.PITCH: rt.gains, Loop.X: new.gains}, [Loop.X])[Loop.X]
     assert sc.pm_deg >= PM_ROBUST_DEG and sc.J_pct <= 10.0
@@ -383,7 +373,7 @@ def test_side_gains_take_the_optimum_under_the_robust_margin_not_only_a_shrunk_m
     gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.008)
     pitch = _identified(af, Loop.PITCH, 0.010)
     rt = robust_onboard_gains(pitch, gcs)
-    side = _identified_side(af, Loop.X, pitch)
+    side = identified_side(af, Loop.X, pitch)
     new = onboard_side_gains(side, pitch, rt)
     assert new.share < 1.0 and new.pm_deg >= PM_ROBUST_DEG
     sc = _onboard_scores(af, {Loop.PITCH: rt.gains, Loop.X: new.gains}, [Loop.X])[Loop.X]

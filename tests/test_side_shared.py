@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import pytest
+from flight_sim import identified_side
 
 from mrft_gcs.flight.onboard import (
     PM_ROBUST_DEG,
@@ -21,10 +22,7 @@ from mrft_gcs.loops import Loop, LoopKind
 from mrft_gcs.pd_design import frequency_grid, optimal_pd
 from mrft_gcs.plant import (
     InnerModel,
-    SideModel,
-    closed_inner_response,
     inner_response,
-    side_response,
 )
 from mrft_gcs.profiles import PDGains, gains_to_params, load_profile
 from mrft_gcs.sitl import load_airframe
@@ -43,15 +41,6 @@ def _attitude(af, loop: Loop, gcs_delay_s: float) -> Identification:
     return Identification(LoopKind.ATTITUDE, im, 0, 1.0, -0.8, 0.1, 0.25, 0.03, pd)
 
 
-def _side(af, loop: Loop, inner: Identification) -> Identification:
-    """A side loop identified behind the ground station's attitude PD (its optimal PD)."""
-    ms = af.linear_models()[loop.value]
-    sm, mi = SideModel(ms["K"], ms["T2"], ms["tau"]), inner.model
-    w = frequency_grid(mi.T_prop, mi.T1, mi.tau, extra_T=(sm.T2, sm.tau))
-    gi = inner_response(mi.K, mi.T_prop, mi.T1, mi.tau, w)
-    G = (closed_inner_response(inner.gains.Kc, inner.gains.Kd, gi, w)
-         * side_response(sm.K, sm.T2, sm.tau, w))[0]
-    return Identification(LoopKind.SIDE, sm, 0, 1.0, -0.8, 0.1, 1.0, 0.1, optimal_pd(G, w).pd)
 
 
 def _truth(af, gains):
@@ -74,7 +63,7 @@ def test_x_and_y_get_one_pd_designed_for_both_not_the_smaller_of_each_gain():
     gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.008)
     pitch, roll = _attitude(af, Loop.PITCH, 0.010), _attitude(af, Loop.ROLL, 0.015)
     rp, rr = robust_onboard_gains(pitch, gcs), robust_onboard_gains(roll, gcs)
-    sx, sy = _side(af, Loop.X, pitch), _side(af, Loop.Y, roll)
+    sx, sy = identified_side(af, Loop.X, pitch), identified_side(af, Loop.Y, roll)
     extra = onboard_extra_delay_s(Loop.X)  # the position loop's rate not read
     own = {Loop.X: onboard_side_gains(sx, pitch, rp, onboard_extra_s=extra, target_hz=0.0),
            Loop.Y: onboard_side_gains(sy, roll, rr, onboard_extra_s=extra, target_hz=0.0)}
@@ -98,7 +87,7 @@ def test_one_side_loop_alone_keeps_its_own_design():
     gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.008)
     pitch = _attitude(af, Loop.PITCH, 0.010)
     rp = robust_onboard_gains(pitch, gcs)
-    sx = _side(af, Loop.X, pitch)
+    sx = identified_side(af, Loop.X, pitch)
     own = onboard_side_gains(sx, pitch, rp, target_hz=0.0)
     shared = shared_side_gains([SideLoop(sx, pitch, rp, 0.0)])
     assert shared[0].gains == own.gains
@@ -112,7 +101,7 @@ def test_designs_near_each_other_keep_the_smaller_of_each_gain():
     gcs = measure_gcs_delay([0.002] * 30, P, round_trip_s=0.008)
     pitch, roll = _attitude(af, Loop.PITCH, 0.010), _attitude(af, Loop.ROLL, 0.011)
     rp, rr = robust_onboard_gains(pitch, gcs), robust_onboard_gains(roll, gcs)
-    sx, sy = _side(af, Loop.X, pitch), _side(af, Loop.Y, roll)
+    sx, sy = identified_side(af, Loop.X, pitch), identified_side(af, Loop.Y, roll)
     gx = onboard_side_gains(sx, pitch, rp, target_hz=0.0).gains
     gy = onboard_side_gains(sy, roll, rr, target_hz=0.0).gains
     assert gx != gy
