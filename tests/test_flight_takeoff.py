@@ -154,8 +154,9 @@ def test_climb_at_rest_off_its_set_point_takes_its_thrust_for_hover():
 
     hover = 0.5
     times = {}
+    base = dataclasses.replace(TABLE_V, creep_speed_m_s=0.0)  # the rest fold alone
     for fold in (True, False):
-        st = TABLE_V if fold else dataclasses.replace(TABLE_V, rest_s=math.inf)
+        st = base if fold else dataclasses.replace(base, rest_s=math.inf)
         c = TakeoffController(z_ref_m=1.0, settings=st, relay_bias=0.85 * hover)
         z, _, times[fold] = _climb_to_rest(c, hover, drag_T1=0.7)
         assert c.switched and c.folded is fold
@@ -200,3 +201,33 @@ def test_resettle_stops_the_relay_and_climbs_back():
     c2 = TakeoffController(z_ref_m=1.0, relay_bias=0.3)
     _climb_to_rest(c2, 0.3)
     assert c2.resettle(hover=float("nan")) and c2.relay_bias == pytest.approx(c2.u_z0)
+
+
+@pytest.mark.parametrize("guess_factor,drag_T1", [(0.88, 0.3), (0.88, 0.5), (1.15, 0.5)])
+def test_a_climb_creeping_on_a_wrong_guess_takes_the_thrust_it_gets_for_hover(guess_factor,
+                                                                              drag_T1):
+    """A guess 12 % low held the PD climb just inside the integral's band, where it crept up
+    at about 0.1 m/s for seconds while the integral learnt the guess (the PD's effort
+    against it ebbs no faster): the thrust that holds the creeping vehicle is the hover
+    thrust, taken at once, and the relay starts seconds sooner, biased at hover within the
+    brake's check (plus the drag at the creep's speed). A guess too high overshoots (no
+    creep from below): nothing changes. Where the caller holds the climb unbraked, nothing
+    is taken."""
+    import dataclasses
+
+    hover, times = 0.5, {}
+    for creep in (True, False):
+        st = TABLE_V if creep else dataclasses.replace(TABLE_V, creep_speed_m_s=0.0)
+        c = TakeoffController(z_ref_m=1.0, settings=st, relay_bias=guess_factor * hover)
+        z, _, times[creep] = _climb_to_rest(c, hover, drag_T1=drag_T1)
+        assert c.switched and c.creep_folded is (creep and guess_factor < 1.0), times
+        assert c.z_relay_m == pytest.approx(z, abs=0.01)
+        assert abs(c.u_z0 / hover - 1.0) < TABLE_V.hover_check_tol + 0.015
+    if guess_factor < 1.0:
+        assert times[True] < times[False] - 2.0, times
+    else:
+        assert times[True] == pytest.approx(times[False]), times
+    c = TakeoffController(z_ref_m=1.0, relay_bias=guess_factor * hover)
+    c.no_brake = True
+    _climb_to_rest(c, hover, drag_T1=drag_T1)
+    assert c.switched and not c.creep_folded

@@ -73,6 +73,16 @@ class TakeoffSettings:
     #: seconds: a climb resting just outside the integral's band would creep for seconds
     rest_speed_m_s: float = 0.05
     rest_s: float = 0.5
+    #: a climb creeping up its last ``brake_m`` slower than this (over all of the last
+    #: ``hover_check_s``) is held by the thrust it gets: where that (force balance) is off
+    #: the hover thrust by more than ``hover_check_tol`` the guess is wrong and is corrected
+    #: at once (once per climb, as the fold at rest): the PD's steady effort against a wrong
+    #: guess otherwise ebbs only as fast as the integral learns, a creep of 2-3 s at 0.1
+    #: m/s; the drag at that speed is 1-3 % of hover, the brake's check of the thrust held
+    #: and the integral mop up. Only where the climb may be braked (``no_brake`` off): the
+    #: fold overstates hover by that drag, which a relay started unbraked does not check.
+    #: 0: off
+    creep_speed_m_s: float = 0.15
     settle_m: float = 0.05
     settle_speed_m_s: float = 0.05
     settle_max_s: float = 8.0
@@ -146,6 +156,7 @@ class TakeoffController:
         self.a_int = 0.0  # the climb's integral term (m/s^2)
         self.t_rest: float | None = None  # since when the climb is at rest off its set point
         self.folded = False
+        self.creep_folded = False
         self.t_prev: float | None = None
         self.t_climb: float | None = None
         self.z_hold_m = self.z_ref_m  # where the climb brings the vehicle to rest
@@ -180,7 +191,7 @@ class TakeoffController:
         self.z_hold_m, self.braked = self.z_ref_m, False
         self.recent.clear()
         self.a_int = 0.0
-        self.folded = False
+        self.folded = self.creep_folded = False
         return True
 
     def step(self, t_s: float, z_up_m: float, vz_up_m_s: float | None = None) -> float:
@@ -222,7 +233,7 @@ class TakeoffController:
         z = self.z_ref_m - e
         airborne = z >= st.delta_p_m
         if (not self.braked and not self.no_brake and airborne and 0 < e < st.brake_m
-                and (self.a_int == 0.0 or self.folded)
+                and (self.a_int == 0.0 or self.folded or self.creep_folded)
                 and st.settle_speed_m_s < vz < st.brake_speed_m_s):
             # creeping up the last stretch: hold where it is about to be (settings), unless
             # the integral has begun to learn a wrong guess; a fold at rest measured the
@@ -240,6 +251,15 @@ class TakeoffController:
                                        -0.3 * g, 0.3 * g))
             self.folded, self.t_rest = True, None
         hover = float(np.clip(guess * (1.0 + self.a_int / g), 0.0, 1.0))  # what holds it
+        if (airborne and not (self.folded or self.creep_folded or self.no_brake)
+                and 0.0 < e < st.brake_m and self.recent and all(0.0 <= r[2] < st.creep_speed_m_s
+                                        for r in self.recent)):
+            held = self._thrust_held()
+            if math.isfinite(held) and guess > 0 and abs(held / hover - 1.0) > \
+                    st.hover_check_tol:
+                self.a_int = float(np.clip(g * (held / guess - 1.0), -0.3 * g, 0.3 * g))
+                self.creep_folded = True
+                hover = float(np.clip(guess * (1.0 + self.a_int / g), 0.0, 1.0))
         at_rest = abs(e) < st.settle_m and abs(vz) < st.settle_speed_m_s
         if at_rest and self.braked:  # and not at the top of a swing on a wrong guess
             held = self._thrust_held()
