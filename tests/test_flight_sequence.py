@@ -435,7 +435,8 @@ def test_a_catch_sized_on_too_small_a_cycle_is_softened_until_it_hands_back():
 def test_cycles_refused_as_too_small_are_retried_on_the_next_cycle_then_raised():
     """A side relay whose cycles identification refused as too small for the noise runs on
     and is tried again on its next cycle (before, the detection started over: three or more
-    periods, a second each, lost per refusal); two whole new sets refused raise h."""
+    periods, a second each, lost per refusal); ``refused_sets_before_raise`` whole new sets
+    refused raise h (one: two waited six 1 s side cycles more on cycles that mostly failed)."""
     from mrft_gcs.relay import MRFT
 
     seq = TuningSequence(SequenceConfig(hover_thrust_guess=0.5), ATT_RELAY, ALT_RELAY)
@@ -461,7 +462,8 @@ def test_cycles_refused_as_too_small_are_retried_on_the_next_cycle_then_raised()
     run(1.0)
     assert [s.loop for s in seq.ready()] == [Loop.Y]  # one period later
     n = seq.config.cycle_rules(Loop.Y).identify_cycles
-    for _ in range(2 * n - 1):
+    assert seq.config.refused_sets_before_raise == 1
+    for _ in range(n - 1):
         seq.retry(Loop.Y, larger=True)
         run(1.0)
         assert seq.ready() and t.h == 0.08
@@ -517,3 +519,46 @@ def test_driver_retries_cycles_too_small_on_the_next_cycle():
         drv.supervise()
         assert t.state is LoopState.RELAY and drv.retries[-1][0] is Loop.Y
         assert t.status.cycles == (seen if kept else 0)
+
+
+def _side_first_rise(start_high: bool) -> tuple[float, float]:
+    """x relay on a point mass behind a 0.1 s attitude lag, started as the axis drifts on
+    at 2 cm/s (under the settle speed): (s from the relay's start to the first rise the
+    cycle detector counts, the period)."""
+    from mrft_gcs.flight.controllers import PDLoop
+    from mrft_gcs.identify import RelaySettings
+
+    seq = TuningSequence(SequenceConfig(side_start_high=start_high), ATT_RELAY, ALT_RELAY)
+    seq.start(_yawed())
+    for lp in (Loop.ROLL, Loop.PITCH, Loop.ALTITUDE):
+        t = seq.loops[lp]
+        t.state, t.pd = LoopState.TUNED, PDLoop(1.0, 0.1, 0.5, 0.0, 1.0)
+    seq.leave_alone(Loop.Y, "not requested")
+    seq.start_side({Loop.X: RelaySettings(-0.3, 0.08)})
+    x, vx, pitch, k = 0.0, 0.02, 0.0, 0
+    tx = seq.loops[Loop.X]
+    while tx.t_relay_start_s != tx.t_relay_start_s or tx.settling:  # NaN until started
+        k += 1
+        seq.step(FlightState(0.004 * k, 0, pitch, 0, 0, 0, 0, 0.004 * k, x, 0, 1.0, vx, 0, 0))
+    t0 = 0.004 * k
+    while len(tx.watch.detector.rise_t) < 3:
+        k += 1
+        seq.step(FlightState(0.004 * k, 0, pitch, 0, 0, 0, 0, 0.004 * k, x, 0, 1.0, vx, 0, 0))
+        pitch += (seq.tilt_cmd[1] - pitch) * 0.004 / 0.1
+        vx += -9.80665 * pitch * 0.004
+        x += vx * 0.004
+        assert 0.004 * k - t0 < 20.0
+    rises = list(tx.watch.detector.rise_t)
+    return rises[0] - t0, rises[1] - rises[0]
+
+
+def test_side_relay_starts_high_so_its_first_cycle_is_counted_half_a_period_sooner():
+    """The cycle detector learns a relay's levels from the data, so a rise before it has
+    seen the low level is not counted: a side relay that started low (its first error just
+    under zero, the axis drifting on) had its first cycle counted from a whole period after
+    its start. Started high, it switches down at once and the rise half a period later
+    counts (0.5-1 s of a side axis' 1-2 s cycles)."""
+    high, period = _side_first_rise(True)
+    low, _ = _side_first_rise(False)
+    assert high < 0.75 * period, (high, period)
+    assert high < low - 0.4 * period, (high, low, period)

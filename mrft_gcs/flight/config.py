@@ -107,6 +107,12 @@ class SequenceConfig:
     h_raise: float = 1.6
     h_max: tuple[float, float, float] = (0.3, 0.25, 0.2)
     max_noise_ratio: float = 0.025
+    #: cycles identification refused as too small for the noise are retried on each next
+    #: cycle; once this many whole new sets of cycles were refused too, the amplitude is
+    #: raised (:meth:`~mrft_gcs.flight.sequence.TuningSequence.retry`). A raise at once was
+    #: slower (its first cycles, still growing, were refused as well); after two sets a
+    #: side axis of 1 s cycles waited 6 s on cycles that a third of the time passed by chance
+    refused_sets_before_raise: int = 1
     #: smallest steady amplitude of the roll/pitch relays (normalised torque): the
     #: classifiers' default (Table V: 0.05) gives cycles too small to clear the noise band
     h_att_min: float = 0.12
@@ -177,6 +183,10 @@ class SequenceConfig:
     #: is a large step on the freshly tuned attitude PD while the other axis still runs its
     #: relay (the bounding relay itself commands at most 0.1 rad)
     settle_max_tilt_rad: float = 0.1
+    #: a side relay starts on its high level (:meth:`~mrft_gcs.flight.phases.side.
+    #: SideRelays.step`): its first cycle is counted from half a period after the start
+    #: instead of a whole one; False: on the sign of its first error
+    side_start_high: bool = True
 
     def cycle_rules(self, loop: Loop) -> CycleRules:
         """When ``loop``'s relay cycles are steady and how many are identified."""

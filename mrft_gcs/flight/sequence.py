@@ -271,10 +271,11 @@ class TuningSequence:
         the relay can lock into); the relay starts over, x and y after settling again.
         ``larger``: the cycles were too small for the noise; the relay runs on and the next
         cycle is tried with the last ones (starting the detection over costs its steady
-        periods again, a second or more on a side axis, for cycles like these). Once two whole
-        new sets of cycles were refused too, the amplitude is what fails: it is raised
-        (``h_raise``, within ``h_max``) and the detection starts over. A raise at once was
-        slower: its first cycles, still growing, were refused as well.
+        periods again, a second or more on a side axis, for cycles like these). Once a whole
+        new set of cycles (``refused_sets_before_raise`` sets) was refused too, the amplitude
+        is what fails: it is raised (``h_raise``, within ``h_max``) and the detection starts
+        over. A raise at once was slower: its first cycles, still growing, were refused as
+        well.
         """
         with self._lock:
             t = self.loops[loop]
@@ -284,7 +285,8 @@ class TuningSequence:
                     n = self.config.cycle_rules(loop).identify_cycles
                     if t.retry_base < 0:
                         t.retry_base = t.status.cycles
-                    if t.status.cycles - t.retry_base < 2 * n or not self.shared.raise_h(
+                    sets = self.config.refused_sets_before_raise
+                    if t.status.cycles - t.retry_base < sets * n or not self.shared.raise_h(
                             t, self.config.h_raise, "identification refused two whole new "
                             "sets of cycles as too small for the noise"):
                         t.retry_from = t.status.cycles

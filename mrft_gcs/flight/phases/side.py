@@ -106,6 +106,15 @@ class SideRelays:
                 if (abs(vel) < cfg.settle_speed_m_s or
                         s.t_pos_s - t.t_relay_start_s > cfg.settle_max_s):
                     t.settling, t.center = False, pf
+                    if cfg.side_start_high:
+                        # the relay starts high: it switches down as soon as the axis leaves
+                        # the noise band, and the cycle detector (which learns the relay's
+                        # levels from the data) counts the rise that follows. Started low,
+                        # as a first error just under zero did, its first rise came before
+                        # the detector knew the levels and the first cycle began a whole
+                        # period after the start
+                        t.relay.reset()
+                        t.relay.state[:] = 1.0
             elif t.relay is not None:
                 before = float(t.relay.state[0])
                 u = float(t.relay.step(t.center - pf)[0])
