@@ -221,6 +221,7 @@ def test_a_climb_creeping_on_a_wrong_guess_takes_the_thrust_it_gets_for_hover(gu
         c = TakeoffController(z_ref_m=1.0, settings=st, relay_bias=guess_factor * hover)
         z, _, times[creep] = _climb_to_rest(c, hover, drag_T1=drag_T1)
         assert c.switched and c.creep_folded is (creep and guess_factor < 1.0), times
+        assert math.isfinite(c.creep_hover) is c.creep_folded  # what the report's note says
         assert c.z_relay_m == pytest.approx(z, abs=0.01)
         assert abs(c.u_z0 / hover - 1.0) < TABLE_V.hover_check_tol + 0.015
     if guess_factor < 1.0:

@@ -157,6 +157,7 @@ class TakeoffController:
         self.t_rest: float | None = None  # since when the climb is at rest off its set point
         self.folded = False
         self.creep_folded = False
+        self.creep_hover = math.nan  # the hover thrust the creep read (normalised thrust)
         self.t_prev: float | None = None
         self.t_climb: float | None = None
         self.z_hold_m = self.z_ref_m  # where the climb brings the vehicle to rest
@@ -260,6 +261,7 @@ class TakeoffController:
                 self.a_int = float(np.clip(g * (held / guess - 1.0), -0.3 * g, 0.3 * g))
                 self.creep_folded = True
                 hover = float(np.clip(guess * (1.0 + self.a_int / g), 0.0, 1.0))
+                self.creep_hover = hover
         at_rest = abs(e) < st.settle_m and abs(vz) < st.settle_speed_m_s
         if at_rest and self.braked:  # and not at the top of a swing on a wrong guess
             held = self._thrust_held()

@@ -55,7 +55,14 @@ class AltitudeRelay:
             before = float(relay.state[0]) if relay is not None else 0.0
             zf = sh.z_f - sh.origin[2]  # smoothed with the climb rate, as x and y
             sh.takeoff.no_brake = sh.config.brake_after_attitude and not sh.inner_done
+            crept = sh.takeoff.creep_folded
             u = sh.takeoff.step(s.t_pos_s, zf, s.vz_up_m_s)
+            if sh.takeoff.creep_folded and not crept:
+                guess, hover = float(sh.takeoff.relay_bias or 0.0), sh.takeoff.creep_hover
+                sh.events.append(
+                    f"altitude: the climb crept at {s.vz_up_m_s:.2f} m/s, {zf:.2f} m up, on a "
+                    f"hover guess {guess:.3f} ({100 * (guess / hover - 1):+.0f} %): hover "
+                    f"thrust taken as {hover:.3f}, what held it")
             if sh.takeoff.switched:
                 t.bias = sh.takeoff.u_z0
                 if relay is not None:
