@@ -155,12 +155,12 @@ YAW_FLTE_MAX_HZ = 40.0
 #: ... i.e. until the scale the cascade check leaves the gains is this share of the scale
 #: they keep with no error filter at all
 YAW_FLTE_KEEP = 0.95
-#: the in-air check of the written roll/pitch gains flies on this path (off: ArduCopter's
-#: ATTITUDE_TARGET came too unevenly at these crossovers to measure the loop, and a check
-#: that cannot measure lands the vehicle; flown with its linearised angle P at the written
-#: margin of 15 deg the loop rang and diverged on ArduCopter SITL: docs/ardupilot.md; the
-#: gains are checked on the cascade's model at the hand-over instead,
-#: :func:`mrft_gcs.flight.onboard.rate_loop_gains`)
+#: the in-air check of the written roll/pitch gains flies on this path (off: on ArduCopter
+#: SITL what it measures at the written loops' 85-130 rad/s crossovers fits no linear model
+#: of the cascade, 17-56 deg of phase from the prediction, and written loops predicted at PM
+#: 38-48 deg rang at 21 Hz with a motor at its minimum, which the cascade model, without the
+#: rate loop's gyro low-pass, does not predict: docs/ardupilot.md; the gains are checked on
+#: the cascade's model at the hand-over instead, :func:`mrft_gcs.flight.onboard.rate_loop_gains`)
 INAIR_CHECK = False
 #: set while the in-air check flies (restored after it): ArduCopter's angle P runs through a
 #: square-root controller that is linear only below (accel/2)/P^2 of error (0.2-0.5 deg at
