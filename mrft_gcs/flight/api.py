@@ -92,6 +92,7 @@ from mrft_gcs.flight.onboard import (
 from mrft_gcs.flight.phases.yaw import IDENTIFY_AS as YAW_IDENTIFY_AS
 from mrft_gcs.flight.phases.yaw import YawOutcome
 from mrft_gcs.flight.ratepath import CHECK_AMPLITUDE_RAD as RATE_CHECK_AMPLITUDE_RAD
+from mrft_gcs.flight.ratepath import CHECK_LEAD_S as RATE_CHECK_LEAD_S
 from mrft_gcs.flight.ratepath import CHECK_SETTLE_S as RATE_CHECK_SETTLE_S
 from mrft_gcs.flight.ratepath import CHECK_SPAN_S as RATE_CHECK_SPAN_S
 from mrft_gcs.flight.ratepath import CHECK_SWING as RATE_CHECK_SWING
@@ -99,6 +100,8 @@ from mrft_gcs.flight.ratepath import GCS_PD_SCALE as RATE_GCS_PD_SCALE
 from mrft_gcs.flight.ratepath import INAIR_CHECK as RATE_INAIR_CHECK
 from mrft_gcs.flight.ratepath import STREAM_HZ as RATE_STREAM_HZ
 from mrft_gcs.flight.ratepath import RatePath, rate_path_refusal
+from mrft_gcs.flight.ratepath import check_cascade as rate_check_cascade
+from mrft_gcs.flight.ratepath import check_points as rate_check_points
 from mrft_gcs.flight.safety import SafetyMonitor
 from mrft_gcs.flight.sequence import (
     CycleSnapshot,
@@ -602,6 +605,9 @@ class _Run:
         self.residuals = True
         #: the in-air check's set points while it runs (read on the stream's ticks)
         self.probe: SquareWaveProbe | None = None
+        #: roll and pitch set points (rad) flown while no check's square wave is (rate path:
+        #: before and after it, the input shaping switched with the vehicle at rest there)
+        self.probe_hold: tuple[float, float] | None = None
         #: the mode the vehicle must stay in while the tool flies it (None: not watched)
         self.mode_watch: CustomMode | None = None
         self.seen_armed = False
@@ -942,15 +948,18 @@ class _Run:
             if on_ground:
                 return out
             assert s is not None and self.vehicle is not None
-            probe = self.probe
-            if probe is not None and not probe.done and isinstance(out, (ActuatorTarget,
-                                                                         AttitudeTarget)):
+            probe, hold = self.probe, self.probe_hold
+            if not isinstance(out, (ActuatorTarget, AttitudeTarget)):
+                pass
+            elif probe is not None and not probe.done:
                 # the written attitude loop flies the check's set points (on the rate path
                 # after its hand-over the sequence's own attitude set point is replaced);
                 # altitude stays on the ground station's PD
                 r, p = probe.step(time.monotonic(), s.t_att_s, s.roll_rad, s.pitch_rad)
                 out = AttitudeTarget(out.t_s, quat_from_euler(r, p, self.probe_yaw),
                                      out.thrust)
+            elif hold is not None:
+                out = AttitudeTarget(out.t_s, quat_from_euler(*hold, self.probe_yaw), out.thrust)
             tel = self.vehicle.telemetry
             ages.record(tel.att, tel.pos)  # the command leaves right after
             return out
@@ -1250,7 +1259,7 @@ class _Run:
         for i, lp in enumerate(_ATTITUDE_LOOPS):
             if on_rate:  # ArduPilot's cascade with the written gains, as restored
                 assert self.rate is not None
-                cascades[lp] = self.rate.cascade(client, i)
+                cascades[lp] = rate_check_cascade(self.rate.cascade(client, i))
             elif lp in self.d_over_p and lp in self.structure:
                 # rate D written: the check predicts and inverts through the structure it
                 # closes (its rate-target and D filters), as the design did
@@ -1300,7 +1309,9 @@ class _Run:
                 if tighter:
                     on_structure.add(lp)
                 # a loop with rate D sits under its gain cap, not at the margin: not tightened
-                high = PM_HIGH_DEG if lp not in self.d_over_p or on_rate else math.inf
+                # (nor on the rate path: its gains are the identified ones, capped on the
+                # cascade, not designed at the margin)
+                high = PM_HIGH_DEG if lp not in self.d_over_p and not on_rate else math.inf
                 if (check.passed and check.measured_pm_deg <= high and not tighter) or (
                         n + 1 == CHECK_ROUNDS):
                     continue
@@ -1313,8 +1324,11 @@ class _Run:
                     ident = self.seq.loops[lp].identification if self.seq else None
                     assert ident is not None and isinstance(ident.model, InnerModel)
                     model, new = ident.model, ident.gains
+                try:
+                    nxt[lp] = plan_for(lp, model, new)
+                except ValueError:
+                    continue  # no loop to predict on the model measured: nothing to re-check
                 self.written[lp] = new
-                nxt[lp] = plan_for(lp, model, new)
             if nxt:
                 self._rewrite(client, {lp: self.written[lp] for lp in nxt})
             plans = nxt
@@ -1378,35 +1392,54 @@ class _Run:
         self.probe_yaw = s.yaw_rad if s is not None else (self.seq.yaw_ref if self.seq else 0.0)
         small = (self.rate.small_signal(ParamClient(self.link)) if self.rate is not None
                  else contextlib.nullcontext())
-        with small, self.link.subscribe(AttitudeSetpoint) as tracked:
-            asked = self._ask_setpoints(self.rate_hz)
-            self.probe = probe
-            try:
-                end = time.monotonic() + probe.duration_s + 2.0
-                while not probe.done:
-                    if time.monotonic() > end:
-                        raise LinkError("the in-air check of the written gains got no "
-                                        "telemetry: check the link")
-                    time.sleep(0.02)
-                    while (sp := tracked.get(0.0)) is not None:
-                        if isinstance(sp, AttitudeSetpoint):
-                            probe.track(sp.t_s, sp.roll_rad, sp.pitch_rad)
-                    self._check_stream()
-                    if probe.swing_over is not None:
-                        # the abort restores the vehicle's own gains before the landing
-                        lp, swing = probe.swing_over
-                        raise SafetyAbort(
-                            f"in-air check: {lp.value} swung {math.degrees(swing):.1f} deg off "
-                            f"its centre on a {math.degrees(probe.plans[lp].amplitude):.1f} "
-                            f"deg square wave (limit {RATE_CHECK_SWING:g}x): the written gains "
-                            f"ring; the vehicle's own gains back, landing commanded")
-            finally:
-                self.probe = None
-                if asked:  # the rate path keeps the stream it aligns its rates with
-                    self._ask_setpoints(RATE_STREAM_HZ if self.rate is not None else 0.0)
-        points = probe.points(link_delay_s=_round_trip_s(self.quality))
-        source = {lp: ("the set point the vehicle reported tracking (ATTITUDE_TARGET)" if used
-                       else "the set point as sent") for lp, used in probe.used_tracked.items()}
+        if on_rate:
+            # the input shaping is switched off and back with the vehicle at rest on the
+            # centre, brought there with it on: a set point step while it is off gives the
+            # onboard target 100/s x the step of rate, which the acceleration limit, once
+            # back, carries on for tens of degrees (a 3.5 deg step went on to 30 deg)
+            self.probe_hold = probe.centre
+            time.sleep(RATE_CHECK_LEAD_S)
+        try:
+            with small, self.link.subscribe(AttitudeSetpoint) as tracked:
+                asked = self._ask_setpoints(self.rate_hz)
+                self.probe = probe
+                try:
+                    end = time.monotonic() + probe.duration_s + 2.0
+                    while not probe.done:
+                        if time.monotonic() > end:
+                            raise LinkError("the in-air check of the written gains got no "
+                                            "telemetry: check the link")
+                        time.sleep(0.02)
+                        while (sp := tracked.get(0.0)) is not None:
+                            if isinstance(sp, AttitudeSetpoint):
+                                probe.track(sp.t_s, sp.roll_rad, sp.pitch_rad)
+                        self._check_stream()
+                        if probe.swing_over is not None:
+                            # the abort restores the vehicle's own gains before the landing
+                            lp, swing = probe.swing_over
+                            raise SafetyAbort(
+                                f"in-air check: {lp.value} swung {math.degrees(swing):.1f} deg "
+                                f"off its centre on a "
+                                f"{math.degrees(probe.plans[lp].amplitude):.1f} deg square wave "
+                                f"(limit {RATE_CHECK_SWING:g}x): the written gains ring; the "
+                                f"vehicle's own gains back, landing commanded")
+                finally:
+                    self.probe = None
+                    if asked:  # the rate path keeps the stream it aligns its rates with
+                        self._ask_setpoints(RATE_STREAM_HZ if self.rate is not None else 0.0)
+        finally:
+            self.probe_hold = None
+        if self.rate is not None:  # each edge timed on the vehicle's record of its target
+            points, how = rate_check_points(probe)
+            probe.used_tracked = {lp: lp in points for lp in how}
+            points = {lp: points.get(lp, (np.ones(1), np.ones(1, complex), np.full(1, np.inf)))
+                      for lp in how}
+            source = how
+        else:
+            points = probe.points(link_delay_s=_round_trip_s(self.quality))
+            source = {lp: ("the set point the vehicle reported tracking (ATTITUDE_TARGET)"
+                           if used else "the set point as sent")
+                      for lp, used in probe.used_tracked.items()}
         out = {lp: (plans[lp], dataclasses.replace(check_margin(plans[lp], *points[lp]),
                                                    source=source[lp])) for lp in points}
         for lp, used in probe.used_tracked.items():
@@ -1416,8 +1449,9 @@ class _Run:
                 plan, chk = out[lp]
                 out[lp] = (plan, dataclasses.replace(
                     chk, se=np.full_like(chk.se, np.inf),
-                    source="none: ATTITUDE_TARGET did not cover the cycles (the set point "
-                           "sent is shaped onboard before the loop)"))
+                    source=chk.source if chk.source.startswith("none") else
+                    "none: ATTITUDE_TARGET did not cover the cycles (the set point sent is "
+                    "shaped onboard before the loop)"))
         return out
 
     def _probe_centre(self) -> tuple[float, float]:

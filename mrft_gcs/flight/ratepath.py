@@ -49,7 +49,7 @@ import numpy as np
 from mrft_gcs.domains import D_ATT
 from mrft_gcs.errors import LinkError, MrftError, SafetyAbort, UsageError
 from mrft_gcs.flight.controllers import FlightState, YawHold
-from mrft_gcs.flight.inair import OnboardCascade
+from mrft_gcs.flight.inair import OnboardCascade, SquareWaveProbe, harmonic_points
 from mrft_gcs.flight.onboard import CascadeGains, cascade_gains, rate_loop_gains
 from mrft_gcs.flight.phases.state import CycleSnapshot
 from mrft_gcs.flight.phases.yaw import YawOutcome, YawRelay, YawState
@@ -65,6 +65,7 @@ from mrft_gcs.identify import Identification
 from mrft_gcs.link.failsafe import rate_path_guard
 from mrft_gcs.link.firmware import Firmware
 from mrft_gcs.link.vehicle import VehicleLink
+from mrft_gcs.loops import Loop
 from mrft_gcs.params import (
     Param,
     ParamChange,
@@ -89,7 +90,7 @@ __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignmen
            "check_feed_forward", "rate_path_refusal", "body_rates", "LINK_LOSS_GUARD",
            "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE", "TARGET_SET_PARAM",
            "CHECK_PARAMS", "CHECK_SPAN_S", "CHECK_AMPLITUDE_RAD", "CHECK_SWING", "CHECK_SETTLE_S",
-           "INAIR_CHECK",
+           "CHECK_LEAD_S", "INAIR_CHECK", "check_cascade", "check_points", "EDGE_TICK_S",
            "TUNE_YAW", "RATE_I_DECADE",
            "YAW_RATE_I_DECADE", "YAW_AFTER_ROLL_PITCH_S", "RING_RMS_RAD_S", "yaw_wait_over",
            "HAND_ROLL_PITCH_FIRST", "roll_pitch_names", "beside_yaw",
@@ -154,12 +155,12 @@ YAW_FLTE_MAX_HZ = 40.0
 #: ... i.e. until the scale the cascade check leaves the gains is this share of the scale
 #: they keep with no error filter at all
 YAW_FLTE_KEEP = 0.95
-#: the in-air check of the written roll/pitch gains flies on this path (off: ArduCopter's
-#: ATTITUDE_TARGET came too unevenly at these crossovers to measure the loop, and a check
-#: that cannot measure lands the vehicle; flown with its linearised angle P at the written
-#: margin of 15 deg the loop rang and diverged on ArduCopter SITL: docs/ardupilot.md; the
-#: gains are checked on the cascade's model at the hand-over instead,
-#: :func:`mrft_gcs.flight.onboard.rate_loop_gains`)
+#: the in-air check of the written roll/pitch gains flies on this path (off: on ArduCopter
+#: SITL what it measures at the written loops' 85-130 rad/s crossovers fits no linear model
+#: of the cascade, 17-56 deg of phase from the prediction, and written loops predicted at PM
+#: 38-48 deg rang at 21 Hz with a motor at its minimum, which the cascade model, without the
+#: rate loop's gyro low-pass, does not predict: docs/ardupilot.md; the gains are checked on
+#: the cascade's model at the hand-over instead, :func:`mrft_gcs.flight.onboard.rate_loop_gains`)
 INAIR_CHECK = False
 #: set while the in-air check flies (restored after it): ArduCopter's angle P runs through a
 #: square-root controller that is linear only below (accel/2)/P^2 of error (0.2-0.5 deg at
@@ -167,7 +168,13 @@ INAIR_CHECK = False
 #: acceleration limit) before it becomes the target. With no acceleration limit the angle
 #: P is linear (the small-signal loop flown, exactly) and the shaping a 10 ms lag, so a
 #: 2 deg square wave measures the written loop; the input is ATTITUDE_TARGET either way.
-CHECK_PARAMS = {"ATC_ACCEL_R_MAX": 0.0, "ATC_ACCEL_P_MAX": 0.0, "ATC_INPUT_TC": 0.0}
+#: The target's own rate is not fed forward either (:data:`TARGET_SET_PARAM` 0: the set point
+#: becomes the target as it comes): with it, the closed loop from the target is near 1 at the
+#: crossover whatever the plant, and inverting it for the plant read margins of 108-120 deg
+#: on loops predicted at 54; without it the loop's feedback path, which alone sets the margin,
+#: is what the square wave measures (:func:`check_cascade`)
+CHECK_PARAMS = {"ATC_ACCEL_R_MAX": 0.0, "ATC_ACCEL_P_MAX": 0.0, "ATC_INPUT_TC": 0.0,
+                TARGET_SET_PARAM: 0.0}
 #: the in-air check's measured cycles span at least this on this path (s): crossovers of
 #: 60-90 rad/s give 3 cycles of 0.2-0.3 s, too few ATTITUDE_TARGET samples at 250 Hz
 CHECK_SPAN_S = 1.0
@@ -184,6 +191,11 @@ CHECK_SWING = 5.0
 #: set point's error, and the shaping put back in the middle of a swing carried the target
 #: on to 49 deg of pitch on ArduCopter SITL (the tilt limit then landed it)
 CHECK_SETTLE_S = 0.5
+#: the check's centre flown this long, the input shaping still on, before :data:`CHECK_PARAMS`
+#: go in (s): the sequence's own set point (the x/y hold's lean) may lie degrees off the centre,
+#: and the shaping (ATC_INPUT_TC 0.15 s by default) brings the vehicle there smoothly; the
+#: shaping is put back with the centre still held (the check's settle)
+CHECK_LEAD_S = 0.5
 #: roll/pitch: the written rate I's zero sits this factor below the written loop's crossover
 #: on the cascade (0: rate I written 0, the identified PD alone). With P alone the rate loop
 #: leaves a rate error wherever the body must be held against a torque or the target's
@@ -459,6 +471,7 @@ def yaw_design(ident: Identification, names: Mapping[str, str], target_filter_hz
     and the smaller scale kept; otherwise refused.
 
     >>> from mrft_gcs.identify import Identification
+from mrft_gcs.loops import Loop
     >>> from mrft_gcs.loops import LoopKind
     >>> from mrft_gcs.pd_design import PD
     >>> names = {"angle_p": "A", "rate_p": "P", "rate_i": "I", "rate_d": "D"}
@@ -624,6 +637,91 @@ def beside_yaw(yaw_torque: float, yaw_rate: float, ff: float, rate_p: float,
 
 
 # ---------------------------------------------------------------------- streaming state
+
+#: ArduCopter's main loop period on the SITL and most boards (s): ATTITUDE_TARGET samples one
+#: tick apart bracket a square wave's edge exactly (the target changes at a tick)
+EDGE_TICK_S = 0.0025
+
+
+def check_cascade(cascade: OnboardCascade) -> OnboardCascade:
+    """The cascade the in-air check flies: the written one with the target's own rate not fed
+    forward (:data:`CHECK_PARAMS`); the feedback path, and so the margin, is the written
+    loop's."""
+    return dataclasses.replace(cascade, target_rate_ff=False)
+
+
+def _edges(t: np.ndarray, u: np.ndarray, amplitude: float) -> list[tuple[int, float]]:
+    """``(index, new level)`` of each step of a held square wave ``u`` at times ``t``."""
+    out = []
+    for i in range(1, len(u)):
+        if abs(u[i] - u[i - 1]) > amplitude:
+            out.append((i, float(u[i])))
+    return out
+
+
+def check_points(probe: SquareWaveProbe) -> tuple[dict[Loop, tuple[np.ndarray, np.ndarray,
+                                                                    np.ndarray]], dict[Loop, str]]:
+    """Closed-loop points of the rate path's check and, per loop, how its input was timed.
+
+    With the target's rate not fed forward the onboard target is the set point sent, from
+    the tick after it arrives. At a 50-80 rad/s crossover 1 ms is 3-5 deg of phase, finer
+    than ATTITUDE_TARGET's 2.5-5 ms spacing: each edge of the square wave sent is put where
+    the vehicle's record brackets it, at the send time plus the delay that edges bracketed by
+    samples one tick apart measure (the mean of those: the link and the wait for the tick),
+    moved onto the nearest tick the bracket leaves (the target changes at a tick). Where fewer
+    than 4 edges are bracketed that closely, the delay is the mean middle of the brackets;
+    where the record does not show an edge at all, the loop is not measured (no points)."""
+    c = np.asarray(probe.cmd, float)
+    ts = np.asarray(sorted(probe.smp), float)
+    y = np.asarray([probe.smp[t] for t in ts], float)
+    t_cmd = c[:, 0] - probe.offset  # on the vehicle clock, less an unknown constant
+    tt = np.asarray(sorted(probe.tracked), float)
+    out: dict[Loop, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    how: dict[Loop, str] = {}
+    for i, lp in enumerate((Loop.ROLL, Loop.PITCH)):
+        p = probe.plans.get(lp)
+        if p is None:
+            continue
+        ut = np.asarray([probe.tracked[t][i] for t in tt], float) if tt.size else tt
+        sent = _edges(t_cmd, c[:, 1 + i], p.amplitude)
+        brackets: list[tuple[float, float, float, float]] = []  # sent, prev, new, level
+        for k, level in sent:
+            ts_k = t_cmd[k]
+            j = np.flatnonzero((tt > ts_k - 0.002) & (np.abs(ut - level) < 0.5 * p.amplitude))
+            if j.size == 0 or j[0] == 0 or tt[j[0]] - ts_k > 0.05:
+                break
+            brackets.append((ts_k, float(tt[j[0] - 1]), float(tt[j[0]]), level))
+        if len(brackets) < len(sent) or not brackets:
+            how[lp] = "none: ATTITUDE_TARGET did not show every edge of the square wave"
+            continue
+        tight = [new - ts_k for ts_k, prev, new, _ in brackets
+                 if new - prev <= 1.4 * EDGE_TICK_S]
+        if len(tight) >= 4:
+            med = float(np.median(tight))
+            lag = float(np.mean([x for x in tight if abs(x - med) <= 2 * EDGE_TICK_S]))
+            how[lp] = (f"the set point as sent, each edge at the tick where ATTITUDE_TARGET "
+                       f"brackets it nearest {lag * 1e3:.1f} ms after sending (the mean of "
+                       f"{len(tight)} of {len(brackets)} edges bracketed one tick apart)")
+        else:  # the middle of the brackets, on average
+            lag = float(np.mean([0.5 * (prev + new) - ts_k for ts_k, prev, new, _ in brackets]))
+            how[lp] = (f"the set point as sent, each edge at the tick where ATTITUDE_TARGET "
+                       f"brackets it nearest {lag * 1e3:.1f} ms after sending (the mean middle "
+                       f"of the brackets: {len(tight)} of {len(brackets)} one tick apart)")
+        # the target changes at a tick: of the ticks the bracket leaves, the one nearest the
+        # send time plus that delay
+        t_sw = [new - EDGE_TICK_S * round(min(max(new - ts_k - lag, 0.0), new - prev - 1e-3)
+                                          / EDGE_TICK_S)
+                for ts_k, prev, new, _ in brackets]
+        # the wave's start as late as its edges came (its first level is the one it leaves)
+        start = t_cmd[0] + float(np.mean([t - b[0] for t, b in zip(t_sw, brackets,
+                                                                    strict=True)]))
+        t_u = np.concatenate(([start], t_sw))
+        u = np.concatenate(([float(c[0, 1 + i])], [b[3] for b in brackets]))
+        t0 = start + p.period_s  # the first cycle lets the start transient die out
+        out[lp] = harmonic_points(t_u, u, ts, y[:, i], p.period_s, t0, p.cycles)
+    return out, how
+
+
 class RateChannel:
     """Torque set points -> body-rate set points, on the stream's ticks.
 
