@@ -57,7 +57,8 @@ __all__ = ["PM_MIN_DEG", "PASS_PM_DEG", "AGREE_DEG", "MAX_STEADY_SE", "CHECK_HAR
            "square_wave", "harmonic_points", "check_margin", "redesigned_gains",
            "PM_HIGH_DEG", "CHECK_ROUNDS", "OnboardCascade", "side_behind_checked",
            "SIDE_PM_MIN_DEG", "STRUCT_TIGHTEN_GAIN", "STRUCT_TIGHTEN_LIVE",
-           "structured_redesign", "probe_centre"]
+           "structured_redesign", "probe_centre", "CHECK_AMPLITUDE_SQRT_RAD", "probe_amplitude",
+           "tighten_above"]
 
 #: the least phase margin the written loop must keep (deg), and what its check must measure:
 #: that plus the measurement's own error (live, 1-2.5 deg from the onboard truth)
@@ -101,6 +102,12 @@ SIDE_PM_MIN_DEG = 15.0
 #: the square wave's amplitude on the attitude set point (rad): 2 deg, some 6 deg of swing
 #: at a 20 deg loop's resonance, well clear of noise and of the tilt limits
 CHECK_AMPLITUDE_RAD = 0.035
+#: the amplitude on a loop closed through ArduPilot's angle controller (rad): its square-root
+#: controller is linear only for errors under ``accel_max / P^2`` (1-3 deg at the angle P
+#: written with rate D), and each step of the square wave puts twice the amplitude into the
+#: error; beyond it the angle P acts smaller and the check reads a larger margin (in-process,
+#: 2 deg: up to 6 deg over the onboard truth; 1 deg: within 2, the noise's share rising)
+CHECK_AMPLITUDE_SQRT_RAD = math.radians(1.0)
 
 
 @dataclass(frozen=True)
@@ -186,6 +193,44 @@ def _paths(gains: PD, w: np.ndarray, cascade: OnboardCascade | None
         return cascade.paths(gains, w)
     s = 1j * np.asarray(w, float)
     return gains.Kc + 0 * s, gains.Kc + gains.Kd * s
+
+
+def probe_amplitude(target_filter_hz: float) -> float:
+    """The check's square-wave amplitude (rad) on a loop whose rate target is low-passed at
+    ``target_filter_hz`` (read from the vehicle; 0: none).
+
+    A rate-target filter is ArduPilot's cascade, whose angle controller is a square root
+    beyond a small error: :data:`CHECK_AMPLITUDE_SQRT_RAD` keeps the probe nearer its linear
+    part; elsewhere :data:`CHECK_AMPLITUDE_RAD`.
+
+    >>> probe_amplitude(20.0) < probe_amplitude(0.0)
+    True
+    """
+    return CHECK_AMPLITUDE_SQRT_RAD if target_filter_hz > 0 else CHECK_AMPLITUDE_RAD
+
+
+def tighten_above(predicted_pm_deg: float, rate_d: bool = False, fixed: bool = False
+                  ) -> float:
+    """The measured margin (deg) above which gains designed at the margin are re-designed on
+    the loop measured and checked again.
+
+    A loop written with rate D sits under its gain cap, not at the margin (``rate_d``: never
+    tightened, ``inf``); ``fixed``: :data:`PM_HIGH_DEG` whatever the prediction (the
+    ArduCopter rate path's check).
+
+    The prediction is the design's margin at the ground-station delay re-targeted out of
+    the gains, held back where they must keep PM 15 deg over every plausible delay: the
+    onboard loop's own delay is what the ground station cannot see. A check that measures
+    more than the prediction plus :data:`AGREE_DEG` has pinned less onboard delay than the
+    design allowed for, and the gains are more cautious than its target. Never above
+    :data:`PM_HIGH_DEG`.
+
+    >>> tighten_above(20.0), tighten_above(24.0), tighten_above(20.0, rate_d=True)
+    (23.0, 25.0, inf)
+    """
+    if rate_d:
+        return math.inf
+    return PM_HIGH_DEG if fixed else min(PM_HIGH_DEG, predicted_pm_deg + AGREE_DEG)
 
 
 @dataclass(frozen=True)
