@@ -90,8 +90,16 @@ CHECK_ROUNDS = 3
 AGREE_DEG = 3.0
 #: odd harmonics of the square wave at which the closed loop is measured
 CHECK_HARMONICS = (1, 3, 5)
-#: whole cycles measured (one more runs first, to let the start transient die out)
+#: whole cycles measured (:data:`SETTLE_CYCLES` run first, to let the start transient die out)
 CHECK_CYCLES = 3
+#: cycles flown before those measured: after one, a 20 deg loop's slow mode (the PD's zero,
+#: some 0.1 s) still carried the start through the cycles measured, which read 1-2 deg high
+#: (in-process, noise-free; after two, within 0.7 deg on five of six PX4-like vehicles)
+SETTLE_CYCLES = 2
+#: the square wave starts this share of a period into its positive half: from a quarter, the
+#: wave's running integral swings about zero and the start excites the slow modes less
+#: (in-process: 0.3-0.5 deg of the transient's bias less than from the wave's edge)
+START_PHASE = 0.25
 #: a fundamental whose cycle-to-cycle spread is larger (relative standard error) is not a
 #: steady response to the square wave: a loop that oscillates on its own reads as any margin
 #: (in-process, a written loop at -1 deg: 0.35 and "27 deg"; steady loops 0.05-0.06)
@@ -99,6 +107,8 @@ MAX_STEADY_SE = 0.15
 #: the least phase margin side gains re-designed behind checked attitude gains keep on the
 #: measured cascade (deg): the written side loops' robust margin
 SIDE_PM_MIN_DEG = 15.0
+#: the least delay (and fast lag) of a corrected model (s)
+MIN_TAU_S = 1e-4
 #: the square wave's amplitude on the attitude set point (rad): 2 deg, some 6 deg of swing
 #: at a 20 deg loop's resonance, well clear of noise and of the tilt limits
 CHECK_AMPLITUDE_RAD = 0.035
@@ -253,8 +263,8 @@ class CheckPlan:
 
     @property
     def duration_s(self) -> float:
-        """Settling cycle plus measured cycles (s)."""
-        return (self.cycles + 1) * self.period_s
+        """Settling cycles plus measured cycles (s)."""
+        return (self.cycles + SETTLE_CYCLES) * self.period_s
 
 
 @dataclass(frozen=True)
@@ -280,9 +290,22 @@ class InAirCheck:
     source: str = ""
 
     def corrected_model(self, plan: CheckPlan) -> InnerModel:
-        """The plan's model with the measured gain and extra delay: the onboard loop's plant."""
+        """The plan's model with the measured gain and extra delay: the onboard loop's plant.
+
+        Where the model has less delay to give than the lead measured (its re-targeted delay
+        near 0: the identified lags, not the delay, are what is too slow), the rest of the
+        lead comes out of its fast lag ``T_prop``, matched at the fundamental in phase and
+        gain: clipped at no delay instead, the model kept the lag the check had measured
+        away, and gains re-designed on it came out more cautious than those checked."""
         m = plan.model
-        return InnerModel(m.K * self.k, m.T_prop, m.T1, max(m.tau + self.extra_delay_s, 1e-4))
+        tau = m.tau + self.extra_delay_s
+        if tau >= MIN_TAU_S or self.w.size == 0:
+            return InnerModel(m.K * self.k, m.T_prop, m.T1, max(tau, MIN_TAU_S))
+        w = float(np.min(self.w))
+        ph = math.atan(w * m.T_prop) - (MIN_TAU_S - tau) * w
+        t_prop = max(math.tan(ph) / w if ph > 0 else 0.0, MIN_TAU_S)
+        gain = math.hypot(1.0, w * t_prop) / math.hypot(1.0, w * m.T_prop)
+        return InnerModel(m.K * self.k * gain, t_prop, m.T1, MIN_TAU_S)
 
     @property
     def steady(self) -> bool:
@@ -640,7 +663,7 @@ class SquareWaveProbe:
                 if p is not None and abs(y - c) > self.swing_limit * p.amplitude:
                     self.swing_over = (lp, abs(y - c))
         t = now_s - self.t0
-        out = [c + (square_wave(t, p.period_s, p.amplitude)
+        out = [c + (square_wave(t + START_PHASE * p.period_s, p.period_s, p.amplitude)
                     if (p := self.plans.get(lp)) and t < self.waves_s else 0.0)
                for lp, c in zip((Loop.ROLL, Loop.PITCH), self.centre, strict=True)]
         self.cmd.append((now_s, out[0], out[1]))
@@ -664,7 +687,7 @@ class SquareWaveProbe:
             p = self.plans.get(lp)
             if p is None:
                 continue
-            t0 = t_cmd[0] + p.period_s
+            t0 = t_cmd[0] + SETTLE_CYCLES * p.period_s
             t1 = t0 + p.cycles * p.period_s
             inside = tt[(tt >= t0) & (tt <= t1)]
             if inside.size >= 8 * p.cycles * len(CHECK_HARMONICS) and (
