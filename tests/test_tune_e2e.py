@@ -26,6 +26,7 @@ from flight_sim import (  # noqa: E402
 from mrft_gcs.cli import main  # noqa: E402
 from mrft_gcs.errors import SafetyAbort  # noqa: E402
 from mrft_gcs.flight import tune  # noqa: E402
+from mrft_gcs.flight.inair import PASS_PM_DEG  # noqa: E402
 from mrft_gcs.flight.plot import plot_cycles  # noqa: E402
 from mrft_gcs.flight.report import report_dict, write_report  # noqa: E402
 from mrft_gcs.flight.safety import LimitExceeded  # noqa: E402
@@ -107,8 +108,8 @@ def test_tune_over_udp_report_and_readback(tuned):
 def test_inair_check_undoes_a_retarget_that_went_too_far(tmp_path):
     """The busy-host failure: the written gains re-targeted by 12 ms of GCS delay the
     vehicle never had (on qdrone's 22 ms loop, no margin left onboard). The in-air check
-    finds the written loop unsteady, writes the ground-station loop's gains instead and
-    measures them; the gains left on the vehicle keep their margin on the true model."""
+    finds the written loop unsteady (or steady with a few degrees of margin), backs the gains
+    off and measures them; the gains left on the vehicle keep their margin on the true model."""
     from mrft_gcs.flight.scoring import score_gains
     from mrft_gcs.sitl import load_airframe
 
@@ -124,7 +125,9 @@ def test_inair_check_undoes_a_retarget_that_went_too_far(tmp_path):
     for lp in (Loop.ROLL, Loop.PITCH):
         ver = result.loops[lp].verification
         assert ver is not None and ver.passed and "re-designed" in ver.action, ver
-        assert "no steady response" in ver.action  # what the first check found
+        # what the first check found: no steady response, or a steady one short of the margin
+        first = ver.action.split(": PM ", 1)[1].split(" -> ")[0]
+        assert first == "no steady response" or float(first) < PASS_PM_DEG, ver.action
         assert scores[lp].pm_deg >= 15
         assert abs(ver.measured_pm_deg - scores[lp].pm_deg) < 4.0
     roll = result.loops[Loop.ROLL].gains

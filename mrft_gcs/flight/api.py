@@ -59,7 +59,6 @@ from mrft_gcs.flight.holdcompare import (
 )
 from mrft_gcs.flight.hover import HoverCheck, check_hover_states
 from mrft_gcs.flight.inair import (
-    CHECK_AMPLITUDE_RAD,
     CHECK_ROUNDS,
     PASS_PM_DEG,
     PM_HIGH_DEG,
@@ -73,10 +72,13 @@ from mrft_gcs.flight.inair import (
     Verification,
     check_margin,
     plan_check,
+    probe_amplitude,
     probe_centre,
     redesigned_gains,
     side_behind_checked,
     structured_redesign,
+    tighten_above,
+    without_gain_deficit,
 )
 from mrft_gcs.flight.onboard import (
     PositionLoopRate,
@@ -1246,9 +1248,10 @@ class _Run:
         """The in-air check of the written roll and pitch gains (:mod:`mrft_gcs.flight.inair`).
 
         Each loop is measured on the autopilot's own loop. Within the band
-        [:data:`PASS_PM_DEG`, :data:`PM_HIGH_DEG`] it is done. Outside it, its gains are
-        re-designed on the measured loop (an unsteady loop gets the ground-station loop's
-        gains back), written and checked again, up to :data:`CHECK_ROUNDS` checks in all.
+        [:data:`PASS_PM_DEG`, :data:`PM_HIGH_DEG`] (a loop designed at the margin: up to its
+        prediction plus :data:`AGREE_DEG`, :func:`tighten_above`) it is done. Outside it, its
+        gains are re-designed on the measured loop (an unsteady loop gets the ground-station
+        loop's gains back), written and checked again, up to :data:`CHECK_ROUNDS` checks in all.
         Then the gains whose check came nearest the design's 20 deg among those that passed
         stay written; where none passed, the vehicle lands."""
         on_rate = self.rate is not None and self.rate.handed_over and RATE_INAIR_CHECK
@@ -1268,7 +1271,11 @@ class _Run:
                                               d_over_p_s=self.d_over_p[lp], d_filter_hz=st.d_hz)
 
         def plan_for(lp: Loop, model: InnerModel, gains: PD) -> CheckPlan:
-            amp = RATE_CHECK_AMPLITUDE_RAD if on_rate else CHECK_AMPLITUDE_RAD
+            # a rate-target filter read is ArduPilot's cascade: its square-root angle P wants
+            # the smaller wave (the rate path zeroes its acceleration limits instead)
+            st = self.structure.get(lp)
+            amp = (RATE_CHECK_AMPLITUDE_RAD if on_rate
+                   else probe_amplitude(st.target_hz if st is not None else 0.0))
             plan = plan_check(model, gains, amp, cascade=cascades.get(lp))
             if not on_rate:
                 return plan
@@ -1310,14 +1317,20 @@ class _Run:
                     on_structure.add(lp)
                 # a loop with rate D sits under its gain cap, not at the margin: not tightened
                 # (nor on the rate path: its gains are the identified ones, capped on the
-                # cascade, not designed at the margin)
-                high = PM_HIGH_DEG if lp not in self.d_over_p and not on_rate else math.inf
-                if (check.passed and check.measured_pm_deg <= high and not tighter) or (
+                # cascade, not designed at the margin); one at the margin is where it measures
+                # more than predicted (the onboard delay pinned shorter than designed for)
+                high = tighten_above(plan.predicted_pm_deg,
+                                     rate_d=lp in self.d_over_p or on_rate)
+                # a margin over the band that only a gain under the model's gives is not
+                # tightened on (a torque command riding its limits reads as one)
+                basis = (without_gain_deficit(plan, check)
+                         if check.passed and check.measured_pm_deg > high else check)
+                if (check.passed and basis.measured_pm_deg <= high and not tighter) or (
                         n + 1 == CHECK_ROUNDS):
                     continue
                 if check.steady:
-                    model = check.corrected_model(plan)
-                    new = redesigned_gains(plan, check, target_hz=hz)
+                    model = basis.corrected_model(plan)
+                    new = redesigned_gains(plan, basis, target_hz=hz)
                 else:
                     # no steady response, no model to correct: the gains of the ground-station
                     # loop, which carried more delay than the onboard one

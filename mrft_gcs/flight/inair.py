@@ -57,7 +57,8 @@ __all__ = ["PM_MIN_DEG", "PASS_PM_DEG", "AGREE_DEG", "MAX_STEADY_SE", "CHECK_HAR
            "square_wave", "harmonic_points", "check_margin", "redesigned_gains",
            "PM_HIGH_DEG", "CHECK_ROUNDS", "OnboardCascade", "side_behind_checked",
            "SIDE_PM_MIN_DEG", "STRUCT_TIGHTEN_GAIN", "STRUCT_TIGHTEN_LIVE",
-           "structured_redesign", "probe_centre"]
+           "structured_redesign", "probe_centre", "CHECK_AMPLITUDE_SQRT_RAD", "probe_amplitude",
+           "tighten_above", "without_gain_deficit", "TIGHTEN_OVER_DEG", "TIGHTEN_NEAR_PM_DEG"]
 
 #: the least phase margin the written loop must keep (deg), and what its check must measure:
 #: that plus the measurement's own error (live, 1-2.5 deg from the onboard truth)
@@ -74,6 +75,12 @@ PM_HIGH_DEG = 25.0
 TIGHTEN_PM_DEG = 22.0
 #: and move at most this many times from the gains checked, per check
 TIGHTEN_MAX = 2.0
+#: a loop designed at the margin is tightened where it measures more than its prediction plus
+#: this (deg; the check's own error is 1-2 deg live), to :data:`TIGHTEN_NEAR_PM_DEG` while it
+#: measures within the band: its new crossover lies near the one measured, where the corrected
+#: model holds (in-process, PX4-like vehicles: J max 4.4 % vs 6.3 % aiming at 22 from 3 over)
+TIGHTEN_OVER_DEG = 2.0
+TIGHTEN_NEAR_PM_DEG = 21.0
 #: a loop closed through a rate-target low-pass (ArduPilot's FLTT) measured within the band is
 #: re-designed on that structure where the design at PM 20 deg on the measured loop lowers its
 #: ISE by at least this share: the J of such a loop climbs steeply with margin above 20 deg
@@ -89,8 +96,16 @@ CHECK_ROUNDS = 3
 AGREE_DEG = 3.0
 #: odd harmonics of the square wave at which the closed loop is measured
 CHECK_HARMONICS = (1, 3, 5)
-#: whole cycles measured (one more runs first, to let the start transient die out)
+#: whole cycles measured (:data:`SETTLE_CYCLES` run first, to let the start transient die out)
 CHECK_CYCLES = 3
+#: cycles flown before those measured: after one, a 20 deg loop's slow mode (the PD's zero,
+#: some 0.1 s) still carried the start through the cycles measured, which read 1-2 deg high
+#: (in-process, noise-free; after two, within 0.7 deg on five of six PX4-like vehicles)
+SETTLE_CYCLES = 2
+#: the square wave starts this share of a period into its positive half: from a quarter, the
+#: wave's running integral swings about zero and the start excites the slow modes less
+#: (in-process: 0.3-0.5 deg of the transient's bias less than from the wave's edge)
+START_PHASE = 0.25
 #: a fundamental whose cycle-to-cycle spread is larger (relative standard error) is not a
 #: steady response to the square wave: a loop that oscillates on its own reads as any margin
 #: (in-process, a written loop at -1 deg: 0.35 and "27 deg"; steady loops 0.05-0.06)
@@ -98,9 +113,17 @@ MAX_STEADY_SE = 0.15
 #: the least phase margin side gains re-designed behind checked attitude gains keep on the
 #: measured cascade (deg): the written side loops' robust margin
 SIDE_PM_MIN_DEG = 15.0
+#: the least delay (and fast lag) of a corrected model (s)
+MIN_TAU_S = 1e-4
 #: the square wave's amplitude on the attitude set point (rad): 2 deg, some 6 deg of swing
 #: at a 20 deg loop's resonance, well clear of noise and of the tilt limits
 CHECK_AMPLITUDE_RAD = 0.035
+#: the amplitude on a loop closed through ArduPilot's angle controller (rad): its square-root
+#: controller is linear only for errors under ``accel_max / P^2`` (1-3 deg at the angle P
+#: written with rate D), and each step of the square wave puts twice the amplitude into the
+#: error; beyond it the angle P acts smaller and the check reads a larger margin (in-process,
+#: 2 deg: up to 6 deg over the onboard truth; 1 deg: within 2, the noise's share rising)
+CHECK_AMPLITUDE_SQRT_RAD = math.radians(1.0)
 
 
 @dataclass(frozen=True)
@@ -188,6 +211,42 @@ def _paths(gains: PD, w: np.ndarray, cascade: OnboardCascade | None
     return gains.Kc + 0 * s, gains.Kc + gains.Kd * s
 
 
+def probe_amplitude(target_filter_hz: float) -> float:
+    """The check's square-wave amplitude (rad) on a loop whose rate target is low-passed at
+    ``target_filter_hz`` (read from the vehicle; 0: none).
+
+    A rate-target filter is ArduPilot's cascade, whose angle controller is a square root
+    beyond a small error: :data:`CHECK_AMPLITUDE_SQRT_RAD` keeps the probe nearer its linear
+    part; elsewhere :data:`CHECK_AMPLITUDE_RAD`.
+
+    >>> probe_amplitude(20.0) < probe_amplitude(0.0)
+    True
+    """
+    return CHECK_AMPLITUDE_SQRT_RAD if target_filter_hz > 0 else CHECK_AMPLITUDE_RAD
+
+
+def tighten_above(predicted_pm_deg: float, rate_d: bool = False) -> float:
+    """The measured margin (deg) above which gains designed at the margin are re-designed on
+    the loop measured and checked again.
+
+    A loop written with rate D sits under its gain cap, not at the margin (``rate_d``: never
+    tightened, ``inf``; the ArduCopter rate path's loops too).
+
+    The prediction is the design's margin at the ground-station delay re-targeted out of
+    the gains, held back where they must keep PM 15 deg over every plausible delay: the
+    onboard loop's own delay is what the ground station cannot see. A check that measures
+    more than the prediction plus :data:`TIGHTEN_OVER_DEG` has pinned less onboard delay than
+    the design allowed for, and the gains are more cautious than its target. Never above
+    :data:`PM_HIGH_DEG`.
+
+    >>> tighten_above(20.0), tighten_above(24.0), tighten_above(20.0, rate_d=True)
+    (22.0, 25.0, inf)
+    """
+    if rate_d:
+        return math.inf
+    return min(PM_HIGH_DEG, predicted_pm_deg + TIGHTEN_OVER_DEG)
+
+
 @dataclass(frozen=True)
 class CheckPlan:
     """The square wave of one loop's check and what it should find.
@@ -208,8 +267,8 @@ class CheckPlan:
 
     @property
     def duration_s(self) -> float:
-        """Settling cycle plus measured cycles (s)."""
-        return (self.cycles + 1) * self.period_s
+        """Settling cycles plus measured cycles (s)."""
+        return (self.cycles + SETTLE_CYCLES) * self.period_s
 
 
 @dataclass(frozen=True)
@@ -235,9 +294,22 @@ class InAirCheck:
     source: str = ""
 
     def corrected_model(self, plan: CheckPlan) -> InnerModel:
-        """The plan's model with the measured gain and extra delay: the onboard loop's plant."""
+        """The plan's model with the measured gain and extra delay: the onboard loop's plant.
+
+        Where the model has less delay to give than the lead measured (its re-targeted delay
+        near 0: the identified lags, not the delay, are what is too slow), the rest of the
+        lead comes out of its fast lag ``T_prop``, matched at the fundamental in phase and
+        gain: clipped at no delay instead, the model kept the lag the check had measured
+        away, and gains re-designed on it came out more cautious than those checked."""
         m = plan.model
-        return InnerModel(m.K * self.k, m.T_prop, m.T1, max(m.tau + self.extra_delay_s, 1e-4))
+        tau = m.tau + self.extra_delay_s
+        if tau >= MIN_TAU_S or self.w.size == 0:
+            return InnerModel(m.K * self.k, m.T_prop, m.T1, max(tau, MIN_TAU_S))
+        w = float(np.min(self.w))
+        ph = math.atan(w * m.T_prop) - (MIN_TAU_S - tau) * w
+        t_prop = max(math.tan(ph) / w if ph > 0 else 0.0, MIN_TAU_S)
+        gain = math.hypot(1.0, w * t_prop) / math.hypot(1.0, w * m.T_prop)
+        return InnerModel(m.K * self.k * gain, t_prop, m.T1, MIN_TAU_S)
 
     @property
     def steady(self) -> bool:
@@ -386,6 +458,28 @@ def check_margin(plan: CheckPlan, w, T, se) -> InAirCheck:
                       float(np.sqrt(np.mean(resid**2))))
 
 
+def without_gain_deficit(plan: CheckPlan, check: InAirCheck) -> InAirCheck:
+    """``check`` with a measured gain under the model's (``k < 1``) taken as the model's, its
+    margin read again: what a tightening may stand on.
+
+    A loop whose torque command rides its limits (sensor noise through the rate P of a light
+    vehicle) answers the square wave with less gain than it has for small signals, and reads
+    as more margin than its linear loop keeps (in-process, noise on: k 0.65-0.68 and 24-28 deg
+    read, 16.8 on the onboard truth; noise off: k 1.04 and 17.3). Re-designed on that gain,
+    the gains went to PM 11-12 deg on the truth. A measured delay (the onboard one the ground
+    station cannot see) is kept: it is what the check is for.
+    """
+    if not check.k < 1.0:
+        return check
+    m, g = plan.model, plan.gains
+    d = check.extra_delay_s
+    grid = frequency_grid(m.T_prop, m.T1, m.tau + max(d, 0.0))
+    mm = margins(np.exp(-1j * grid * d) * _open_loop(m, g, grid, plan.cascade), grid)
+    out = dataclasses.replace(check, k=1.0)
+    stable = _stable(out.corrected_model(plan), g, plan.cascade, mm.stable)
+    return dataclasses.replace(out, measured_pm_deg=float(mm.pm_deg) if stable else -math.inf)
+
+
 def _on_structure(plan: CheckPlan, check: InAirCheck, target_hz: float
                   ) -> tuple[np.ndarray, np.ndarray, float]:
     """``(G, w, ise)``: the onboard plant the check's points give when inverted through the
@@ -424,7 +518,8 @@ def redesigned_gains(plan: CheckPlan, check: InAirCheck, target_hz: float = 0.0)
     """The ISE-optimal PD of the measured onboard model ``k e^{-d s} G``.
 
     Backing off (margin short), the design's own PM >= 20 deg. Tightening (margin beyond
-    :data:`PM_HIGH_DEG`), PM >= :data:`TIGHTEN_PM_DEG` and at most :data:`TIGHTEN_MAX` times
+    :data:`PM_HIGH_DEG`), PM >= :data:`TIGHTEN_PM_DEG` (within it, over :func:`tighten_above`:
+    :data:`TIGHTEN_NEAR_PM_DEG`) and at most :data:`TIGHTEN_MAX` times
     the gains checked: the model was measured about the old crossover, and the new one lies
     above it, where the fitted gain and delay are an extrapolation. A loop the autopilot
     closes through a rate-target low-pass at ``target_hz`` (> 0, a plain check) is
@@ -447,7 +542,8 @@ def redesigned_gains(plan: CheckPlan, check: InAirCheck, target_hz: float = 0.0)
         G = G * plan.cascade.filters(w)
     if not check.passed:
         return optimal_pd(G, w).pd
-    new = optimal_pd(G, w, pm_min_deg=TIGHTEN_PM_DEG).pd
+    pm = TIGHTEN_PM_DEG if check.measured_pm_deg > PM_HIGH_DEG else TIGHTEN_NEAR_PM_DEG
+    new = optimal_pd(G, w, pm_min_deg=pm).pd
     up = max(new.Kc / plan.gains.Kc, new.Kd / plan.gains.Kd)
     return new if up <= TIGHTEN_MAX else PD(new.Kc * TIGHTEN_MAX / up, new.Kd * TIGHTEN_MAX / up)
 
@@ -595,7 +691,7 @@ class SquareWaveProbe:
                 if p is not None and abs(y - c) > self.swing_limit * p.amplitude:
                     self.swing_over = (lp, abs(y - c))
         t = now_s - self.t0
-        out = [c + (square_wave(t, p.period_s, p.amplitude)
+        out = [c + (square_wave(t + START_PHASE * p.period_s, p.period_s, p.amplitude)
                     if (p := self.plans.get(lp)) and t < self.waves_s else 0.0)
                for lp, c in zip((Loop.ROLL, Loop.PITCH), self.centre, strict=True)]
         self.cmd.append((now_s, out[0], out[1]))
@@ -619,7 +715,7 @@ class SquareWaveProbe:
             p = self.plans.get(lp)
             if p is None:
                 continue
-            t0 = t_cmd[0] + p.period_s
+            t0 = t_cmd[0] + SETTLE_CYCLES * p.period_s
             t1 = t0 + p.cycles * p.period_s
             inside = tt[(tt >= t0) & (tt <= t1)]
             if inside.size >= 8 * p.cycles * len(CHECK_HARMONICS) and (
