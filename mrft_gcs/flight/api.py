@@ -85,6 +85,7 @@ from mrft_gcs.flight.onboard import (
     measure_gcs_delay,
     onboard_extra_delay_s,
     onboard_gains,
+    pooled_attitude,
     robust_onboard_gains,
     shared_side_gains,
     vehicle_position_rate,
@@ -590,6 +591,9 @@ class _Run:
         self.clock = _ReceiveClock(link, self.timeliness)  # ages are counted on it
         self.delays: dict[Loop, float] = {}  # re-targeted out of the written gains (s)
         self.retargets: dict[Loop, Retarget] = {}
+        #: the identifications the written gains were designed on (roll and pitch with
+        #: their fast lags pooled: :func:`mrft_gcs.flight.onboard.pooled_attitude`)
+        self.design: dict[Loop, Identification] = {}
         #: the autopilot's attitude-loop structure, read before take-off (flight/structure)
         self.structure: dict[Loop, OnboardStructure] = {}
         #: rate D written as this share of rate P (s), per roll/pitch loop whose design chose it
@@ -1142,6 +1146,12 @@ class _Run:
         assert seq is not None
         identified, delay = {}, {}
         retargets: dict[Loop, Retarget] = {}
+        design = {lp: t.identification for lp, t in seq.loops.items()
+                  if t.state is LoopState.TUNED and t.identification is not None}
+        if Loop.ROLL in design and Loop.PITCH in design:
+            design[Loop.ROLL], design[Loop.PITCH] = pooled_attitude(design[Loop.ROLL],
+                                                                    design[Loop.PITCH])
+        self.design = design
         for lp, t in seq.loops.items():
             if t.state is not LoopState.TUNED or t.identification is None:
                 continue
@@ -1152,7 +1162,7 @@ class _Run:
                           f"it) but not written; the report's gains are the identified ones")
                 continue
             identified[lp] = t.identification.gains
-            rt = self._retarget(lp, t.identification, t.snapshot)
+            rt = self._retarget(lp, design[lp], t.snapshot)
             delay[lp], retargets[lp] = rt.delay_s, rt
             self.written[lp] = rt.gains
             self.retargets[lp] = rt
@@ -1166,7 +1176,7 @@ class _Run:
             if (lp in self.written and inner_lp in retargets and inner is not None
                     and ident is not None and self.gcs_delay_s is None):
                 st = self.structure.get(inner_lp)
-                side_loops[lp] = SideLoop(ident, inner, retargets[inner_lp],
+                side_loops[lp] = SideLoop(ident, design.get(inner_lp, inner), retargets[inner_lp],
                                           st.target_hz if st else None, st.d_hz if st else 0.0)
         if side_loops:
             # x and y share the autopilot's position and velocity P: one PD designed for both
@@ -1267,6 +1277,7 @@ class _Run:
                 RATE_CHECK_SPAN_S / plan.period_s)))
         for lp in _ATTITUDE_LOOPS:
             ident = self.seq.loops[lp].identification if self.seq else None
+            ident = self.design.get(lp, ident)  # the model the written gains were designed on
             gains = self.written.get(lp)
             if ident is None or gains is None or not isinstance(ident.model, InnerModel):
                 continue
