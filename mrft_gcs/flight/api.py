@@ -86,6 +86,7 @@ from mrft_gcs.flight.onboard import (
     onboard_extra_delay_s,
     onboard_gains,
     pooled_attitude,
+    pooled_note,
     robust_onboard_gains,
     shared_side_gains,
     vehicle_position_rate,
@@ -1149,8 +1150,10 @@ class _Run:
         design = {lp: t.identification for lp, t in seq.loops.items()
                   if t.state is LoopState.TUNED and t.identification is not None}
         if Loop.ROLL in design and Loop.PITCH in design:
-            design[Loop.ROLL], design[Loop.PITCH] = pooled_attitude(design[Loop.ROLL],
-                                                                    design[Loop.PITCH])
+            r0, p0 = design[Loop.ROLL], design[Loop.PITCH]
+            design[Loop.ROLL], design[Loop.PITCH] = pooled_attitude(r0, p0)
+            if design[Loop.ROLL] is not r0:
+                self.notes.append(pooled_note(r0, p0, design[Loop.ROLL]))
         self.design = design
         for lp, t in seq.loops.items():
             if t.state is not LoopState.TUNED or t.identification is None:

@@ -86,7 +86,7 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate",
            "ALT_UNSURE_TOP_PROB", "ALT_UNSURE_EXTRA_PM_DEG", "ALT_UNSURE_RAMP",
            "ALT_ONBOARD_DELAY_MIN_S",
-           "robust_pm_deg", "pooled_attitude"]
+           "robust_pm_deg", "pooled_attitude", "pooled_note"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -579,6 +579,27 @@ def pooled_attitude(roll: Identification, pitch: Identification
             1.0, w * tp) * math.hypot(1.0, w * t1)
         out.append(dataclasses.replace(ident, model=InnerModel(k, tp, t1, tau)))
     return out[0], out[1]
+
+
+def pooled_note(roll: Identification, pitch: Identification, pooled: Identification) -> str:
+    """The report's line for roll and pitch designed on ``pooled`` fast lags
+    (:func:`pooled_attitude`; ms).
+
+    >>> r = Identification(LoopKind.ATTITUDE, InnerModel(180.0, 0.027, 0.42, 0.028), 0, 1.0,
+    ...                    -0.7, 0.06, 0.39, 0.11, PD(0.3, 0.04))
+    >>> p = dataclasses.replace(r, model=InnerModel(460.0, 0.020, 1.25, 0.027))
+    >>> pooled_note(r, p, pooled_attitude(r, p)[0])[:74]
+    'roll and pitch written gains designed on their fast lags pooled (one motor'
+    """
+    def lags(i: Identification) -> str:
+        m = i.model
+        return (f"T_prop {m.T_prop * 1e3:.1f}, tau {m.tau * 1e3:.1f}"
+                if isinstance(m, InnerModel) else "-")
+
+    return (f"roll and pitch written gains designed on their fast lags pooled (one motor lag "
+            f"and one delay, measured by both relays): roll {lags(roll)}, pitch {lags(pitch)} "
+            f"-> {lags(pooled)} ms, each axis's slow pole and gain re-fitted through its own "
+            f"relay cycle")
 
 
 # ----------------------------------------------------------------------- side loops
