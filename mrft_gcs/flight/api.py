@@ -1149,7 +1149,9 @@ class _Run:
         retargets: dict[Loop, Retarget] = {}
         design = {lp: t.identification for lp, t in seq.loops.items()
                   if t.state is LoopState.TUNED and t.identification is not None}
-        if Loop.ROLL in design and Loop.PITCH in design:
+        # (the rate path writes roll and pitch on its own cascade design, from the identified)
+        handed = self.rate is not None and self.rate.handed_over
+        if Loop.ROLL in design and Loop.PITCH in design and not handed:
             r0, p0 = design[Loop.ROLL], design[Loop.PITCH]
             design[Loop.ROLL], design[Loop.PITCH] = pooled_attitude(r0, p0)
             if design[Loop.ROLL] is not r0:
