@@ -86,7 +86,8 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate",
            "ALT_UNSURE_TOP_PROB", "ALT_UNSURE_EXTRA_PM_DEG", "ALT_UNSURE_RAMP",
            "ALT_ONBOARD_DELAY_MIN_S",
-           "robust_pm_deg", "pooled_attitude", "pooled_note"]
+           "robust_pm_deg", "pooled_attitude", "pooled_note",
+           "POOL_ATTITUDE_LAGS"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -142,6 +143,8 @@ ALT_UNSURE_TOP_PROB = 0.6
 #: :data:`ALT_UNSURE_TOP_PROB` down, in proportion above
 ALT_UNSURE_EXTRA_PM_DEG = 6.0
 ALT_UNSURE_RAMP = 0.1
+#: whether roll and pitch are designed on their fast lags pooled (:func:`pooled_attitude`)
+POOL_ATTITUDE_LAGS = True
 #: the least delay a vehicle's own altitude loop has onboard (s: ESC and motor protocol, the
 #: position estimate): an altitude re-target leaves at least this much of the identified
 #: delay, which may have put part of the GCS delay into the lags (T1, T_prop) instead
@@ -542,7 +545,7 @@ def pooled_attitude(roll: Identification, pitch: Identification
     phase at ``2 pi / period_s``): the cycle's constraint is kept, the split is averaged.
     The identified gains (flown GCS-side) stay. Where either is not an attitude loop's inner
     model, or an axis's phase at its cycle cannot be met with a ``T1`` (the needed lag is
-    outside 0-90 deg), both are returned unchanged.
+    outside 0-90 deg), or :data:`POOL_ATTITUDE_LAGS` is off, both are returned unchanged.
 
     Examples
     --------
@@ -558,7 +561,8 @@ def pooled_attitude(roll: Identification, pitch: Identification
     True
     """
     models = (roll.model, pitch.model)
-    if not (roll.kind is LoopKind.ATTITUDE and pitch.kind is LoopKind.ATTITUDE
+    if not (POOL_ATTITUDE_LAGS and roll.kind is LoopKind.ATTITUDE
+            and pitch.kind is LoopKind.ATTITUDE
             and all(isinstance(m, InnerModel) for m in models)):
         return roll, pitch
     mr, mp = models
