@@ -123,3 +123,14 @@ def test_same_split_on_both_axes_is_left_as_it_is():
     for m in (pr.model, pp.model):
         assert np.allclose([m.K, m.T_prop, m.T1, m.tau], [gcs.K, gcs.T_prop, gcs.T1, gcs.tau],
                            rtol=1e-9)
+
+
+def test_switched_off_nothing_is_pooled(monkeypatch):
+    from mrft_gcs.flight import onboard
+
+    gcs, w0 = _gcs_side()
+    r = _ident(_through(gcs, w0, gcs.T_prop + 0.005, gcs.tau - 0.002), 2 * math.pi / w0)
+    p = _ident(_through(gcs, w0, gcs.T_prop - 0.005, gcs.tau + 0.002), 2 * math.pi / w0)
+    assert pooled_attitude(r, p) != (r, p)
+    monkeypatch.setattr(onboard, "POOL_ATTITUDE_LAGS", False)
+    assert pooled_attitude(r, p) == (r, p)
