@@ -63,6 +63,7 @@ from mrft_gcs.flight.onboard import (
     SideLoop,
     measure_gcs_delay,
     onboard_extra_delay_s,
+    pooled_attitude,
     robust_onboard_gains,
     shared_side_gains,
     vehicle_position_rate,
@@ -227,7 +228,12 @@ def run_lockstep(seed: int, max_s: float = 70.0,
     pos_rate = vehicle_position_rate(
         lambda n: ap.params[n] if n in ap.params else None, prof.family.value)
     rec["position_loop_read"] = pos_rate.as_dict()
-    for lp, ident in identified.items():
+    # the models the written gains are designed on: roll and pitch with their fast lags pooled
+    design = dict(identified)
+    if Loop.ROLL in design and Loop.PITCH in design:
+        design[Loop.ROLL], design[Loop.PITCH] = pooled_attitude(design[Loop.ROLL],
+                                                                design[Loop.PITCH])
+    for lp, ident in design.items():
         snap = seq.loops[lp].snapshot
         t0, t1 = (float(snap.t_s[0]), float(snap.t_s[-1])) if snap is not None and len(
             snap.t_s) else (math.inf, -math.inf)
@@ -239,7 +245,7 @@ def run_lockstep(seed: int, max_s: float = 70.0,
         delays[lp], written[lp] = rts[lp].delay_s, rts[lp].gains
     side = [lp for lp, inner_lp in SIDE_INNER.items() if lp in identified and inner_lp in rts]
     shared = shared_side_gains(
-        [SideLoop(identified[lp], identified[SIDE_INNER[lp]], rts[SIDE_INNER[lp]],
+        [SideLoop(identified[lp], design[SIDE_INNER[lp]], rts[SIDE_INNER[lp]],
                   structure[SIDE_INNER[lp]].target_hz, structure[SIDE_INNER[lp]].d_hz)
          for lp in side], onboard_extra_s=onboard_extra_delay_s(Loop.X, pos_rate.hz))
     for i, lp in enumerate(side):

@@ -310,6 +310,8 @@ def test_a_live_tune_of_an_ardupilot_like_vehicle_writes_rate_d_and_it_holds(tmp
             assert d.old == pytest.approx(0.003)  # the vehicle's own, backed up
             assert d.new == pytest.approx(RATE_D_OVER_P_S * p.new, rel=1e-3)
         assert "rate D" in " ".join(r.notes)
+        # roll and pitch were designed on their pooled fast lags, and the report says so
+        assert "fast lags pooled" in " ".join(r.notes)
         for lp in (Loop.ROLL, Loop.PITCH):
             v = r.loops[lp].verification
             assert v is not None and v.passed and v.measured_pm_deg >= 17.0

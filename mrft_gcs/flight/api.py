@@ -87,6 +87,8 @@ from mrft_gcs.flight.onboard import (
     measure_gcs_delay,
     onboard_extra_delay_s,
     onboard_gains,
+    pooled_attitude,
+    pooled_note,
     robust_onboard_gains,
     shared_side_gains,
     vehicle_position_rate,
@@ -595,6 +597,9 @@ class _Run:
         self.clock = _ReceiveClock(link, self.timeliness)  # ages are counted on it
         self.delays: dict[Loop, float] = {}  # re-targeted out of the written gains (s)
         self.retargets: dict[Loop, Retarget] = {}
+        #: the identifications the written gains were designed on (roll and pitch with
+        #: their fast lags pooled: :func:`mrft_gcs.flight.onboard.pooled_attitude`)
+        self.design: dict[Loop, Identification] = {}
         #: the autopilot's attitude-loop structure, read before take-off (flight/structure)
         self.structure: dict[Loop, OnboardStructure] = {}
         #: rate D written as this share of rate P (s), per roll/pitch loop whose design chose it
@@ -1153,6 +1158,16 @@ class _Run:
         assert seq is not None
         identified, delay = {}, {}
         retargets: dict[Loop, Retarget] = {}
+        design = {lp: t.identification for lp, t in seq.loops.items()
+                  if t.state is LoopState.TUNED and t.identification is not None}
+        # (the rate path writes roll and pitch on its own cascade design, from the identified)
+        handed = self.rate is not None and self.rate.handed_over
+        if Loop.ROLL in design and Loop.PITCH in design and not handed:
+            r0, p0 = design[Loop.ROLL], design[Loop.PITCH]
+            design[Loop.ROLL], design[Loop.PITCH] = pooled_attitude(r0, p0)
+            if design[Loop.ROLL] is not r0:
+                self.notes.append(pooled_note(r0, p0, design[Loop.ROLL]))
+        self.design = design
         for lp, t in seq.loops.items():
             if t.state is not LoopState.TUNED or t.identification is None:
                 continue
@@ -1163,7 +1178,7 @@ class _Run:
                           f"it) but not written; the report's gains are the identified ones")
                 continue
             identified[lp] = t.identification.gains
-            rt = self._retarget(lp, t.identification, t.snapshot)
+            rt = self._retarget(lp, design[lp], t.snapshot)
             delay[lp], retargets[lp] = rt.delay_s, rt
             self.written[lp] = rt.gains
             self.retargets[lp] = rt
@@ -1177,7 +1192,7 @@ class _Run:
             if (lp in self.written and inner_lp in retargets and inner is not None
                     and ident is not None and self.gcs_delay_s is None):
                 st = self.structure.get(inner_lp)
-                side_loops[lp] = SideLoop(ident, inner, retargets[inner_lp],
+                side_loops[lp] = SideLoop(ident, design.get(inner_lp, inner), retargets[inner_lp],
                                           st.target_hz if st else None, st.d_hz if st else 0.0)
         if side_loops:
             # x and y share the autopilot's position and velocity P: one PD designed for both
@@ -1283,6 +1298,7 @@ class _Run:
                 RATE_CHECK_SPAN_S / plan.period_s)))
         for lp in _ATTITUDE_LOOPS:
             ident = self.seq.loops[lp].identification if self.seq else None
+            ident = self.design.get(lp, ident)  # the model the written gains were designed on
             gains = self.written.get(lp)
             if ident is None or gains is None or not isinstance(ident.model, InnerModel):
                 continue

@@ -86,7 +86,8 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate",
            "ALT_UNSURE_TOP_PROB", "ALT_UNSURE_EXTRA_PM_DEG", "ALT_UNSURE_RAMP",
            "ALT_ONBOARD_DELAY_MIN_S",
-           "robust_pm_deg"]
+           "robust_pm_deg", "pooled_attitude", "pooled_note",
+           "POOL_ATTITUDE_LAGS"]
 
 
 def gcs_delay_s(setpoint_period_s: float) -> float:
@@ -142,6 +143,8 @@ ALT_UNSURE_TOP_PROB = 0.6
 #: :data:`ALT_UNSURE_TOP_PROB` down, in proportion above
 ALT_UNSURE_EXTRA_PM_DEG = 6.0
 ALT_UNSURE_RAMP = 0.1
+#: whether roll and pitch are designed on their fast lags pooled (:func:`pooled_attitude`)
+POOL_ATTITUDE_LAGS = True
 #: the least delay a vehicle's own altitude loop has onboard (s: ESC and motor protocol, the
 #: position estimate): an altitude re-target leaves at least this much of the identified
 #: delay, which may have put part of the GCS delay into the lags (T1, T_prop) instead
@@ -526,6 +529,81 @@ def robust_onboard_gains(ident: Identification, gcs: GcsDelay,
                 hi = mid
         d, g, pm = round(lo, 6), g_lo, pm_lo
     return Retarget(g, d, pm, gcs, cap, extra)
+
+
+def pooled_attitude(roll: Identification, pitch: Identification
+                    ) -> tuple[Identification, Identification]:
+    """Roll and pitch with their fast lags pooled: the design's models for the onboard loops.
+
+    Both axes fly on the same motors, sensors and link, so the propeller lag ``T_prop`` and
+    the delay ``tau`` are one pair measured twice. One relay cycle pins its model at the
+    cycle's frequency only: above it (where the onboard loop crosses over, 2-3 x higher once
+    the GCS delay is out) a model that put some of the delay into ``T_prop`` or ``T1`` is off
+    by several degrees, one way or the other, independently per axis. Each axis here gets the
+    mean of the two ``T_prop`` and the mean of the two ``tau``, and its own ``T1`` and ``K``
+    re-fitted so that its model still passes exactly through its own relay point (gain and
+    phase at ``2 pi / period_s``): the cycle's constraint is kept, the split is averaged.
+    The identified gains (flown GCS-side) stay. Where either is not an attitude loop's inner
+    model, or an axis's phase at its cycle cannot be met with a ``T1`` (the needed lag is
+    outside 0-90 deg), or :data:`POOL_ATTITUDE_LAGS` is off, both are returned unchanged.
+
+    Examples
+    --------
+    >>> m1, m2 = InnerModel(180.0, 0.027, 0.42, 0.028), InnerModel(460.0, 0.020, 1.25, 0.027)
+    >>> r = Identification(LoopKind.ATTITUDE, m1, 0, 1.0, -0.7, 0.06, 0.39, 0.11, PD(0.3, 0.04))
+    >>> p = dataclasses.replace(r, model=m2, period_s=0.39)
+    >>> pr, pp = pooled_attitude(r, p)
+    >>> round(pr.model.T_prop, 4), round(pp.model.tau, 4), pr.gains == r.gains
+    (0.0235, 0.0275, True)
+    >>> w0 = 2 * math.pi / 0.39
+    >>> g0, g1 = (inner_response(m.K, m.T_prop, m.T1, m.tau, [w0])[0, 0] for m in (m1, pr.model))
+    >>> bool(np.isclose(g0, g1))
+    True
+    """
+    models = (roll.model, pitch.model)
+    if not (POOL_ATTITUDE_LAGS and roll.kind is LoopKind.ATTITUDE
+            and pitch.kind is LoopKind.ATTITUDE
+            and all(isinstance(m, InnerModel) for m in models)):
+        return roll, pitch
+    mr, mp = models
+    assert isinstance(mr, InnerModel) and isinstance(mp, InnerModel)
+    tp, tau = 0.5 * (mr.T_prop + mp.T_prop), 0.5 * (mr.tau + mp.tau)
+    out = []
+    for ident, m in ((roll, mr), (pitch, mp)):
+        if not (math.isfinite(ident.period_s) and ident.period_s > 0):
+            return roll, pitch
+        w = 2 * math.pi / ident.period_s
+        # the slow pole takes the lag the pooled fast lags leave of the phase at the cycle
+        lag = math.atan(w * m.T1) + w * (m.tau - tau) + math.atan(w * m.T_prop) - math.atan(
+            w * tp)
+        if not 0.0 < lag < 0.5 * math.pi - 1e-6:
+            return roll, pitch
+        t1 = math.tan(lag) / w
+        k = float(abs(inner_response(m.K, m.T_prop, m.T1, m.tau, [w])[0, 0])) * w * math.hypot(
+            1.0, w * tp) * math.hypot(1.0, w * t1)
+        out.append(dataclasses.replace(ident, model=InnerModel(k, tp, t1, tau)))
+    return out[0], out[1]
+
+
+def pooled_note(roll: Identification, pitch: Identification, pooled: Identification) -> str:
+    """The report's line for roll and pitch designed on ``pooled`` fast lags
+    (:func:`pooled_attitude`; ms).
+
+    >>> r = Identification(LoopKind.ATTITUDE, InnerModel(180.0, 0.027, 0.42, 0.028), 0, 1.0,
+    ...                    -0.7, 0.06, 0.39, 0.11, PD(0.3, 0.04))
+    >>> p = dataclasses.replace(r, model=InnerModel(460.0, 0.020, 1.25, 0.027))
+    >>> pooled_note(r, p, pooled_attitude(r, p)[0])[:74]
+    'roll and pitch written gains designed on their fast lags pooled (one motor'
+    """
+    def lags(i: Identification) -> str:
+        m = i.model
+        return (f"T_prop {m.T_prop * 1e3:.1f}, tau {m.tau * 1e3:.1f}"
+                if isinstance(m, InnerModel) else "-")
+
+    return (f"roll and pitch written gains designed on their fast lags pooled (one motor lag "
+            f"and one delay, measured by both relays): roll {lags(roll)}, pitch {lags(pitch)} "
+            f"-> {lags(pooled)} ms, each axis's slow pole and gain re-fitted through its own "
+            f"relay cycle")
 
 
 # ----------------------------------------------------------------------- side loops
