@@ -58,7 +58,8 @@ __all__ = ["PM_MIN_DEG", "PASS_PM_DEG", "AGREE_DEG", "MAX_STEADY_SE", "CHECK_HAR
            "PM_HIGH_DEG", "CHECK_ROUNDS", "OnboardCascade", "side_behind_checked",
            "SIDE_PM_MIN_DEG", "STRUCT_TIGHTEN_GAIN", "STRUCT_TIGHTEN_LIVE",
            "structured_redesign", "probe_centre", "CHECK_AMPLITUDE_SQRT_RAD", "probe_amplitude",
-           "tighten_above", "without_gain_deficit", "TIGHTEN_OVER_DEG", "TIGHTEN_NEAR_PM_DEG"]
+           "tighten_above", "without_gain_deficit", "TIGHTEN_OVER_DEG", "TIGHTEN_NEAR_PM_DEG",
+           "TIGHTEN_MIN_K"]
 
 #: the least phase margin the written loop must keep (deg), and what its check must measure:
 #: that plus the measurement's own error (live, 1-2.5 deg from the onboard truth)
@@ -223,6 +224,11 @@ def probe_amplitude(target_filter_hz: float) -> float:
     True
     """
     return CHECK_AMPLITUDE_SQRT_RAD if target_filter_hz > 0 else CHECK_AMPLITUDE_RAD
+
+
+#: a measured gain under this share of the model's is a loop riding its torque limits, whose
+#: phase reading is off as well: no tightening stands on it (:func:`without_gain_deficit`)
+TIGHTEN_MIN_K = 0.85
 
 
 def tighten_above(predicted_pm_deg: float, rate_d: bool = False) -> float:
@@ -467,10 +473,14 @@ def without_gain_deficit(plan: CheckPlan, check: InAirCheck) -> InAirCheck:
     as more margin than its linear loop keeps (in-process, noise on: k 0.65-0.68 and 24-28 deg
     read, 16.8 on the onboard truth; noise off: k 1.04 and 17.3). Re-designed on that gain,
     the gains went to PM 11-12 deg on the truth. A measured delay (the onboard one the ground
-    station cannot see) is kept: it is what the check is for.
+    station cannot see) is kept: it is what the check is for. Under :data:`TIGHTEN_MIN_K` the
+    phase is biased too (a re-design on its delay alone went to PM 15.0 on the truth from
+    17.1): the prediction stands, nothing to tighten on.
     """
     if not check.k < 1.0:
         return check
+    if check.k < TIGHTEN_MIN_K:
+        return dataclasses.replace(check, k=1.0, measured_pm_deg=plan.predicted_pm_deg)
     m, g = plan.model, plan.gains
     d = check.extra_delay_s
     grid = frequency_grid(m.T_prop, m.T1, m.tau + max(d, 0.0))
