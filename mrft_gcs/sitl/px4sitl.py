@@ -56,8 +56,9 @@ BINARY = BUILD_DIR / "bin" / "px4"
 AIRFRAME = "sihsim_quadx"
 #: MAV_SYS_STATUS_PREARM_CHECK: PX4 sets it healthy when its arming checks pass
 _PREARM_BIT = 0x10000000
-#: UDP ports PX4's px4-rc.mavlink binds for instance 0 (GCS, offboard, payload, gimbal, SIH view)
-_LOCAL_PORTS = (18570, 14580, 14280, 13030, 19450)
+#: UDP ports of instance 0: those PX4's px4-rc.mavlink binds (GCS, offboard, payload, gimbal,
+#: SIH view) and the one its offboard link sends to (the readiness wait listens there)
+_LOCAL_PORTS = (18570, 14580, 14280, 13030, 19450, 14540)
 
 
 def why_not() -> str | None:
@@ -118,17 +119,20 @@ def wait_ready(connection: str, timeout_s: float) -> Readiness:
     """Wait until the PX4 at ``connection`` sends heartbeats, reports its arming checks passed
     (SYS_STATUS pre-arm bit) and a global position (GLOBAL_POSITION_INT: EKF2 has GPS).
 
-    Sends GCS heartbeats at 1 Hz so that a ``udpout:`` link is answered.
+    Sends GCS heartbeats at 1 Hz on a ``udpout:`` link (PX4 answers only once written to);
+    on ``udp:`` (listening) it only listens. PX4 latches each UDP link to the first address
+    that writes to it, so :meth:`Px4Sitl.start` waits on the offboard link and leaves the GCS
+    link to the ground station.
     """
     t0 = time.monotonic()
     conn = mavutil.mavlink_connection(connection, source_system=254, source_component=190)
     hb_s = ready_s = float("nan")
     autopilot, prearm, position = -1, False, False
-    last_beat = 0.0
+    last_beat = 0.0 if connection.startswith("udpout:") else float("inf")
     try:
         while time.monotonic() - t0 < timeout_s:
             now = time.monotonic()
-            if now - last_beat >= 1.0:
+            if now - last_beat >= 1.0:  # never true when listening (last_beat = inf)
                 conn.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS,
                                         mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
                 last_beat = now
@@ -208,7 +212,7 @@ class Px4Sitl:
                  str(BUILD_DIR / "etc")],
                 cwd=run_dir, env=env, stdin=subprocess.DEVNULL, stdout=log,
                 stderr=subprocess.STDOUT, start_new_session=True)
-        ready = wait_ready(f"udpout:127.0.0.1:{18570 + instance}", ready_timeout_s)
+        ready = wait_ready(f"udpin:127.0.0.1:{14540 + instance}", ready_timeout_s)
         sitl = cls(instance, run_dir, proc.pid, ready)
         if proc.poll() is not None or (require_ready and not ready.ready):
             sitl.stop()
