@@ -100,3 +100,38 @@ def test_parameters_backed_up_written_read_back_and_restored(px4, tmp_path):
         assert {n: p.value for n, p in client.read_many(names).items()} == pytest.approx(wanted)
         client.restore(result.backup_path, tmp_path)
         assert {n: p.value for n, p in client.read_many(names).items()} == pytest.approx(before)
+
+
+def test_tune_flies_px4_and_writes_read_back_or_lands_with_nothing_written(px4, tmp_path):
+    """The whole tune through the stock firmware (attitude path: altitude, x, y; PX4 keeps
+    its attitude loop). Either it ends ok with every written gain read back, or it stops with
+    the reason and the vehicle lands and disarms with every profile parameter as before."""
+    from mrft_gcs.errors import MrftError
+    from mrft_gcs.profiles import load_profile
+
+    names = load_profile("px4").parameter_names()
+    with VehicleLink.connect(px4.offboard, timeout_s=10) as link:
+        before = {n: p.value for n, p in ParamClient(link).read_many(names).items()}
+    t = time.monotonic()
+    try:
+        result = tune(px4.offboard, "px4", backup_dir=tmp_path, heartbeat_timeout_s=10)
+        failure = None
+    except MrftError as err:
+        result, failure = err.partial_result, err
+    assert result is not None, failure
+    print(f"tune {result.status} after {time.monotonic() - t:.1f} s: {failure or ''}; "
+          f"largest tilt {result.max_tilt_deg:.1f} deg; {result.notes}")
+    assert result.max_tilt_deg < 35.0
+    with VehicleLink.connect(px4.offboard, timeout_s=10) as link:
+        end = time.monotonic() + 60
+        while time.monotonic() < end and link.heartbeat.armed:  # AUTO.LAND disarms on touch-down
+            time.sleep(0.2)
+        assert not link.heartbeat.armed, "still armed 60 s after the tune ended"
+        client = ParamClient(link)
+        now = {n: p.value for n, p in client.read_many(names).items()}
+        if result.status == "ok":
+            written = {c.name: c.new for c in result.parameters}
+            assert written and {n: now[n] for n in written} == pytest.approx(written)
+            client.restore(result.backup, tmp_path)
+        else:
+            assert result.parameters == () and now == pytest.approx(before), result.status
