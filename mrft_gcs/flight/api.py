@@ -177,6 +177,9 @@ YAW_NOTE = ("yaw is not tuned: it is held by a conservative GCS-side PD during t
             "(Kc 0.2 /rad, Kd 0.08 s/rad on normalised yaw torque) and keeps the autopilot's "
             "own yaw gains afterwards")
 NOT_REQUESTED = "not requested"
+#: telemetry (Hz) PX4's attitude path needs: its relays switch on position, whose cycles last
+#: a second or more, and stock PX4 streams position no faster than its EKF2 runs (~100-125 Hz)
+PX4_ATTITUDE_PATH_MIN_TELEMETRY_HZ = 90.0
 _ATTITUDE_LOOPS = (Loop.ROLL, Loop.PITCH)
 #: seconds the identification worker may take to load (else the tune identifies in its own
 #: process), and to answer one identification (60-120 ms measured; else likewise)
@@ -718,8 +721,12 @@ class _Run:
         if own_worker and not dry_link:
             self._start_worker()
         self.quality = measure_link(link, rate_hz=self.rate_hz)
+        # PX4's attitude path relay-tests only altitude and x/y (cycles of a second or more),
+        # and PX4 streams position no faster than EKF2 runs (100-125 Hz)
+        px4_attitude = self.act is Actuation.ATTITUDE and self.prof.family.value == "px4"
+        min_hz = PX4_ATTITUDE_PATH_MIN_TELEMETRY_HZ if px4_attitude else 200.0
         require_relay_capable(self.quality, setpoint_hz=self.rate_hz, actuation=self.act.value,
-                              signed=link.signed)
+                              signed=link.signed, min_telemetry_hz=min_hz)
         client = ParamClient(link)
         current = client.read_many(self.prof.parameter_names())
         self.hover = current[self.prof.altitude.hover_thrust].value
