@@ -23,15 +23,17 @@ import argparse
 import json
 import math
 import struct
+import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 from pymavlink import mavutil
 
-from mrft_gcs.sitl.px4sitl import Px4Sitl, free_instance, why_not
+from mrft_gcs.sitl.px4sitl import BINARY, Px4Sitl, free_instance, why_not
 
 AXES = ("ROLL", "PITCH", "YAW")
 #: parameters read and reported (stock values)
@@ -46,6 +48,8 @@ _INT_TYPES = (mavutil.mavlink.MAV_PARAM_TYPE_INT8, mavutil.mavlink.MAV_PARAM_TYP
 #: type_mask of SET_ATTITUDE_TARGET: attitude ignored, body rates + thrust used
 ATTITUDE_IGNORE = 128
 OFFBOARD_MAIN = 6
+#: vehicle_status.nav_state of OFFBOARD
+NAV_OFFBOARD = 14
 POSCTL_MAIN = 3
 
 
@@ -159,7 +163,7 @@ class GroundPD:
         self.hover = hover
         # torque per rad and per rad/s (normalised): about PX4's stock cascade, softer
         self.kp = (0.5, 0.5, 0.3)
-        self.kd = (0.08, 0.08, 0.12)
+        self.kd = (0.08, 0.08, 0.2)
         self.alt_i = 0.0
         self.yaw0: float | None = None
 
@@ -188,12 +192,20 @@ def fly(link: Link, ctrl: GroundPD, seconds: float, alt_sp_of, log: list, rate_h
     t_start = link.now()
     period = 1.0 / rate_hz
     next_t = time.monotonic()
+    asked_back = False
     while (t := link.now() - t_start) < seconds:
         link.pump()
         rates, thrust = ctrl.step(link, alt_sp_of(t), period)
         quiet = silent is not None and silent[0] <= t < silent[1]
         if not quiet:
             link.send_rates(rates, thrust)
+            if silent is not None and t >= silent[1] and link.mode[0] != OFFBOARD_MAIN \
+                    and not asked_back:
+                # back to OFFBOARD once the set points flow again (no wait for the ack)
+                link.conn.mav.command_long_send(link.sysid, 1,
+                                                mavutil.mavlink.MAV_CMD_DO_SET_MODE, 0, 1,
+                                                OFFBOARD_MAIN, 0, 0, 0, 0, 0)
+                asked_back = True
         a, p = link.att, link.pos
         if a is not None and p is not None:
             log.append((link.now(), a.roll, a.pitch, a.yaw, -p.z, link.mode[0], link.mode[1],
@@ -206,12 +218,47 @@ def fly(link: Link, ctrl: GroundPD, seconds: float, alt_sp_of, log: list, rate_h
             next_t = time.monotonic()
 
 
+def _loss_from_log(data: dict, t_sp: np.ndarray) -> dict:
+    """When PX4 left OFFBOARD after the set points stopped, and the tilt from then on."""
+    vs, att = data["vehicle_status"], data["vehicle_attitude"]
+    nav, t_nav = vs["nav_state"], vs["timestamp"]
+    left = np.nonzero((nav[:-1] == NAV_OFFBOARD) & (nav[1:] != NAV_OFFBOARD))[0]
+    if not left.size:
+        return {"left_offboard": False}
+    t_left = t_nav[left[0] + 1]
+    before = t_sp[t_sp < t_left]
+    t_last = before[-1] if before.size else t_left
+    # a gap in the set points longer than 0.1 s ends where the silence began
+    gaps = np.nonzero(np.diff(before) > 100_000)[0]
+    if gaps.size:
+        t_last = before[gaps[-1]]
+    qx, qy = att["q[1]"], att["q[2]"]
+    tilt = np.degrees(np.arccos(np.clip(1 - 2 * (qx * qx + qy * qy), -1, 1)))
+    t_att = att["timestamp"]
+
+    def tilt_at(t: float) -> float:
+        return float(tilt[min(np.searchsorted(t_att, t), len(tilt) - 1)])
+
+    after = (t_att >= t_last) & (t_att <= t_last + 3_000_000)
+    over = {}
+    for deg in (10, 30, 60):
+        hit = np.nonzero(after & (tilt >= deg))[0]
+        over[f"tilt_{deg}_after_s"] = float((t_att[hit[0]] - t_last) * 1e-6) if hit.size \
+            else None
+    return {"left_offboard": True, "to_nav_state": int(nav[left[0] + 1]),
+            "after_last_setpoint_s": float((t_left - t_last) * 1e-6),
+            "tilt_at_last_setpoint_deg": tilt_at(t_last),
+            "tilt_at_mode_change_deg": tilt_at(t_left),
+            "tilt_max_3s_deg": float(np.max(tilt[after])) if after.any() else None, **over}
+
+
 def analyse_ulog(path: Path, ff: tuple[float, float, float]) -> dict:
     """Torque set point vs FF * rate set point, delay and flags from PX4's own log."""
     from pyulog import ULog
 
     ulog = ULog(str(path), ["vehicle_rates_setpoint", "vehicle_torque_setpoint",
-                            "vehicle_control_mode", "rate_ctrl_status"])
+                            "vehicle_control_mode", "rate_ctrl_status", "vehicle_status",
+                            "vehicle_attitude"])
     data = {d.name: d.data for d in ulog.data_list if d.multi_id == 0}
     sp, tq = data["vehicle_rates_setpoint"], data["vehicle_torque_setpoint"]
     t_sp = sp["timestamp"]
@@ -241,6 +288,17 @@ def analyse_ulog(path: Path, ff: tuple[float, float, float]) -> dict:
     out["setpoint_age_at_torque_ms"] = {"median": float(np.median(lag) * 1e3),
                                         "p95": float(np.percentile(lag, 95) * 1e3),
                                         "max": float(np.max(lag) * 1e3)}
+    # set point to torque: the first torque sample after each set point, and whether it is
+    # FF times that set point on all three axes
+    t_tq = tq["timestamp"]
+    j = np.searchsorted(t_tq, t_sp, side="left")
+    ok = j < len(t_tq)
+    first = (t_tq[j[ok]] - t_sp[ok]) * 1e-3
+    same = np.all([np.abs(tq[f"xyz[{i}]"][j[ok]] - ff[i] * sp[key][ok]) <= 1e-6
+                   for i, key in enumerate(("roll", "pitch", "yaw"))], axis=0)
+    out["first_torque_after_setpoint_ms"] = {
+        "median": float(np.median(first)), "p95": float(np.percentile(first, 95)),
+        "max": float(np.max(first)), "equal_share": float(np.mean(same))}
     out["torque_rate_hz"] = float(1e6 / np.median(np.diff(tq["timestamp"])))
     out["rates_sp_rate_hz"] = float(1e6 / np.median(np.diff(t_sp)))
     if "vehicle_control_mode" in data:
@@ -250,6 +308,8 @@ def analyse_ulog(path: Path, ff: tuple[float, float, float]) -> dict:
             {int(v) for v in cm["flag_control_attitude_enabled"][off]})
         out["rates_ctrl_in_offboard"] = sorted(
             {int(v) for v in cm["flag_control_rates_enabled"][off]})
+    if "vehicle_status" in data and "vehicle_attitude" in data:
+        out["link_loss"] = _loss_from_log(data, t_sp)
     if "rate_ctrl_status" in data:
         rs = data["rate_ctrl_status"]
         out["rate_integrator_max_abs"] = float(max(
@@ -258,87 +318,124 @@ def analyse_ulog(path: Path, ff: tuple[float, float, float]) -> dict:
     return out
 
 
-def flight(args: argparse.Namespace, zero_angle_p: bool) -> dict:
-    """One SITL boot: stock values, test values, take-off, hover, optional link loss."""
-    result: dict = {"zero_angle_p": zero_angle_p}
-    run_dir = Path(tempfile.mkdtemp(prefix="px4rate_"))
-    with Px4Sitl.start(free_instance(), run_dir) as sitl:
-        result["boot_s"] = sitl.readiness.ready_s
-        link = Link(sitl)
-        stock = {n: link.get(n) for n in REPORTED}
-        result["stock"] = stock
-        k = tuple(args.k for _ in AXES)
-        test = {}
-        for a, ka in zip(AXES, k, strict=True):
-            test.update({f"MC_{a}RATE_P": 0.0, f"MC_{a}RATE_I": 0.0, f"MC_{a}RATE_D": 0.0,
-                         f"MC_{a}RATE_FF": ka})
-            if zero_angle_p:
-                test[f"MC_{a}_P"] = 0.0
-        t_write = time.monotonic()
-        for name, value in test.items():
-            link.set(name, value)
-        result["write_s"] = time.monotonic() - t_write
-        link.pump(2.0)  # let arming checks re-run on the new values
-        sys_status = link.wait("SYS_STATUS", lambda m: True, 3.0)
-        result["prearm_ok_with_test_values"] = bool(
-            sys_status and sys_status.onboard_control_sensors_health & 0x10000000)
-        ctrl = GroundPD(k, hover=stock["MPC_THR_HOVER"] if stock["MPC_THR_HOVER"] > 0 else 0.5)
-        log: list = []
-        # OFFBOARD needs a set point stream before the switch
-        fly(link, ctrl, 1.0, lambda t: 0.0, log)
-        ack_mode = link.command(mavutil.mavlink.MAV_CMD_DO_SET_MODE, 1, OFFBOARD_MAIN, 0)
-        ack_arm = link.command(mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
-        result["offboard_ack"], result["arm_ack"] = ack_mode, ack_arm
-        texts_before = len(link.texts)
-        alt = args.alt
-        fly(link, ctrl, 4.0, lambda t: min(alt, 0.2 + alt * t / 3.0), log)
-        t_hover0 = link.now()
-        fly(link, ctrl, args.hover_s, lambda t: alt, log)
+def high_rate_logging(link: Link, sitl: Px4Sitl, profile: int) -> str:
+    """Restart PX4's logger with its high-rate profile (every set point and torque sample),
+    through PX4's own command client; the stock profile logs them at 50 Hz only."""
+    link.set("SDLOG_PROFILE", profile | 16)
+    exe = str(BINARY.parent / "px4-logger")
+    said = []
+    for cmd in (["stop"], ["start", "-b", "1000", "-t", "-e"]):
+        r = subprocess.run([exe, "--instance", str(sitl.instance), *cmd], cwd=sitl.run_dir,
+                           capture_output=True, text=True, timeout=20)
+        said.append(f"logger {cmd[0]}: rc {r.returncode}")
+        time.sleep(0.5)
+    return ", ".join(said)
+
+
+def probe_values(k: float, zero_angle_p: bool, of_loss_t: float | None = None,
+                 obl_act: int | None = None) -> dict[str, float]:
+    """The parameters the probe writes: rate P/I/D 0, FF k (and angle P 0, loss settings)."""
+    test: dict[str, float] = {}
+    for a in AXES:
+        test.update({f"MC_{a}RATE_P": 0.0, f"MC_{a}RATE_I": 0.0, f"MC_{a}RATE_D": 0.0,
+                     f"MC_{a}RATE_FF": k})
+        if zero_angle_p:
+            test[f"MC_{a}_P"] = 0.0
+    if of_loss_t is not None:
+        test["COM_OF_LOSS_T"] = of_loss_t
+    if obl_act is not None:
+        test["COM_OBL_RC_ACT"] = obl_act
+    return test
+
+
+def probe_flight(sitl: Px4Sitl, test: Mapping[str, float], k: tuple[float, float, float], *,
+                 alt: float = 2.0, hover_s: float = 8.0, loss_s: float = 0.0) -> dict:
+    """On a running PX4 SITL: read the reported parameters, write ``test`` (read back),
+    take off and hover on the ground-station PD through the rate feed-forward, optionally
+    stop the set points for ``loss_s``, land, disarm; then PX4's log of the flight.
+
+    Writes without a backup: meant for a SITL booted with factory parameters."""
+    result: dict = {"boot_s": sitl.readiness.ready_s}
+    link = Link(sitl)
+    before = {n: link.get(n) for n in REPORTED}
+    result["before"] = before
+    result["high_rate_log"] = high_rate_logging(link, sitl, int(before["SDLOG_PROFILE"]))
+    t_write = time.monotonic()
+    for name, value in test.items():
+        link.set(name, value)
+    result["written"] = dict(test)
+    result["write_s"] = time.monotonic() - t_write
+    link.pump(2.0)  # let arming checks re-run on the new values
+    sys_status = link.wait("SYS_STATUS", lambda m: True, 3.0)
+    result["prearm_ok_with_test_values"] = bool(
+        sys_status and sys_status.onboard_control_sensors_health & 0x10000000)
+    ctrl = GroundPD(k, hover=before["MPC_THR_HOVER"] if before["MPC_THR_HOVER"] > 0 else 0.5)
+    log: list = []
+    # OFFBOARD needs a set point stream before the switch
+    fly(link, ctrl, 1.0, lambda t: 0.0, log)
+    ack_mode = link.command(mavutil.mavlink.MAV_CMD_DO_SET_MODE, 1, OFFBOARD_MAIN, 0)
+    ack_arm = link.command(mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+    result["offboard_ack"], result["arm_ack"] = ack_mode, ack_arm
+    texts_before = len(link.texts)
+    fly(link, ctrl, 4.0, lambda t: min(alt, 0.2 + alt * t / 3.0), log)
+    t_hover0 = link.now()
+    fly(link, ctrl, hover_s, lambda t: alt, log)
+    arr = np.array(log)
+    hov = arr[arr[:, 0] >= t_hover0]
+    result["hover"] = {
+        "seconds": hover_s,
+        "max_abs_roll_deg": float(np.degrees(np.max(np.abs(hov[:, 1])))),
+        "max_abs_pitch_deg": float(np.degrees(np.max(np.abs(hov[:, 2])))),
+        "yaw_span_deg": float(np.degrees(np.ptp(np.unwrap(hov[:, 3])))),
+        "alt_mean_m": float(np.mean(hov[:, 4])), "alt_min_m": float(np.min(hov[:, 4])),
+        "alt_max_m": float(np.max(hov[:, 4])),
+        "mode_main": sorted({int(v) for v in hov[:, 5]}),
+        "armed_all": bool(np.all(hov[:, 7] == 1)),
+    }
+    if loss_s > 0:
+        t_loss0 = link.now()
+        fly(link, ctrl, loss_s + 3.0, lambda t: alt, log, silent=(0.0, loss_s))
         arr = np.array(log)
-        hov = arr[arr[:, 0] >= t_hover0]
-        result["hover"] = {
-            "seconds": args.hover_s,
-            "max_abs_roll_deg": float(np.degrees(np.max(np.abs(hov[:, 1])))),
-            "max_abs_pitch_deg": float(np.degrees(np.max(np.abs(hov[:, 2])))),
-            "yaw_span_deg": float(np.degrees(np.ptp(np.unwrap(hov[:, 3])))),
-            "alt_mean_m": float(np.mean(hov[:, 4])), "alt_min_m": float(np.min(hov[:, 4])),
-            "alt_max_m": float(np.max(hov[:, 4])),
-            "mode_main": sorted({int(v) for v in hov[:, 5]}),
-            "armed_all": bool(np.all(hov[:, 7] == 1)),
+        seg = arr[arr[:, 0] >= t_loss0]
+        tilt = np.degrees(np.arccos(np.clip(np.cos(seg[:, 1]) * np.cos(seg[:, 2]), -1, 1)))
+        change = np.nonzero(seg[:, 5] != OFFBOARD_MAIN)[0]
+        result["link_loss"] = {
+            "silent_s": loss_s,
+            "mode_change_seen_after_s": float(seg[change[0], 0] - t_loss0) if change.size
+            else None,
+            "modes_seen": sorted({(int(m), int(s)) for m, s in seg[:, 5:7]}),
+            "max_tilt_deg": float(np.max(tilt)),
+            "max_tilt_at_s": float(seg[int(np.argmax(tilt)), 0] - t_loss0),
+            "alt_min_m": float(np.min(seg[:, 4])),
+            "offboard_again_at_end": bool(seg[-1, 5] == OFFBOARD_MAIN),
+            "armed_at_end": bool(seg[-1, 7] == 1),
         }
-        if args.loss_s > 0:
-            t_loss0 = link.now()
-            fly(link, ctrl, args.loss_s + 3.0, lambda t: alt, log, silent=(0.0, args.loss_s))
-            arr = np.array(log)
-            seg = arr[arr[:, 0] >= t_loss0]
-            tilt = np.degrees(np.arccos(np.clip(np.cos(seg[:, 1]) * np.cos(seg[:, 2]), -1, 1)))
-            change = np.nonzero(seg[:, 5] != OFFBOARD_MAIN)[0]
-            result["link_loss"] = {
-                "silent_s": args.loss_s,
-                "mode_change_after_s": float(seg[change[0], 0] - t_loss0) if change.size
-                else None,
-                "modes_seen": sorted({(int(m), int(s)) for m, s in seg[:, 5:7]}),
-                "max_tilt_deg": float(np.max(tilt)),
-                "max_tilt_at_s": float(seg[int(np.argmax(tilt)), 0] - t_loss0),
-                "alt_min_m": float(np.min(seg[:, 4])),
-                "armed_at_end": bool(seg[-1, 7] == 1),
-            }
-        result["statustext_in_flight"] = [t for _, t in link.texts[texts_before:]]
-        # land on the ground-station loop, then disarm
-        if link.mode[0] == OFFBOARD_MAIN and link.armed:
-            fly(link, ctrl, 4.0, lambda t: max(-0.5, alt * (1 - t / 3.0)), log)
-        link.command(mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)
-        link.pump(1.5)
-        link.conn.close()
-    logs = sorted((run_dir / "log").rglob("*.ulg"), key=lambda p: p.stat().st_mtime)
+    result["statustext_in_flight"] = [t for _, t in link.texts[texts_before:]]
+    # land on the ground-station loop, then disarm
+    result["landed_on_gcs_loop"] = link.mode[0] == OFFBOARD_MAIN and link.armed
+    if result["landed_on_gcs_loop"]:
+        fly(link, ctrl, 4.0, lambda t: max(-0.5, alt * (1 - t / 3.0)), log)
+    link.command(mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)
+    link.pump(1.5)
+    link.conn.close()
+    logs = sorted((sitl.run_dir / "log").rglob("*.ulg"), key=lambda p: p.stat().st_mtime)
     if logs:
         try:
-            result["ulog"] = analyse_ulog(logs[-1], tuple(args.k for _ in AXES))
+            result["ulog"] = analyse_ulog(logs[-1], k)
         except Exception as exc:  # a truncated log: report, keep the MAVLink figures
             result["ulog"] = {"error": f"{type(exc).__name__}: {exc}", "log": str(logs[-1])}
     else:
-        result["ulog"] = {"error": f"no .ulg under {run_dir / 'log'}"}
+        result["ulog"] = {"error": f"no .ulg under {sitl.run_dir / 'log'}"}
     return result
+
+
+def flight(args: argparse.Namespace, zero_angle_p: bool) -> dict:
+    """One SITL boot with factory parameters, one probe flight, the SITL stopped."""
+    test = probe_values(args.k, zero_angle_p, args.of_loss_t, args.obl_act)
+    with Px4Sitl.start(free_instance(), Path(tempfile.mkdtemp(prefix="px4rate_"))) as sitl:
+        result = probe_flight(sitl, test, (args.k, args.k, args.k), alt=args.alt,
+                              hover_s=args.hover_s, loss_s=args.loss_s)
+    return {"zero_angle_p": zero_angle_p, **result}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -350,6 +447,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="set points stop this long in hover (0: no link-loss test)")
     ap.add_argument("--angle-p", choices=("stock", "zero", "both"), default="both",
                     help="MC_*_P left stock, zeroed, or one flight each")
+    ap.add_argument("--of-loss-t", type=float, default=None,
+                    help="COM_OF_LOSS_T written for the flight (s; default: PX4's)")
+    ap.add_argument("--obl-act", type=int, default=None,
+                    help="COM_OBL_RC_ACT written for the flight (default: PX4's)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     reason = why_not()
