@@ -252,6 +252,36 @@ def _loss_from_log(data: dict, t_sp: np.ndarray) -> dict:
             "tilt_max_3s_deg": float(np.max(tilt[after])) if after.any() else None, **over}
 
 
+#: how far back a torque sample is matched against the logged rate set points (us)
+MATCH_WINDOW_US = 12_000
+
+
+def _match(sp: dict, tq: dict, ff: tuple[float, float, float], status: dict | None) -> dict:
+    t_sp, t_tq = sp["timestamp"].astype(np.int64), tq["timestamp"].astype(np.int64)
+    want = np.stack([np.float32(ff[i]) * sp[k] for i, k in enumerate(("roll", "pitch", "yaw"))],
+                    axis=1)
+    got = np.stack([tq[f"xyz[{i}]"] for i in range(3)], axis=1)
+    rows = np.arange(len(t_tq))
+    if status is not None:  # OFFBOARD only: elsewhere PX4's attitude loop makes the set point
+        j = np.clip(np.searchsorted(status["timestamp"], t_tq, side="right") - 1, 0, None)
+        rows = rows[status["nav_state"][j] == NAV_OFFBOARD]
+    lags = []
+    for i in rows:
+        lo = np.searchsorted(t_sp, t_tq[i] - MATCH_WINDOW_US, side="left")
+        hi = np.searchsorted(t_sp, t_tq[i], side="right")
+        same = np.nonzero(np.all(want[lo:hi] == got[i], axis=1))[0]
+        lags.append(t_tq[i] - t_sp[lo + same[-1]] if same.size else -1)
+    lag = np.array(lags)
+    hit = lag >= 0
+    steps, counts = np.unique(lag[hit] // 1000, return_counts=True)
+    gaps = np.diff(t_sp)
+    return {"offboard_torque_samples": int(len(rows)),
+            "equal_share": float(np.mean(hit)) if len(rows) else math.nan,
+            "lag_ms_counts": {int(k): int(c) for k, c in zip(steps, counts, strict=True)},
+            "setpoint_log_gaps_over_4ms": int(np.sum(gaps > 4000)),
+            "max_abs_torque": float(np.max(np.abs(got[rows]))) if len(rows) else math.nan}
+
+
 def analyse_ulog(path: Path, ff: tuple[float, float, float]) -> dict:
     """Torque set point vs FF * rate set point, delay and flags from PX4's own log."""
     from pyulog import ULog
@@ -263,42 +293,11 @@ def analyse_ulog(path: Path, ff: tuple[float, float, float]) -> dict:
     sp, tq = data["vehicle_rates_setpoint"], data["vehicle_torque_setpoint"]
     t_sp = sp["timestamp"]
     out: dict = {"log": str(path)}
-    for i, (axis, key) in enumerate(zip(("roll", "pitch", "yaw"), ("roll", "pitch", "yaw"),
-                                        strict=True)):
-        torque = tq[f"xyz[{i}]"]
-        t_tq = tq["timestamp"]
-        idx = np.searchsorted(t_sp, t_tq, side="right") - 1
-        ok = idx >= 0
-        expect = ff[i] * sp[key][idx[ok]]
-        got = torque[ok]
-        moving = np.abs(expect) > 1e-4
-        resid = got - expect
-        ratio = got[moving] / expect[moving]
-        out[axis] = {
-            "samples": int(ok.sum()),
-            "max_abs_residual": float(np.max(np.abs(resid))) if resid.size else math.nan,
-            "exact_share": float(np.mean(np.abs(resid) <= 1e-6 * np.maximum(1, np.abs(expect))))
-            if resid.size else math.nan,
-            "ratio_median": float(np.median(ratio)) if ratio.size else math.nan,
-            "max_abs_torque": float(np.max(np.abs(got))) if got.size else math.nan,
-        }
-    # set point to torque: each torque sample against the set point it equals (latest one)
-    idx = np.searchsorted(t_sp, tq["timestamp"], side="right") - 1
-    lag = (tq["timestamp"][idx >= 0] - t_sp[idx[idx >= 0]]) * 1e-6
-    out["setpoint_age_at_torque_ms"] = {"median": float(np.median(lag) * 1e3),
-                                        "p95": float(np.percentile(lag, 95) * 1e3),
-                                        "max": float(np.max(lag) * 1e3)}
-    # set point to torque: the first torque sample after each set point, and whether it is
-    # FF times that set point on all three axes
-    t_tq = tq["timestamp"]
-    j = np.searchsorted(t_tq, t_sp, side="left")
-    ok = j < len(t_tq)
-    first = (t_tq[j[ok]] - t_sp[ok]) * 1e-3
-    same = np.all([np.abs(tq[f"xyz[{i}]"][j[ok]] - ff[i] * sp[key][ok]) <= 1e-6
-                   for i, key in enumerate(("roll", "pitch", "yaw"))], axis=0)
-    out["first_torque_after_setpoint_ms"] = {
-        "median": float(np.median(first)), "p95": float(np.percentile(first, 95)),
-        "max": float(np.max(first)), "equal_share": float(np.mean(same))}
+    # PX4's SITL clock steps in gyro periods (4 ms with SIH), so a set point and the torque
+    # computed from it can carry the same or the next step's time stamp: each OFFBOARD torque
+    # sample is matched, bitwise on all three axes, against FF x the set points logged in the
+    # MATCH_WINDOW_US before it; the lag is the distance to the one it equals
+    out["torque_equals_ff_setpoint"] = _match(sp, tq, ff, data.get("vehicle_status"))
     out["torque_rate_hz"] = float(1e6 / np.median(np.diff(tq["timestamp"])))
     out["rates_sp_rate_hz"] = float(1e6 / np.median(np.diff(t_sp)))
     if "vehicle_control_mode" in data:
