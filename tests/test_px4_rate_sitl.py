@@ -47,29 +47,32 @@ def test_profile_rate_path_flies_px4_on_the_feed_forward_and_restores(px4, tmp_p
     # the stock cascade is not already the test one: the write changed the rate loop
     assert stock["MC_ROLLRATE_P"] > 0 and stock["MC_ROLLRATE_FF"] != rp.k[0]
 
-    res = probe.probe_flight(px4, {}, rp.k, alt=2.0, hover_s=5.0, loss_s=0.0)
-    print(res)
-    assert res["arm_ack"] == 0 and res["offboard_ack"] == 0
-    hover = res["hover"]
-    assert hover["armed_all"] and hover["mode_main"] == [probe.OFFBOARD_MAIN]
-    assert hover["max_abs_roll_deg"] < 3 and hover["max_abs_pitch_deg"] < 3
-    assert 1.5 < hover["alt_mean_m"] < 2.5
-    assert res["landed_on_gcs_loop"]
-    log = res["ulog"]
-    assert "error" not in log, log
-    # PX4's attitude controller is off in body-rate OFFBOARD: the rate set points are ours
-    assert log["attitude_ctrl_in_offboard"] == [0]
-    # PX4's torque is FF x a rate set point we sent (bitwise, all three axes), one 4 ms SITL
-    # step later at most; the rest falls where the log has gaps in the set points
-    match = log["torque_equals_ff_setpoint"]
-    assert match["offboard_torque_samples"] > 500
-    assert match["equal_share"] > 0.85, match
-    assert max(match["lag_ms_counts"]) <= 12 and max(match["lag_ms_counts"].values()) > (
-        0.5 * match["offboard_torque_samples"])
-    assert log["rate_integrator_max_abs"] == 0.0
+    try:
+        res = probe.probe_flight(px4, {}, rp.k, alt=2.0, hover_s=5.0, loss_s=0.0)
+        print(res)
+        assert res["arm_ack"] == 0 and res["offboard_ack"] == 0
+        hover = res["hover"]
+        assert hover["armed_all"] and hover["mode_main"] == [probe.OFFBOARD_MAIN]
+        assert hover["max_abs_roll_deg"] < 3 and hover["max_abs_pitch_deg"] < 3
+        assert 1.5 < hover["alt_mean_m"] < 2.5
+        assert res["landed_on_gcs_loop"]
+        log = res["ulog"]
+        assert "error" not in log, log
+        # PX4's attitude controller is off in body-rate OFFBOARD: the rate set points are ours
+        assert log["attitude_ctrl_in_offboard"] == [0]
+        # PX4's torque is FF x a rate set point we sent (bitwise, all three axes), mostly one
+        # 4 ms SITL step later; the rest falls where the log has gaps in the set points
+        match = log["torque_equals_ff_setpoint"]
+        assert match["offboard_torque_samples"] > 500
+        assert match["equal_share"] > 0.85, match
+        assert max(match["lag_ms_counts"]) <= 12 and max(match["lag_ms_counts"].values()) > (
+            0.5 * match["offboard_torque_samples"])
+        assert log["rate_integrator_max_abs"] == 0.0
+    finally:
+        # every value back from the backup, also when the flight checks failed
+        with VehicleLink.connect(px4.offboard, timeout_s=20) as link:
+            client = ParamClient(link)
+            client.restore(written.backup_path, tmp_path)
+            again = {n: p.value for n, p in client.read_many(names).items()}
 
-    with VehicleLink.connect(px4.offboard, timeout_s=20) as link:
-        client = ParamClient(link)
-        client.restore(written.backup_path, tmp_path)
-        again = {n: p.value for n, p in client.read_many(names).items()}
     assert again == pytest.approx(stock)
