@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from mrft_gcs.errors import UsageError
+from mrft_gcs.flight.api import tune
 from mrft_gcs.link.vehicle import VehicleLink
 from mrft_gcs.params import ParamClient
 from mrft_gcs.profiles import load_profile
@@ -76,3 +78,15 @@ def test_profile_rate_path_flies_px4_on_the_feed_forward_and_restores(px4, tmp_p
             again = {n: p.value for n, p in client.read_many(names).items()}
 
     assert again == pytest.approx(stock)
+
+
+def test_rate_actuation_on_px4_is_refused_before_anything_is_written(px4, tmp_path):
+    """`--actuation rate` on the real PX4 stops at the firmware check with the reason, before
+    a backup or a write (no .params file), the vehicle still disarmed."""
+    with pytest.raises(UsageError, match="not built for PX4"):
+        tune(px4.offboard, "px4", actuation="rate", backup_dir=tmp_path,
+             heartbeat_timeout_s=20)
+    assert not list(tmp_path.glob("*.params"))
+    with VehicleLink.connect(px4.offboard, timeout_s=20) as link:
+        stock = ParamClient(link).read("MC_ROLLRATE_P").value
+    assert stock == pytest.approx(0.15)

@@ -82,7 +82,7 @@ def test_rate_actuation_tunes_all_five_and_is_refused_off_arducopter():
     assert "ArduCopter only" in str(rate_path_refusal(load_profile("ardupilot"), px4))
     # PX4's channel is in its profile, the sequence is not built for it: refused, saying so
     why = str(rate_path_refusal(load_profile("px4"), px4))
-    assert "not built for PX4" in why and "--actuation attitude" in why
+    assert "not built for PX4" in why and "docs/px4.md" in why
     assert "no [rate_path]" in str(rate_path_refusal(load_profile("sitl"), px4))
 
 

@@ -247,7 +247,7 @@ def rate_path_refusal(profile: AutopilotProfile, fw: Firmware) -> str | None:
         return (f"{fw.name}: the profile's [rate_path] channel is measured on PX4 SITL "
                 f"(docs/px4.md) but the rate path's sequence is not built for PX4 (it flies "
                 f"GUIDED_NOGPS, checks k on PID_TUNING and aligns ATTITUDE_TARGET; PX4 needs "
-                f"OFFBOARD, k from its log and its own hand-over): use --actuation attitude")
+                f"OFFBOARD, k from its log and its own hand-over)")
     if fw.family is not AutopilotFamily.ARDUPILOT:
         return f"{fw.name}: the rate path is proven on ArduCopter only"
     return None
