@@ -29,6 +29,7 @@ import tempfile
 import time
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pymavlink import mavutil
@@ -62,8 +63,8 @@ class Link:
         self.sysid = sitl.system_id
         self.types: dict[str, int] = {}
         self.texts: list[tuple[float, str]] = []
-        self.att: object | None = None
-        self.pos: object | None = None
+        self.att: Any = None
+        self.pos: Any = None
         self.mode: tuple[int, int] = (0, 0)
         self.armed = False
         self.t0 = time.monotonic()
@@ -78,7 +79,7 @@ class Link:
 
     def pump(self, timeout: float = 0.0) -> list:
         """Read everything waiting (and wait up to ``timeout`` for the first message)."""
-        got = []
+        got: list[Any] = []
         end = time.monotonic() + timeout
         while True:
             if time.monotonic() - self._beat > 1.0:
@@ -149,7 +150,7 @@ class Link:
                     return back
         raise RuntimeError(f"{name} = {value} not read back")
 
-    def send_rates(self, rates: tuple[float, float, float], thrust: float) -> None:
+    def send_rates(self, rates: tuple[float, ...], thrust: float) -> None:
         self.conn.mav.set_attitude_target_send(
             int(self.now() * 1000) & 0xFFFFFFFF, self.sysid, 1, ATTITUDE_IGNORE,
             [1.0, 0.0, 0.0, 0.0], rates[0], rates[1], rates[2], thrust)
