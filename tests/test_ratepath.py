@@ -51,7 +51,15 @@ def test_profile_rate_path_sets_every_feed_forward_to_its_k():
         # the rest of the rate loop and the angle loop are zeroed for the flight
         for n in (*rp.rate_p, *rp.angle_p, "ATC_ACCEL_R_MAX", "ATC_ACCEL_P_MAX"):
             assert rp.test_params[n] == 0.0
-    assert load_profile("px4").rate_path is None and load_profile("sitl").rate_path is None
+    assert load_profile("sitl").rate_path is None
+    # PX4: the same reduction on its rate controller (FF is not scaled by MC_*RATE_K)
+    rp = load_profile("px4").rate_path
+    assert rp is not None and rp.ff == ("MC_ROLLRATE_FF", "MC_PITCHRATE_FF", "MC_YAWRATE_FF")
+    for ff, k in zip(rp.ff, rp.k, strict=True):
+        assert rp.test_params[ff] == k
+    for axis in ("ROLL", "PITCH", "YAW"):
+        for term in ("P", "I", "D"):
+            assert rp.test_params[f"MC_{axis}RATE_{term}"] == 0.0
 
 
 def test_profile_rate_path_refuses_a_k_its_test_params_do_not_set():
@@ -72,7 +80,10 @@ def test_rate_actuation_tunes_all_five_and_is_refused_off_arducopter():
     assert rate_path_refusal(load_profile("ardupilot"), AP) is None
     px4 = Firmware(AutopilotFamily.PX4, 2, (1, 15, 0), "official")
     assert "ArduCopter only" in str(rate_path_refusal(load_profile("ardupilot"), px4))
-    assert "no [rate_path]" in str(rate_path_refusal(load_profile("px4"), px4))
+    # PX4's channel is in its profile, the sequence is not built for it: refused, saying so
+    why = str(rate_path_refusal(load_profile("px4"), px4))
+    assert "not built for PX4" in why and "docs/px4.md" in why
+    assert "no [rate_path]" in str(rate_path_refusal(load_profile("sitl"), px4))
 
 
 @pytest.mark.parametrize("target, body", [((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),

@@ -246,12 +246,20 @@ def rate_path_refusal(profile: AutopilotProfile, fw: Firmware) -> str | None:
     >>> rate_path_refusal(load_profile("ardupilot"),
     ...                   Firmware(AutopilotFamily.ARDUPILOT, 2, (4, 7, 0), "dev")) is None
     True
-    >>> rate_path_refusal(load_profile("px4"), Firmware(AutopilotFamily.PX4, 2))[:26]
-    'profile px4 has no [rate_p'
+    >>> rate_path_refusal(load_profile("sitl"), Firmware(AutopilotFamily.PX4, 2))[:27]
+    'profile sitl has no [rate_p'
+    >>> rate_path_refusal(load_profile("px4"), Firmware(AutopilotFamily.PX4, 2))[:33]
+    'PX4 (version not reported): the p'
     """
     if profile.rate_path is None:
         return (f"profile {profile.name} has no [rate_path] (the rate loop reduced to "
-                f"feed-forward is spelled out for ArduCopter only)")
+                f"feed-forward is spelled out for ArduCopter and PX4 only)")
+    if fw.family is AutopilotFamily.PX4 and profile.family is AutopilotFamily.PX4:
+        # PX4's channel is measured (docs/px4.md) but this sequence is ArduCopter's
+        return (f"{fw.name}: the profile's [rate_path] channel is measured on PX4 SITL "
+                f"(docs/px4.md) but the rate path's sequence is not built for PX4 (it flies "
+                f"GUIDED_NOGPS, checks k on PID_TUNING and aligns ATTITUDE_TARGET; PX4 needs "
+                f"OFFBOARD, k from its log and its own hand-over)")
     if fw.family is not AutopilotFamily.ARDUPILOT:
         return f"{fw.name}: the rate path is proven on ArduCopter only"
     return None
