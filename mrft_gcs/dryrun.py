@@ -70,7 +70,15 @@ import numpy as np
 
 from mrft_gcs.errors import IdentificationError, MrftError
 from mrft_gcs.flight.cycles import CycleRules, CycleWatcher
-from mrft_gcs.flight.onboard import PositionLoopRate, vehicle_position_rate
+from mrft_gcs.flight.onboard import (
+    PositionLoopRate,
+    Retarget,
+    onboard_extra_delay_s,
+    pooled_attitude,
+    pooled_note,
+    robust_onboard_gains,
+    vehicle_position_rate,
+)
 from mrft_gcs.flight.structure import (
     OnboardStructure,
     rate_d_values,
@@ -1224,6 +1232,48 @@ def log_position_rate(decoded: DecodedLog, family: str = "") -> PositionLoopRate
     return vehicle_position_rate(first.get, family)
 
 
+def _retarget(seg: RelaySegment, design: Identification, t_cycles: np.ndarray,
+              structure: OnboardStructure | None, position_hz: float) -> Retarget:
+    """The gains a tune writes for a loop whose relay ran on a ground station, designed on
+    ``design`` (the identification, or roll/pitch with their fast lags pooled)."""
+    rt = robust_onboard_gains(design, _gcs_delay(seg, t_cycles),
+                              onboard_extra_s=onboard_extra_delay_s(seg.loop, position_hz))
+    return structured_retarget(design, rt, structure) if structure is not None else rt
+
+
+_RETARGET_NOTE = "gains re-targeted to the onboard loop"
+
+
+def _retarget_note(rt: Retarget, ident: Identification) -> str:
+    return (f"{_RETARGET_NOTE}, less delay than the ground-station relay by how old telemetry "
+            f"was when the command answering it was logged ({rt.note()}), as a tune writes "
+            f"them; identified Kc {ident.gains.Kc:.4g}, Kd {ident.gains.Kd:.4g}")
+
+
+def _pool_roll_pitch(by_loop: dict[Loop, LoopResult],
+                     structure: dict[Loop, OnboardStructure], position_hz: float) -> None:
+    """Roll and pitch flown on the ground station's torque re-designed on their pooled fast
+    lags, as a tune writes them (:func:`mrft_gcs.flight.onboard.pooled_attitude`)."""
+    r, p = by_loop.get(Loop.ROLL), by_loop.get(Loop.PITCH)
+    if (r is None or p is None or r.identification is None or p.identification is None
+            or r.cycles is None or p.cycles is None
+            or not all(x.segment.gcs_period_s > 0 and x.segment.source == "actuator"
+                       for x in (r, p))):
+        return
+    pr, pp = pooled_attitude(r.identification, p.identification)
+    if pr is r.identification:
+        return
+    note = pooled_note(r.identification, p.identification, pr)
+    for res, design in ((r, pr), (p, pp)):
+        assert res.identification is not None and res.cycles is not None
+        rt = _retarget(res.segment, design, res.cycles[0], structure.get(res.loop),
+                       position_hz)
+        kept = tuple(n for n in res.notes if not n.startswith(_RETARGET_NOTE))
+        by_loop[res.loop] = replace(res, gains=rt.gains, gcs_delay_s=rt.delay_s,
+                                    rate_d_over_p_s=rt.d_over_p_s, notes=kept + (
+                                        _retarget_note(rt, res.identification), note))
+
+
 def _loop_result(seg: RelaySegment, ident: Identification | None, cyc: _Cycles, steady: bool,
                  notes: list[str], model: InnerModel | None, hover: float,
                  structure: OnboardStructure | None = None,
@@ -1240,18 +1290,9 @@ def _loop_result(seg: RelaySegment, ident: Identification | None, cyc: _Cycles, 
     if ident is not None:
         gains = ident.gains
         if seg.gcs_period_s > 0 and isinstance(ident.model, InnerModel):
-            from mrft_gcs.flight.onboard import onboard_extra_delay_s, robust_onboard_gains
-
-            rt = robust_onboard_gains(ident, _gcs_delay(seg, cyc[0]),
-                                      onboard_extra_s=onboard_extra_delay_s(seg.loop,
-                                                                            position_hz))
-            if structure is not None:
-                rt = structured_retarget(ident, rt, structure)
+            rt = _retarget(seg, ident, cyc[0], structure, position_hz)
             delay, gains, d_ratio = rt.delay_s, rt.gains, rt.d_over_p_s
-            notes.append(f"gains re-targeted to the onboard loop, less delay than the "
-                         f"ground-station relay by how old telemetry was when the command "
-                         f"answering it was logged ({rt.note()}), as a tune writes them; "
-                         f"identified Kc {ident.gains.Kc:.4g}, Kd {ident.gains.Kd:.4g}")
+            notes.append(_retarget_note(rt, ident))
     res = None
     use = ident.model if ident is not None else model
     if isinstance(use, InnerModel):
@@ -1350,6 +1391,7 @@ def dry_run(path: str | Path, *, loops: tuple[Loop, ...] | None = None, profile=
             cmds = decoded.actuator if len(decoded.actuator) else decoded.attitude_target
             _use_session(session, by_loop, why, want, models or {}, hover_f,
                          _setpoint_period(cmds[:, 0]), structure, position_hz)
+    _pool_roll_pitch(by_loop, structure, position_hz)
     results = tuple(by_loop[lp] for lp in Loop if lp in by_loop and lp in want)
     why = {k: v for k, v in why.items() if Loop(k) in want}
     params: dict[str, float] = {}

@@ -341,3 +341,35 @@ def test_a_relay_that_lost_its_set_point_is_explained(tmp_path):
     assert r.segment.crossed < 0.9 and r.segment.beta_from == "switches"
     assert r.identification is None
     assert "lost its set point" in r.notes[0] and "--beta" in r.notes[0]
+
+
+def test_dry_run_designs_roll_and_pitch_on_their_pooled_lags_as_a_tune_does(tmp_path):
+    """Roll and pitch of one vehicle: the would-be gains are designed on the models with
+    their fast lags pooled (a tune's write, :func:`mrft_gcs.flight.onboard.pooled_attitude`),
+    the identified models stay as identified, and the note says so."""
+    import math
+
+    from mrft_gcs.dryrun import _gcs_delay, _pool_roll_pitch
+    from mrft_gcs.flight.onboard import pooled_attitude, robust_onboard_gains
+
+    res = {}
+    for axis in ("roll", "pitch"):
+        rec = sitl_relay_record(axis, seed=5, beta=-0.7, h=0.08, duration_s=6.0)
+        write_relay_tlog(tmp_path / f"{axis}.tlog", axis, rec.t, rec.u, rec.y)
+        res[Loop(axis)] = dry_run(tmp_path / f"{axis}.tlog").loops[0]
+    r, p = res[Loop.ROLL], res[Loop.PITCH]
+    assert r.identification is not None and p.identification is not None
+    pr, pp = pooled_attitude(r.identification, p.identification)
+    if pr is r.identification:
+        pytest.skip("this draw's phase at the cycle cannot be met by a T1: nothing pooled")
+    unpooled = dict(res)
+    _pool_roll_pitch(res, {}, math.nan)
+    for lp, design in ((Loop.ROLL, pr), (Loop.PITCH, pp)):
+        got = res[lp]
+        assert got.identification is unpooled[lp].identification  # reported as identified
+        assert got.cycles is not None
+        want = robust_onboard_gains(design, _gcs_delay(got.segment, got.cycles[0]))
+        assert got.gains == want.gains and got.gcs_delay_s == want.delay_s
+        assert got.gains != unpooled[lp].gains
+        assert sum("pooled" in n for n in got.notes) == 1, got.notes
+        assert sum(n.startswith("gains re-targeted") for n in got.notes) == 1, got.notes
