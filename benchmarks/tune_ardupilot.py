@@ -52,6 +52,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import signal
 import socket
 import struct
@@ -435,6 +436,8 @@ def main() -> int:
                     help="the tool's own hold comparison after its hand-over (s each; 0 off; "
                     "default the profile's)")
     ap.add_argument("--json", type=Path, help="write the figures here")
+    ap.add_argument("--keep-logs", type=Path, metavar="DIR",
+                    help="copy the SITL's folder (dataflash logs, backups) here at the end")
     args = ap.parse_args()
     # a timeout's TERM unwinds like an error: the SITL is stopped and --json still written
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
@@ -458,6 +461,9 @@ def main() -> int:
             finally:
                 if args.json:
                     args.json.write_text(json.dumps(out, indent=1) + "\n")
+                if args.keep_logs is not None:  # the dataflash logs show what the run hid
+                    shutil.copytree(tmp, args.keep_logs, dirs_exist_ok=True,
+                                    ignore=shutil.ignore_patterns("*.sock"))
     return 0
 
 
