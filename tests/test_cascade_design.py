@@ -246,3 +246,21 @@ def test_delay_out_is_the_least_plausible_within_the_re_target_s_cap():
     # a measured 3.9 ms at least 2 ms plausible: 2 ms, under either cap
     assert cascade_delay_out_s(m, GcsDelay(0.0039, 0.002, 0.008, 0.0039, True)) == \
         pytest.approx(0.002) and 0.002 < CAP_SHARE * m.tau
+
+
+def test_the_in_air_check_predicts_through_the_same_gyro_filter():
+    """The rate path's check model (OnboardCascade) carries the gyro filter in its feedback
+    path as the design's model does, and none by default."""
+    from mrft_gcs.flight.inair import OnboardCascade
+    w = np.array([40.0, 85.0, 125.0])
+    g = PD(6.0, 0.2)
+    oc = OnboardCascade(20.0, target_rate_ff=False, integrator_zero_rad_s=4.0,
+                        d_over_p_s=RATE_D_OVER_P_S, d_filter_hz=20.0, gyro_hz=20.0)
+    cr, cy = oc.paths(g, w)
+    cr0, cy0 = cascade_controller(g, w, 20.0, 0.0, 4.0, RATE_D_OVER_P_S, 20.0, 20.0)
+    assert np.allclose(cr, cr0) and np.allclose(cy, cy0)
+    plain = OnboardCascade(20.0, target_rate_ff=False, integrator_zero_rad_s=4.0,
+                           d_over_p_s=RATE_D_OVER_P_S, d_filter_hz=20.0)
+    assert np.allclose(plain.paths(g, w)[1],
+                       cascade_controller(g, w, 20.0, 0.0, 4.0, RATE_D_OVER_P_S, 20.0)[1])
+    assert "gyro filter 20 Hz" in oc.describe() and "gyro" not in plain.describe()

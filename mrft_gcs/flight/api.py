@@ -1101,6 +1101,8 @@ class _Run:
                 out = (0.0 if self.gcs_delay_s is not None else
                        cascade_delay_out_s(m, self._gcs_delay(lp, t.snapshot)))
                 cg = rate.roll_pitch_gains(m, g, _ATTITUDE_LOOPS.index(lp), out)
+                if out > 0:  # the in-air check predicts on the same onboard model
+                    self.delays[lp] = out
                 g = cg.gains
                 self.notes.append(f"rate path: {lp.value} written {cg.note()}")
             self.written[lp] = g
@@ -1140,8 +1142,9 @@ class _Run:
                                                "gains")
         self.notes.append(
             "rate path: roll and pitch gains written as soon as both were identified, as "
-            "identified where they keep their margin on ArduCopter's cascade (not re-targeted "
-            "for the GCS delay), or re-designed there with rate D where that lowers the ISE; "
+            "identified where they keep their margin on ArduCopter's cascade (its gyro filter "
+            "in, the least plausible GCS delay out), or re-designed there with rate D where "
+            "that lowers the ISE; "
             "the side tests flew attitude set points on them")
 
     def _hold(self, seconds: float) -> None:

@@ -1393,7 +1393,8 @@ class RatePath:
         fd = (self.rp_filters or {}).get(axis, (0.0, DEFAULT_D_HZ))[1]
         return OnboardCascade(fltt if math.isfinite(fltt) else 0.0, flte,
                               final.get(self.params.ff[axis], 0.0), integrator_zero_rad_s=wi,
-                              d_over_p_s=r, d_filter_hz=fd if r > 0 else 0.0)
+                              d_over_p_s=r, d_filter_hz=fd if r > 0 else 0.0,
+                              gyro_hz=self.gyro_hz)
 
     @contextlib.contextmanager
     def small_signal(self, client: ParamClient) -> Iterator[None]:
