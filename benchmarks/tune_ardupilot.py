@@ -52,6 +52,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import signal
 import socket
 import struct
@@ -282,7 +283,9 @@ def tune_run(run: int, serial0: str, obs: Observer, hold: Callable[[], dict[str,
     watcher = obs.watch_handover(stop) if obs.wind_at_handover else None
     try:
         result = tune(serial0, args.profile, backup_dir=tmp, heartbeat_timeout_s=10,
-                      actuation=args.actuation, hold_compare_s=args.hold_compare)
+                      actuation=args.actuation, hold_compare_s=args.hold_compare,
+                      tlog_path=(str(Path(tmp) / f"tune{run}.tlog")
+                                 if args.keep_logs is not None else None))
         status, error = result.status, ""
     except MrftError as err:
         if err.partial_result is None:
@@ -435,6 +438,9 @@ def main() -> int:
                     help="the tool's own hold comparison after its hand-over (s each; 0 off; "
                     "default the profile's)")
     ap.add_argument("--json", type=Path, help="write the figures here")
+    ap.add_argument("--keep-logs", type=Path, metavar="DIR",
+                    help="keep each tune's tlog and copy the SITL's folder (dataflash logs, "
+                         "backups, tlogs) here at the end")
     args = ap.parse_args()
     # a timeout's TERM unwinds like an error: the SITL is stopped and --json still written
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
@@ -458,6 +464,9 @@ def main() -> int:
             finally:
                 if args.json:
                     args.json.write_text(json.dumps(out, indent=1) + "\n")
+                if args.keep_logs is not None:  # the dataflash logs show what the run hid
+                    shutil.copytree(tmp, args.keep_logs, dirs_exist_ok=True,
+                                    ignore=shutil.ignore_patterns("*.sock"))
     return 0
 
 

@@ -81,9 +81,11 @@ from mrft_gcs.flight.inair import (
     without_gain_deficit,
 )
 from mrft_gcs.flight.onboard import (
+    GcsDelay,
     PositionLoopRate,
     Retarget,
     SideLoop,
+    cascade_delay_out_s,
     measure_gcs_delay,
     onboard_extra_delay_s,
     onboard_gains,
@@ -1104,13 +1106,17 @@ class _Run:
             t = seq.loops[lp]
             if lp not in self.requested or t.identification is None:
                 continue  # its own gains go back (the hand-over restores them)
-            # not re-targeted: the identified gains, with the ground station's delay left in,
-            # checked on ArduCopter's cascade as it flies them (rate-target filter, loop rate)
-            # and scaled down where they fall short of the margin there, or with rate D
+            # designed on ArduCopter's cascade as it flies them (rate-target and gyro
+            # filters, loop rate), on the model less the least plausible ground-station delay
+            # (the most onboard delay, as the torque path's re-target checks its margin at)
             m = t.identification.model
             g = t.identification.gains
             if isinstance(m, InnerModel):
-                cg = rate.roll_pitch_gains(m, g, _ATTITUDE_LOOPS.index(lp))
+                out = (0.0 if self.gcs_delay_s is not None else
+                       cascade_delay_out_s(m, self._gcs_delay(lp, t.snapshot)))
+                cg = rate.roll_pitch_gains(m, g, _ATTITUDE_LOOPS.index(lp), out)
+                if out > 0:  # the in-air check predicts on the same onboard model
+                    self.delays[lp] = out
                 g = cg.gains
                 self.notes.append(f"rate path: {lp.value} written {cg.note()}")
             self.written[lp] = g
@@ -1150,8 +1156,9 @@ class _Run:
                                                "gains")
         self.notes.append(
             "rate path: roll and pitch gains written as soon as both were identified, as "
-            "identified where they keep their margin on ArduCopter's cascade (not re-targeted "
-            "for the GCS delay), or re-designed there with rate D where that lowers the ISE; "
+            "identified where they keep their margin on ArduCopter's cascade (its gyro filter "
+            "in, the least plausible GCS delay out), or re-designed there with rate D where "
+            "that lowers the ISE; "
             "the side tests flew attitude set points on them")
 
     def _hold(self, seconds: float) -> None:
@@ -1543,6 +1550,15 @@ class _Run:
             d = self.gcs_delay_s
             gcs = measure_gcs_delay([], period)
             return Retarget(onboard_gains(ident, d), d if d > 0 else 0.0, math.nan, gcs)
+        gcs = self._gcs_delay(lp, snap)
+        rt = robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(
+            lp, self.position_loop.hz))
+        return structured_retarget(ident, rt, self.structure.get(lp, OnboardStructure()))
+
+    def _gcs_delay(self, lp: Loop, snap: CycleSnapshot | None) -> GcsDelay:
+        """``lp``'s GCS delay measured over its identified cycles on the session's clock
+        model, checked for plausibility (:func:`mrft_gcs.flight.onboard.measure_gcs_delay`)."""
+        period = 1.0 / self.rate_hz
         clock = self.clock.model.fit()
         t, ages = np.empty(0), np.empty(0)
         if snap is not None and len(snap.t_s):
@@ -1550,11 +1566,8 @@ class _Run:
                                        float(snap.t_s[-1]), clock)
         rtt, q = _round_trip_s(self.quality), self.quality
         spread = 1e-3 * (q.rtt_p90_ms - q.rtt_p50_ms) if rtt > 0 and q is not None else 0.0
-        gcs = measure_gcs_delay(ages, period, sample_t_s=t, clock=clock, latency_s=0.5 * rtt,
-                                round_trip_s=rtt, round_trip_spread_s=spread)
-        rt = robust_onboard_gains(ident, gcs, onboard_extra_s=onboard_extra_delay_s(
-            lp, self.position_loop.hz))
-        return structured_retarget(ident, rt, self.structure.get(lp, OnboardStructure()))
+        return measure_gcs_delay(ages, period, sample_t_s=t, clock=clock, latency_s=0.5 * rtt,
+                                 round_trip_s=rtt, round_trip_spread_s=spread)
 
     def _hand_over(self) -> None:
         """Switch to the autopilot's position mode, stop streaming, check it hovers."""

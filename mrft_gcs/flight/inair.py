@@ -150,6 +150,9 @@ class OnboardCascade:
     #: at ``d_filter_hz`` (0: none): the PID is ``Kd (1 + w_i / s + r s F_D)``
     d_over_p_s: float = 0.0
     d_filter_hz: float = 0.0
+    #: the gyro low-pass the rate error is taken on (Hz, second order; 0: none;
+    #: ``INS_GYRO_FILTER``): in the rate feedback only, not in the angle error
+    gyro_hz: float = 0.0
 
     def paths(self, gains: PD, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(C_r, C_y)``: the command ``u = C_r x - C_y y`` at ``w`` (rad/s).
@@ -163,7 +166,7 @@ class OnboardCascade:
         # the vehicle's rate FF and the target's own rate (ATC_RATE_FF_ENAB) go on top
         cr, cy = cascade_controller(gains, w, self.target_filter_hz, self.error_filter_hz,
                                     self.integrator_zero_rad_s, self.d_over_p_s,
-                                    self.d_filter_hz)
+                                    self.d_filter_hz, self.gyro_hz)
         s = 1j * np.asarray(w, float)
         hz = self.target_filter_hz
         ft = 1.0 / (1.0 + s / (2 * np.pi * hz)) if hz > 0 else np.ones_like(s)
@@ -189,7 +192,8 @@ class OnboardCascade:
                 + (f", rate I zero {self.integrator_zero_rad_s:.3g} rad/s"
                    if self.integrator_zero_rad_s > 0 else "")
                 + (f", rate D {self.d_over_p_s * 1e3:.1f} ms x rate P through "
-                   f"{self.d_filter_hz:g} Hz" if self.d_over_p_s > 0 else ""))
+                   f"{self.d_filter_hz:g} Hz" if self.d_over_p_s > 0 else "")
+                + (f", gyro filter {self.gyro_hz:g} Hz" if self.gyro_hz > 0 else ""))
 
     @property
     def structure(self) -> OnboardStructure | None:
@@ -198,7 +202,7 @@ class OnboardCascade:
         if (self.target_filter_hz > 0 and not self.target_rate_ff and self.ff == 0
                 and self.error_filter_hz == 0 and self.integrator_zero_rad_s == 0):
             return OnboardStructure(self.target_filter_hz, "", self.d_over_p_s,
-                                    self.d_filter_hz)
+                                    self.d_filter_hz, gyro_hz=self.gyro_hz)
         return None
 
 

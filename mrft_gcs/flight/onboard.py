@@ -82,7 +82,7 @@ __all__ = ["onboard_gains", "gcs_delay_s", "command_delay_s", "retarget_delay_s"
            "onboard_extra_delay_s", "CAP_SHARE", "CERTAIN_CAP_SHARE",
            "POSITION_LOOP_MIN_HZ", "RATE_TARGET_MIN_HZ", "CascadeGains", "cascade_gains",
            "CASCADE_LOOP_HZ", "rate_loop_gains", "RATE_I_LOWEST", "PositionLoopRate",
-           "cascade_controller", "cascade_process",
+           "cascade_controller", "cascade_process", "cascade_delay_out_s",
            "POSITION_RATE_PARAMS", "read_position_rate", "vehicle_position_rate",
            "ALT_UNSURE_TOP_PROB", "ALT_UNSURE_EXTRA_PM_DEG", "ALT_UNSURE_RAMP",
            "ALT_ONBOARD_DELAY_MIN_S",
@@ -1057,9 +1057,19 @@ def _lag(s: np.ndarray, hz: float) -> np.ndarray | float:
     return 1.0 / (1.0 + s / (2 * np.pi * hz)) if hz > 0 else 1.0
 
 
+def _lag2(s: np.ndarray, hz: float) -> np.ndarray | float:
+    """Second-order Butterworth low-pass at ``hz`` (ArduPilot's ``LowPassFilter2p``, taken
+    continuous: its bilinear design is prewarped to ``hz``), or 1 for ``hz`` 0 (no filter)."""
+    if not hz > 0:
+        return 1.0
+    x = s / (2 * np.pi * hz)
+    return 1.0 / (1.0 + math.sqrt(2.0) * x + x * x)
+
+
 def cascade_controller(gains: PD, w: np.ndarray, target_hz: float = 0.0, error_hz: float = 0.0,
                        integrator_zero_rad_s: float = 0.0, d_over_p_s: float = 0.0,
-                       d_hz: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                       d_hz: float = 0.0, gyro_hz: float = 0.0
+                       ) -> tuple[np.ndarray, np.ndarray]:
     """``(Cr, Cy)`` of ArduCopter's attitude cascade on written ``gains``: ``u = Cr r - Cy y``
     on ``w`` (rad/s). The one model of that cascade, which every design and check of written
     roll/pitch/yaw gains goes through (:func:`cascade_gains`,
@@ -1068,9 +1078,11 @@ def cascade_controller(gains: PD, w: np.ndarray, target_hz: float = 0.0, error_h
     Angle P ``Kc/Kd`` makes a rate target, low-passed at ``target_hz`` (``ATC_RAT_*_FLTT``);
     the rate error (that target less the gyro) is low-passed at ``error_hz`` (``FLTE``) and
     goes through ``AC_PID``: P ``Kd``, I ``Kd w_i`` (``integrator_zero_rad_s``), D
-    ``Kd d_over_p_s`` on the filtered error's derivative low-passed at ``d_hz`` (``FLTD``):
+    ``Kd d_over_p_s`` on the filtered error's derivative low-passed at ``d_hz`` (``FLTD``).
+    The gyro the rate error is taken on is low-passed at ``gyro_hz`` (``INS_GYRO_FILTER``,
+    second order, :func:`_lag2`); the angle error is on the AHRS attitude, not that filter:
 
-    ``u = (1 + w_i / s + r s F_D) F_E (Kc F_T (x - y) - Kd s y)``
+    ``u = (1 + w_i / s + r s F_D) F_E (Kc F_T (x - y) - Kd s F_G y)``
 
     (0 for any filter: none). The square-root angle controller is taken linear.
 
@@ -1090,7 +1102,7 @@ def cascade_controller(gains: PD, w: np.ndarray, target_hz: float = 0.0, error_h
     if d_over_p_s > 0:
         kernel = kernel + d_over_p_s * s * _lag(s, d_hz)
     Cr = kernel * fe * gains.Kc * ft
-    return Cr, kernel * fe * (gains.Kc * ft + gains.Kd * s)
+    return Cr, kernel * fe * (gains.Kc * ft + gains.Kd * s * _lag2(s, gyro_hz))
 
 
 def cascade_process(model: InnerModel, w: np.ndarray) -> np.ndarray:
@@ -1101,6 +1113,23 @@ def cascade_process(model: InnerModel, w: np.ndarray) -> np.ndarray:
     loop near its margin there and lost the altitude relay (docs/ardupilot.md)."""
     return inner_response(model.K, model.T_prop, model.T1,
                           model.tau + 0.5 / CASCADE_LOOP_HZ, w)[0]
+
+
+def cascade_delay_out_s(model: InnerModel, gcs: GcsDelay) -> float:
+    """The ground station's delay to take out of ``model`` for the onboard cascade (s): the
+    least plausible (``gcs.lo_s``, the most onboard delay, as :func:`robust_onboard_gains`
+    checks its margin at), within the same cap (:data:`CAP_SHARE` of the identified delay,
+    or the measured delay up to :data:`CERTAIN_CAP_SHARE` of it).
+
+    >>> m = InnerModel(K=34.0, T_prop=0.0085, T1=0.095, tau=0.006)
+    >>> cascade_delay_out_s(m, GcsDelay(0.011, 0.009, 0.015, 0.002, True))  # 95 % of tau
+    0.0057
+    >>> cascade_delay_out_s(m, GcsDelay(0.002, 0.0, 0.004, math.nan, False, "x"))
+    0.0
+    """
+    certain = gcs.estimate_s if gcs.measured else gcs.lo_s
+    cap = max(CAP_SHARE * model.tau, min(certain, CERTAIN_CAP_SHARE * model.tau))
+    return round(max(min(gcs.lo_s, cap), 0.0), 9)
 
 
 @dataclass(frozen=True)
@@ -1153,6 +1182,10 @@ class CascadeGains:
     d_hz: float = 0.0
     #: how rate D was decided (empty: it was not considered)
     d_note: str = ""
+    #: the gyro low-pass on the rate feedback modelled (Hz; 0: none; ``INS_GYRO_FILTER``)
+    gyro_hz: float = 0.0
+    #: the ground station's delay taken out of the identified model (s; 0: all kept)
+    delay_out_s: float = 0.0
 
     @property
     def rate_i(self) -> float:
@@ -1179,8 +1212,13 @@ class CascadeGains:
         if self.d_over_p_s > 0:
             f += (f", rate D {self.rate_d:.4g} ({self.d_over_p_s * 1e3:.1f} ms x rate P, "
                   f"through {self.d_hz:g} Hz)")
+        if self.gyro_hz > 0:
+            f += f", {self.gyro_hz:g} Hz gyro filter on the rate feedback"
+        kept = ("the identified delay kept" if not self.delay_out_s > 0 else
+                f"the identified delay less {self.delay_out_s * 1e3:.1f} ms of the ground "
+                f"station's")
         out = (f"predicted PM {self.pm_deg:.0f} deg at {self.wc_rad_s:.0f} rad/s on ArduCopter's "
-               f"cascade ({f}, {CASCADE_LOOP_HZ:g} Hz loop, the identified delay kept)")
+               f"cascade ({f}, {CASCADE_LOOP_HZ:g} Hz loop, {kept})")
         if self.scale < 1.0:
             out += (f"; the identified gains (PM {self.pm_identified_deg:.0f} deg there) scaled "
                     f"by {self.scale:.2f}")
@@ -1192,16 +1230,16 @@ class CascadeGains:
 def _cascade_pm(model: InnerModel, gains: PD, target_filter_hz: float,
                 w: np.ndarray, error_filter_hz: float = 0.0,
                 integrator_zero_rad_s: float = 0.0, d_over_p_s: float = 0.0,
-                d_hz: float = 0.0) -> tuple[float, float]:
+                d_hz: float = 0.0, gyro_hz: float = 0.0) -> tuple[float, float]:
     wi = integrator_zero_rad_s
     Cy = cascade_controller(gains, w, target_filter_hz, error_filter_hz, wi, d_over_p_s,
-                            d_hz)[1]
+                            d_hz, gyro_hz)[1]
     m = margins(Cy * cascade_process(model, w), w)
     # with a rate I the loop has two integrators: its phase starts at -180 deg, and below
     # it where the drag pole lies under the I's zero, which the Nyquist count of margins()
     # (written for one integrator) takes for an encirclement; the closed loop's poles decide
     stable = (_cascade_poles_stable(model, gains, target_filter_hz, error_filter_hz, wi,
-                                    d_over_p_s, d_hz)
+                                    d_over_p_s, d_hz, gyro_hz=gyro_hz)
               if wi > 0 else m.stable)
     return (float(m.pm_deg) if stable else -math.inf), float(m.wc)
 
@@ -1213,7 +1251,8 @@ _PADE_ORDER = 6
 def _cascade_poles_stable(model: InnerModel, gains: PD, target_filter_hz: float,
                           error_filter_hz: float, integrator_zero_rad_s: float,
                           d_over_p_s: float = 0.0, d_hz: float = 0.0,
-                          loop_delay_s: float = 0.5 / CASCADE_LOOP_HZ) -> bool:
+                          loop_delay_s: float = 0.5 / CASCADE_LOOP_HZ,
+                          gyro_hz: float = 0.0) -> bool:
     """Whether the closed cascade of :func:`_cascade_pm` (with a rate I) has all its poles in
     the left half plane, the delay (``model.tau`` plus ``loop_delay_s``, s) as a Pade
     approximation of order :data:`_PADE_ORDER`."""
@@ -1237,10 +1276,14 @@ def _cascade_poles_stable(model: InnerModel, gains: PD, target_filter_hz: float,
         k_den = np.polymul([1.0, 0.0], fd)
     else:
         k_num, k_den = np.polyadd(fd, [r, 0.0] if r > 0 else [0.0]), fd
-    # kernel (Kc / ft + Kd s) / fe * K pade / (s (Tp s + 1) (T1 s + 1))
-    ctrl = np.polyadd(gains.Kc * np.ones(1), np.polymul([gains.Kd, 0.0], ft))
+    # the gyro filter's denominator (s / wg)^2 + sqrt2 s / wg + 1, or 1
+    wg = 2 * np.pi * gyro_hz
+    fg = (np.array([1.0 / wg ** 2, math.sqrt(2.0) / wg, 1.0]) if gyro_hz > 0
+          else np.array([1.0]))
+    # kernel (Kc / ft + Kd s / fg) / fe * K pade / (s (Tp s + 1) (T1 s + 1))
+    ctrl = np.polyadd(gains.Kc * fg, np.polymul([gains.Kd, 0.0], ft))
     num = model.K * np.polymul(np.polymul(k_num, ctrl), pade_num)
-    den = np.polymul(np.polymul(k_den, ft), fe)
+    den = np.polymul(np.polymul(np.polymul(k_den, ft), fe), fg)
     den = np.polymul(den, np.polymul([1.0, 0.0], np.polymul([model.T_prop, 1.0],
                                                             [model.T1, 1.0])))
     den = np.polymul(den, pade_den)
@@ -1251,7 +1294,7 @@ def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
                   pm_min_deg: float = PM_ROBUST_DEG,
                   error_filter_hz: float = 0.0,
                   integrator_zero_rad_s: float = 0.0, d_over_p_s: float = 0.0,
-                  d_hz: float = 0.0) -> CascadeGains:
+                  d_hz: float = 0.0, gyro_hz: float = 0.0) -> CascadeGains:
     """The identified roll/pitch (or yaw) ``gains`` checked on ArduCopter's cascade (see
     :class:`CascadeGains`), on ``model`` with its identified delay (the ground station's
     delay left in: the onboard loop has less) plus half a loop period; scaled down together
@@ -1259,6 +1302,7 @@ def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     error filter (Hz; 0: none). ``integrator_zero_rad_s``: a rate I with its zero there
     (rad/s; 0: none), kept at that frequency while the gains are scaled. ``d_over_p_s``: a
     rate D of that share of rate P, through ``d_hz`` (:func:`cascade_controller`).
+    ``gyro_hz``: the gyro low-pass on the rate feedback (Hz; 0: none).
 
     Examples
     --------
@@ -1273,11 +1317,11 @@ def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     wi = max(float(integrator_zero_rad_s), 0.0)
     w = frequency_grid(model.T_prop, model.T1, model.tau,
                        extra_T=(1.0 / wi,) if wi > 0 else ())
-    fe, dd = error_filter_hz, (max(float(d_over_p_s), 0.0), d_hz)
+    fe, dd = error_filter_hz, (max(float(d_over_p_s), 0.0), d_hz, gyro_hz)
     pm0, wc0 = _cascade_pm(model, gains, target_filter_hz, w, fe, wi, *dd)
     if pm0 >= pm_min_deg:
         return CascadeGains(gains, 1.0, pm0, pm0, target_filter_hz, wc0, fe, wi,
-                            d_over_p_s=dd[0], d_hz=d_hz)
+                            d_over_p_s=dd[0], d_hz=d_hz, gyro_hz=gyro_hz)
     lo, hi = 0.0, 1.0  # the largest factor that keeps the margin, to 0.1 %
     while hi - lo > 1e-3:
         mid = 0.5 * (lo + hi)
@@ -1290,7 +1334,7 @@ def cascade_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     scaled = PD(gains.Kc * lo, gains.Kd * lo)
     pm, wc = _cascade_pm(model, scaled, target_filter_hz, w, fe, wi, *dd)
     return CascadeGains(scaled, round(lo, 3), pm, pm0, target_filter_hz, wc, fe, wi,
-                        d_over_p_s=dd[0], d_hz=d_hz)
+                        d_over_p_s=dd[0], d_hz=d_hz, gyro_hz=gyro_hz)
 
 
 #: the lowest rate-I zero :func:`rate_loop_gains` moves to, as a share of the crossover
@@ -1300,7 +1344,7 @@ RATE_I_LOWEST = 0.01
 def rate_loop_gains(model: InnerModel, gains: PD, target_filter_hz: float,
                     error_filter_hz: float = 0.0, pm_min_deg: float = PM_ROBUST_DEG,
                     decade: float = 0.0, d_over_p_s: float = 0.0,
-                    d_hz: float = 0.0) -> CascadeGains:
+                    d_hz: float = 0.0, gyro_hz: float = 0.0) -> CascadeGains:
     """Roll/pitch gains for ArduCopter's cascade with a rate I (``decade`` > 0).
 
     The P gains are those of :func:`cascade_gains` (the identified ones, scaled down where
@@ -1319,8 +1363,8 @@ def rate_loop_gains(model: InnerModel, gains: PD, target_filter_hz: float,
     10
     """
     c0 = cascade_gains(model, gains, target_filter_hz, pm_min_deg, error_filter_hz,
-                       d_over_p_s=d_over_p_s, d_hz=d_hz)
-    dd = (c0.d_over_p_s, c0.d_hz)
+                       d_over_p_s=d_over_p_s, d_hz=d_hz, gyro_hz=gyro_hz)
+    dd = (c0.d_over_p_s, c0.d_hz, gyro_hz)
     if not (decade > 0 and c0.scale > 0 and math.isfinite(c0.wc_rad_s)):
         return c0
     fe, g = error_filter_hz, c0.gains

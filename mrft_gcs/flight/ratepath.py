@@ -91,7 +91,7 @@ __all__ = ["RatePath", "RateChannel", "FeedForwardCheck", "Alignment", "alignmen
            "K_CORRECT", "K_REFUSE", "MAX_THRUST_ERROR_DEG", "GCS_PD_SCALE", "TARGET_SET_PARAM",
            "CHECK_PARAMS", "CHECK_SPAN_S", "CHECK_AMPLITUDE_RAD", "CHECK_SWING", "CHECK_SETTLE_S",
            "CHECK_LEAD_S", "INAIR_CHECK", "check_cascade", "check_points", "EDGE_TICK_S",
-           "TUNE_YAW", "RATE_I_DECADE",
+           "TUNE_YAW", "RATE_I_DECADE", "GYRO_FILTER_PARAM",
            "YAW_RATE_I_DECADE", "YAW_AFTER_ROLL_PITCH_S", "RING_RMS_RAD_S", "yaw_wait_over",
            "HAND_ROLL_PITCH_FIRST", "roll_pitch_names", "beside_yaw",
            "YawDesign",
@@ -203,6 +203,9 @@ CHECK_LEAD_S = 0.5
 #: atan(1/10) = 6 deg of phase at the crossover (the gains scaled down where that takes
 #: the margin below 15 deg: :func:`~mrft_gcs.flight.onboard.rate_loop_gains`)
 RATE_I_DECADE = 10.0
+#: ArduCopter's gyro low-pass (Hz, second order): the rate loop closes on the filtered gyro,
+#: the angle loop on the AHRS attitude, so its lag sits in the rate feedback alone
+GYRO_FILTER_PARAM = "INS_GYRO_FILTER"
 #: yaw: the rate I's zero this factor below the written loop's crossover, as
 #: :data:`RATE_I_DECADE` for roll and pitch (0: rate I written 0). With P alone the heading
 #: keeps ``d / Kc`` of error under a yaw torque ``d`` (the motors' own torque imbalance,
@@ -479,7 +482,6 @@ def yaw_design(ident: Identification, names: Mapping[str, str], target_filter_hz
     and the smaller scale kept; otherwise refused.
 
     >>> from mrft_gcs.identify import Identification
-from mrft_gcs.loops import Loop
     >>> from mrft_gcs.loops import LoopKind
     >>> from mrft_gcs.pd_design import PD
     >>> names = {"angle_p": "A", "rate_p": "P", "rate_i": "I", "rate_d": "D"}
@@ -870,6 +872,8 @@ class RatePath:
         #: the roll/pitch rate loop's error and D low-passes as read at :meth:`engage` (Hz;
         #: not test parameters: they stay as they are); None: not read
         self.rp_filters: dict[int, tuple[float, float]] | None = None
+        #: the gyro low-pass the rate loop closes on (Hz; 0: none or not read)
+        self.gyro_hz = 0.0
         self.handed_over = False
         self.changes: tuple[ParamChange, ...] = ()
         self.yaw_note: str | None = None  # how yaw was held, where not the default hold
@@ -937,6 +941,7 @@ class RatePath:
         self._ask(_PID_TUNING_ID, STREAM_HZ)
         # read before the zero-gain window opens (the roll/pitch design models them)
         self.rp_filters = {axis: self._rp_filters(client, axis) for axis in (0, 1)}
+        self.gyro_hz = self._gyro_filter_hz(client)
         result = client.write(dict(self.params.test_params), self.backup_dir, label="rate-test")
         self.backup = result.backup_path
         self.originals = {c.name: c.old for c in result.changes}
@@ -1337,24 +1342,37 @@ class RatePath:
             out.append(v if math.isfinite(v) and v >= 0 else default)
         return out[0], out[1]
 
+    def _gyro_filter_hz(self, client: ParamClient) -> float:
+        """The vehicle's ``INS_GYRO_FILTER`` (Hz): the low-pass on the gyro its rate loop
+        closes on; 0 (none) where it has no such parameter or a value that is no cutoff."""
+        try:
+            v = float(client.read(GYRO_FILTER_PARAM).value)
+        except MrftError:
+            return 0.0
+        return v if math.isfinite(v) and v > 0 else 0.0
+
     def rp_structure(self, axis: int) -> OnboardStructure:
         """How ArduCopter closes ``axis`` (0 roll, 1 pitch) after the hand-over: its own
         rate-target filter (:meth:`target_filter_hz`), error and D low-passes (read at
-        :meth:`engage`), and rate D at ArduCopter's own ratio to rate P
+        :meth:`engage`), its gyro filter (:data:`GYRO_FILTER_PARAM`, read there too), and
+        rate D at ArduCopter's own ratio to rate P
         (:data:`~mrft_gcs.flight.structure.RATE_D_OVER_P_S`, where
         :data:`~mrft_gcs.flight.structure.WRITE_RATE_D`)."""
         fe, fd = (self.rp_filters or {}).get(axis, (0.0, DEFAULT_D_HZ))
         return OnboardStructure(self.target_filter_hz(axis), "ArduCopter's cascade",
-                                RATE_D_OVER_P_S if WRITE_RATE_D else 0.0, fd, fe)
+                                RATE_D_OVER_P_S if WRITE_RATE_D else 0.0, fd, fe,
+                                gyro_hz=self.gyro_hz)
 
-    def roll_pitch_gains(self, model: InnerModel, gains: PD, axis: int) -> CascadeGains:
+    def roll_pitch_gains(self, model: InnerModel, gains: PD, axis: int,
+                         delay_out_s: float = 0.0) -> CascadeGains:
         """The written gains of ``axis`` (0 roll, 1 pitch) designed on ArduCopter's cascade
         as it flies them after the hand-over (:meth:`rp_structure`): the identified
         gains where they keep the margin there, or gains with rate D where that lowers the
         ISE (:func:`~mrft_gcs.flight.structure.cascade_design`), with a rate I of
-        :data:`RATE_I_DECADE`. :meth:`split` writes the I and D in place of the 0 the PD
-        mapping gives."""
-        c = cascade_design(model, gains, self.rp_structure(axis), decade=RATE_I_DECADE)
+        :data:`RATE_I_DECADE`, on ``model`` less ``delay_out_s`` of the ground station's
+        delay (s). :meth:`split` writes the I and D in place of the 0 the PD mapping gives."""
+        c = cascade_design(model, gains, self.rp_structure(axis), decade=RATE_I_DECADE,
+                           delay_out_s=delay_out_s)
         prefix = self.params.rate_p[axis].removesuffix("P")
         self.rate_i[prefix + "I"] = c.rate_i
         if c.d_over_p_s > 0:
@@ -1383,7 +1401,8 @@ class RatePath:
         fd = (self.rp_filters or {}).get(axis, (0.0, DEFAULT_D_HZ))[1]
         return OnboardCascade(fltt if math.isfinite(fltt) else 0.0, flte,
                               final.get(self.params.ff[axis], 0.0), integrator_zero_rad_s=wi,
-                              d_over_p_s=r, d_filter_hz=fd if r > 0 else 0.0)
+                              d_over_p_s=r, d_filter_hz=fd if r > 0 else 0.0,
+                              gyro_hz=self.gyro_hz)
 
     @contextlib.contextmanager
     def small_signal(self, client: ParamClient) -> Iterator[None]:

@@ -131,6 +131,9 @@ class OnboardStructure:
         Low-pass on the rate D term (Hz; 0: none).
     error_hz : float
         Low-pass on the rate error, before P, I and D (Hz; 0: none; ``ATC_RAT_*_FLTE``).
+    gyro_hz : float
+        Second-order low-pass on the gyro the rate error is taken on (Hz; 0: none;
+        ``INS_GYRO_FILTER``), not on the attitude the angle error is taken on.
     """
 
     target_hz: float = 0.0
@@ -138,6 +141,7 @@ class OnboardStructure:
     d_over_p_s: float = 0.0
     d_hz: float = 0.0
     error_hz: float = 0.0
+    gyro_hz: float = 0.0
 
     def rate_d(self, gains: PD) -> float:
         """The rate D written with ``gains`` (normalised output per rad/s^2; 0: none).
@@ -235,7 +239,7 @@ def structure_controller(gains: PD, st: OnboardStructure, w: np.ndarray
     """
     # the one cascade model (rate D on the rate error: the filtered target less the gyro)
     return cascade_controller(gains, w, st.target_hz, st.error_hz, 0.0, st.d_over_p_s,
-                              st.d_hz)
+                              st.d_hz, st.gyro_hz)
 
 
 @dataclass(frozen=True)
@@ -438,7 +442,7 @@ def rate_d_values(profile: AutopilotProfile, gains: Mapping[Loop, PDGains],
 
 
 def cascade_design(model: InnerModel, gains: PD, st: OnboardStructure,
-                   decade: float = 0.0) -> CascadeGains:
+                   decade: float = 0.0, delay_out_s: float = 0.0) -> CascadeGains:
     """Roll/pitch gains for ArduCopter's cascade on the rate path, with rate D where it pays.
 
     Without D the identified ``gains`` are kept where they hold
@@ -454,7 +458,10 @@ def cascade_design(model: InnerModel, gains: PD, st: OnboardStructure,
     margin (where not, the identified gains stay, as without D). A rate I with
     its zero ``decade`` below the crossover goes on top
     (:func:`~mrft_gcs.flight.onboard.rate_loop_gains`, the margin kept at
-    :data:`~mrft_gcs.flight.onboard.PM_ROBUST_DEG` with it).
+    :data:`~mrft_gcs.flight.onboard.PM_ROBUST_DEG` with it). ``delay_out_s`` of the
+    identified delay is the ground station's, not the onboard loop's (s;
+    :func:`~mrft_gcs.flight.onboard.cascade_delay_out_s`): the process designed on has that
+    much less (never below 0).
 
     Examples
     --------
@@ -465,7 +472,10 @@ def cascade_design(model: InnerModel, gains: PD, st: OnboardStructure,
     >>> cascade_design(m, PD(6.4, 0.21), OnboardStructure(20.0)).rate_d
     0.0
     """
-    base = cascade_gains(model, gains, st.target_hz, PM_ROBUST_DEG, st.error_hz)
+    out = min(max(float(delay_out_s), 0.0), model.tau)
+    model = dataclasses.replace(model, tau=model.tau - out)
+    base = cascade_gains(model, gains, st.target_hz, PM_ROBUST_DEG, st.error_hz,
+                         gyro_hz=st.gyro_hz)
     chosen, r, why = base.gains, 0.0, ""
     if st.d_over_p_s > 0 and base.scale > 0 and math.isfinite(base.wc_rad_s):
         w = frequency_grid(model.T_prop, model.T1, model.tau)
@@ -487,6 +497,6 @@ def cascade_design(model: InnerModel, gains: PD, st: OnboardStructure,
             why = (f"no rate D (on the cascade it did not lower the ISE below the best without "
                    f"D at {PM_MIN_DEG:g} deg)")
     c = rate_loop_gains(model, chosen, st.target_hz, st.error_hz, decade=decade,
-                        d_over_p_s=r, d_hz=st.d_hz)
+                        d_over_p_s=r, d_hz=st.d_hz, gyro_hz=st.gyro_hz)
     return dataclasses.replace(c, scale=base.scale, pm_identified_deg=base.pm_identified_deg,
-                               d_note=why)
+                               d_note=why, delay_out_s=out)
