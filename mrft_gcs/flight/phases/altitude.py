@@ -55,8 +55,9 @@ class AltitudeRelay:
                 f"altitude: the altitude estimate is too noisy for the relay test: its noise "
                 f"band is {100 * alt.band:.1f} cm ({cfg.noise_band_sigmas:g} sigma, measured on "
                 f"the ground), so each relay half-cycle would need {100 * arm:.0f} cm to arm "
-                f"its switch (beta {alt.beta:g}), over the {100 * cfg.runaway_floor_alt_max_m:.0f}"
-                f" cm / {cfg.runaway_factor:g} the run-away guard allows; nothing was flown: "
+                f"its switch (beta {alt.beta:g}), over the "
+                f"{100 * cfg.runaway_floor_alt_max_m / cfg.runaway_factor:.0f} cm its run-away "
+                f"guard leaves room for; the relay is not started: "
                 f"give the autopilot a less noisy height (a range finder, a filtered barometer) "
                 f"or tune this vehicle by hand")
 
