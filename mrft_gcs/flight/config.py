@@ -75,6 +75,12 @@ class SequenceConfig:
     #: vehicle drifts on each run-away's lean (a slow out-of-domain vehicle went 5 m on 9)
     max_runaways: int = 5
     runaway_floor: tuple[float, float, float] = (0.1, 0.15, 0.3)
+    #: altitude: the run-away floor grows to ``runaway_factor`` x the smallest cycle that arms
+    #: the relay's switches in the measured noise (``band / (1 + beta)`` a side); past this
+    #: (m) the altitude is too noisy for the relay test, which is refused at the take-off
+    #: command: cycles that need over 10 cm a side to arm ran away at the largest altitude h
+    #: (their unarmed halves switch late, on the relay's noise guard, and the cycle grows)
+    runaway_floor_alt_max_m: float = 0.3
     #: roll/pitch before any cycle is known (rad): a relay's start-up swings are larger than
     #: its steady cycle, and restarting one as a sign relay swings it further out
     runaway_floor_startup_rad: float = 0.25

@@ -154,6 +154,10 @@ class Shared:
                                           1 if t.loop is Loop.ALTITUDE else 2]
         if not math.isfinite(amp) and t.loop in (Loop.ROLL, Loop.PITCH):
             floor = max(floor, self.config.runaway_floor_startup_rad)
+        if t.loop is Loop.ALTITUDE and t.beta > -1:
+            # a relay cycle needs band / (1 + beta) a side to arm its switches: with a noisy
+            # altitude (a barometer) its working cycles pass the bare floor
+            floor = max(floor, self.config.runaway_factor * t.band / (1 + t.beta))
         limit = max(floor, self.config.runaway_factor * amp) if math.isfinite(amp) else floor
         if t.loop in (Loop.ROLL, Loop.PITCH):
             # a disturbed cycle inflates its own amplitude: never let the limit pass the
