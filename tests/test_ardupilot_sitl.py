@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 import pytest
+from param_round_trip import assert_round_trip
 
 from mrft_gcs.cli import main
 from mrft_gcs.errors import GainsReverted, LinkError, MrftError, SafetyAbort
@@ -126,19 +127,7 @@ def test_parameters_backed_up_written_read_back_and_restored(copter, tmp_path):
     serial0, _, _ = copter
     names = ("PSC_POSXY_P", "PSC_VELXY_P")
     with VehicleLink.connect(serial0, timeout_s=10) as link:
-        client = ParamClient(link)
-        before = {n: p.value for n, p in client.read_many(names).items()}
-        wanted = {n: round(v * 0.9, 3) for n, v in before.items()}
-        t = time.monotonic()
-        result = client.write(wanted, tmp_path)
-        print(f"2 parameters backed up, written, read back in {time.monotonic() - t:.2f} s")
-        assert result.backup_path.is_file()
-        for change in result.changes:
-            assert change.old == pytest.approx(before[change.name], rel=1e-6)
-            assert change.new == pytest.approx(wanted[change.name], rel=1e-6)
-        assert {n: p.value for n, p in client.read_many(names).items()} == pytest.approx(wanted)
-        client.restore(result.backup_path, tmp_path)
-        assert {n: p.value for n, p in client.read_many(names).items()} == pytest.approx(before)
+        assert_round_trip(ParamClient(link), names, tmp_path)
 
 
 def test_test_parameters_restored_when_a_tune_aborts(copter, tmp_path):

@@ -232,3 +232,18 @@ def test_a_climb_creeping_on_a_wrong_guess_takes_the_thrust_it_gets_for_hover(gu
     c.no_brake = True
     _climb_to_rest(c, hover, drag_T1=drag_T1)
     assert c.switched and not c.creep_folded
+
+
+def test_a_creep_read_too_far_off_the_guess_is_not_taken():
+    """A creep read further off the guess than ``creep_max_share`` is more likely a climb
+    still settling (after a relay's run-away one read 0.34 against 0.49 on PX4 SITL) than a
+    hover parameter that wrong: not taken, the integral learns the error as before. A guess
+    12 % low is taken under the default bound and left under a 5 % one."""
+    import dataclasses
+
+    hover = 0.5
+    for share, taken in ((TABLE_V.creep_max_share, True), (0.05, False)):
+        st = dataclasses.replace(TABLE_V, creep_max_share=share)
+        c = TakeoffController(z_ref_m=1.0, settings=st, relay_bias=0.88 * hover)
+        _climb_to_rest(c, hover, drag_T1=0.5)
+        assert c.switched and c.creep_folded is taken, share

@@ -14,6 +14,7 @@ import json
 import time
 
 import pytest
+from param_round_trip import assert_round_trip
 
 from mrft_gcs.cli import main
 from mrft_gcs.flight.api import tune
@@ -86,20 +87,7 @@ def test_torque_is_refused_before_arming(px4, tmp_path, capsys):
 def test_parameters_backed_up_written_read_back_and_restored(px4, tmp_path):
     names = ("MPC_XY_P", "MPC_Z_P", "MPC_XY_VEL_P_ACC")
     with VehicleLink.connect(px4.offboard, timeout_s=10) as link:
-        client = ParamClient(link)
-        before = {n: p.value for n, p in client.read_many(names).items()}
-        wanted = {n: round(v * 0.9, 3) for n, v in before.items()}
-        t = time.monotonic()
-        result = client.write(wanted, tmp_path)
-        print(f"{len(names)} parameters backed up, written, read back in "
-              f"{time.monotonic() - t:.2f} s")
-        assert result.backup_path.is_file()
-        for change in result.changes:
-            assert change.old == pytest.approx(before[change.name], rel=1e-6)
-            assert change.new == pytest.approx(wanted[change.name], rel=1e-6)
-        assert {n: p.value for n, p in client.read_many(names).items()} == pytest.approx(wanted)
-        client.restore(result.backup_path, tmp_path)
-        assert {n: p.value for n, p in client.read_many(names).items()} == pytest.approx(before)
+        assert_round_trip(ParamClient(link), names, tmp_path)
 
 
 def test_tune_on_px4_ends_ok_read_back_or_refuses_altitude_noise_before_lift_off(px4, tmp_path):

@@ -83,6 +83,10 @@ class TakeoffSettings:
     #: fold overstates hover by that drag, which a relay started unbraked does not check.
     #: 0: off
     creep_speed_m_s: float = 0.15
+    #: a creep read further off the guess than this share is not taken: the hover parameter
+    #: is rarely that wrong, a climb still settling after a relay's run-away can read so
+    #: (0.34 against 0.49 on PX4 SITL), and the integral still learns a real error
+    creep_max_share: float = 0.26
     settle_m: float = 0.05
     settle_speed_m_s: float = 0.05
     settle_max_s: float = 8.0
@@ -256,8 +260,8 @@ class TakeoffController:
                 and 0.0 < e < st.brake_m and self.recent and all(0.0 <= r[2] < st.creep_speed_m_s
                                         for r in self.recent)):
             held = self._thrust_held()
-            if math.isfinite(held) and guess > 0 and abs(held / hover - 1.0) > \
-                    st.hover_check_tol:
+            if math.isfinite(held) and guess > 0 and \
+                    st.hover_check_tol < abs(held / hover - 1.0) <= st.creep_max_share:
                 self.a_int = float(np.clip(g * (held / guess - 1.0), -0.3 * g, 0.3 * g))
                 self.creep_folded = True
                 hover = float(np.clip(guess * (1.0 + self.a_int / g), 0.0, 1.0))
